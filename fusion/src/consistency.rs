@@ -1,0 +1,546 @@
+//! Outlier rejection before the solve: which hypothesis of which observation
+//! enters the pose graph.
+//!
+//! In the spirit of PCM (Mangelson et al. 2018, "Pairwise Consistency
+//! Maximization for Robust Multi-robot Map Merging"), in three steps:
+//!
+//! 1. **Same relative pose** ([`cluster_pair`]): every hypothesis of every
+//!    observation of a vehicle pair `(a, b)`, `a < b`, expressed as `a_from_b`
+//!    (B→A observations inverted), is a *candidate*. Two candidates of
+//!    different observations are consistent when the Mahalanobis distance of
+//!    their difference under the summed covariances passes the chi-square
+//!    gate; the two hypotheses of one observation are mutually exclusive (never
+//!    adjacent). The maximum clique of that consistency graph (exact
+//!    branch-and-bound for small sets, greedy for large ones) is the pair's best
+//!    *cluster*; it is fused (information-weighted) into one edge; repeating on
+//!    the candidates left gives the runner-up clusters (up to
+//!    [`ConsistencyParams::max_clusters_per_pair`]).
+//! 2. **Cycles** ([`vote_triangles`]): a pair's clusters carry no information
+//!    on their own about which one is true (a single flipped observation gives
+//!    two one-member clusters). Every triangle of pairs `(a,b),(b,k),(a,k)` is
+//!    checked: each combination of clusters whose cycle error
+//!    `a_from_b·b_from_k` vs `a_from_k` passes the gate votes for its three
+//!    clusters. Departure from PCM: PCM's pairwise test needs odometry to relate
+//!    two loop closures; here the only composable relations are cycles of
+//!    relative poses, so the consistency test is over triangles (group-3, as in
+//!    generalized PCM) and is resolved by voting plus step 3 instead of a
+//!    hyper-clique search.
+//! 3. **Selection** ([`select`]): a spanning forest grown Prim-style from the
+//!    reference, preferring *verification*: whenever a pair has both ends in
+//!    the tree, its best-scored cluster consistent with the tree's prediction
+//!    (composed along the tree path, covariances propagated) is accepted and
+//!    the others rejected; only when nothing is verifiable is the tree extended,
+//!    by the frontier pair whose best cluster has the most votes, then margin
+//!    over its runner-up, then support. That tree is also the solver's
+//!    initialization.
+
+use proto::geometry::{difference, Cov6, Pose, PoseWithCovariance};
+use proto::VehicleId;
+use std::cmp::Reverse;
+use std::collections::{BTreeMap, BTreeSet};
+
+/// Settings of the consistency checks.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ConsistencyParams {
+    /// Gate on the squared Mahalanobis distance between two candidates, or of a
+    /// cycle error (6 DoF).
+    pub gate_chi2: f64,
+    /// Up to this many candidates per pair the maximum clique is exact.
+    pub exact_clique_limit: usize,
+    /// Clusters kept per pair (the rest of the candidates are `Inconsistent`).
+    pub max_clusters_per_pair: usize,
+}
+
+impl Default for ConsistencyParams {
+    fn default() -> Self {
+        Self {
+            // χ²₆ at 99.99%: gross outliers (flips, wrong IDs) are far beyond
+            // it, and a clique of n true candidates has n² chances to break at 99.9%.
+            gate_chi2: 27.86,
+            exact_clique_limit: 32,
+            max_clusters_per_pair: 4,
+        }
+    }
+}
+
+/// One hypothesis of one observation, as `a_from_b` of its pair.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Candidate {
+    /// Index of the observation (caller's numbering).
+    pub observation: usize,
+    /// 0: the primary hypothesis, 1: the planar-flip alternative.
+    pub hypothesis: u8,
+    pub a_from_b: Pose,
+    pub covariance: Cov6,
+}
+
+/// Mutually consistent candidates of one pair, fused into one edge.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Cluster {
+    /// Indices into the pair's candidates, ascending.
+    pub members: Vec<usize>,
+    pub a_from_b: Pose,
+    pub covariance: Cov6,
+    /// Primary hypotheses among the members (ranking tie-break: the PnP's own choice).
+    pub primaries: usize,
+    /// Triangles in which this cluster closes a consistent cycle.
+    pub votes: usize,
+}
+
+impl Cluster {
+    pub fn support(&self) -> usize {
+        self.members.len()
+    }
+    fn score(&self) -> (usize, usize, usize) {
+        (self.votes, self.members.len(), self.primaries)
+    }
+}
+
+/// A vehicle pair's candidates and clusters.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PairCandidates {
+    pub a: VehicleId,
+    pub b: VehicleId,
+    pub candidates: Vec<Candidate>,
+    pub clusters: Vec<Cluster>,
+}
+
+impl PairCandidates {
+    /// Cluster indices, best score first.
+    pub fn ranked(&self) -> Vec<usize> {
+        let mut idx: Vec<usize> = (0..self.clusters.len()).collect();
+        idx.sort_by_key(|&i| (Reverse(self.clusters[i].score()), i));
+        idx
+    }
+}
+
+/// Squared Mahalanobis distance between two poses with independent covariances.
+pub fn mahalanobis2(x: &Pose, cov_x: &Cov6, y: &Pose, cov_y: &Cov6) -> f64 {
+    let r = difference(x, y);
+    match (cov_x + cov_y).cholesky() {
+        Some(ch) => {
+            let z = ch.solve(&r);
+            r.dot(&z)
+        }
+        None => f64::INFINITY,
+    }
+}
+
+/// Information-weighted mean of `poses` in the tangent space (two Gauss–Newton
+/// passes around the first one) and the covariance of that mean.
+pub fn fuse(items: &[(Pose, Cov6)]) -> Option<(Pose, Cov6)> {
+    let (first, _) = items.first()?;
+    let infos: Vec<Cov6> = items.iter().map(|(_, c)| c.try_inverse()).collect::<Option<_>>()?;
+    let total: Cov6 = infos.iter().sum();
+    let cov = total.try_inverse()?;
+    let mut mean = *first;
+    for _ in 0..3 {
+        let mut acc = nalgebra::Vector6::zeros();
+        for ((p, _), info) in items.iter().zip(&infos) {
+            acc += info * difference(p, &mean);
+        }
+        mean = proto::geometry::perturb(&mean, &(cov * acc));
+    }
+    Some((mean, (cov + cov.transpose()) * 0.5))
+}
+
+/// Maximum-weight clique: weight `size·(m+1) + primaries`, so size first, then
+/// primary hypotheses. Exact branch-and-bound; `None` when `budget` nodes are exceeded.
+fn exact_clique(adj: &[Vec<bool>], primary: &[bool], budget: usize) -> Option<Vec<usize>> {
+    struct Search<'a> {
+        adj: &'a [Vec<bool>],
+        primary: &'a [bool],
+        scale: usize,
+        best: Vec<usize>,
+        best_score: usize,
+        nodes: usize,
+        budget: usize,
+    }
+    impl Search<'_> {
+        fn score(&self, set: &[usize]) -> usize {
+            set.len() * self.scale + set.iter().filter(|&&i| self.primary[i]).count()
+        }
+        fn expand(&mut self, r: &mut Vec<usize>, p: &[usize]) -> bool {
+            self.nodes += 1;
+            if self.nodes > self.budget {
+                return false;
+            }
+            let rs = self.score(r);
+            if rs > self.best_score {
+                self.best_score = rs;
+                self.best = r.clone();
+            }
+            for (k, &v) in p.iter().enumerate() {
+                let rest = &p[k..];
+                if rs + self.score(rest) <= self.best_score {
+                    return true;
+                }
+                let next: Vec<usize> = p[k + 1..].iter().copied().filter(|&u| self.adj[v][u]).collect();
+                r.push(v);
+                let ok = self.expand(r, &next);
+                r.pop();
+                if !ok {
+                    return false;
+                }
+            }
+            true
+        }
+    }
+    let m = adj.len();
+    let mut s = Search {
+        adj,
+        primary,
+        scale: m + 1,
+        best: Vec::new(),
+        best_score: 0,
+        nodes: 0,
+        budget,
+    };
+    // High-degree vertices first finds a big clique early, so the bound prunes.
+    let mut order: Vec<usize> = (0..m).collect();
+    order.sort_by_key(|&i| (Reverse(adj[i].iter().filter(|&&x| x).count()), i));
+    let ok = s.expand(&mut Vec::new(), &order);
+    ok.then_some(s.best)
+}
+
+/// Greedy clique from every start vertex, best weight kept.
+fn greedy_clique(adj: &[Vec<bool>], primary: &[bool]) -> Vec<usize> {
+    let m = adj.len();
+    let score = |set: &[usize]| set.len() * (m + 1) + set.iter().filter(|&&i| primary[i]).count();
+    let mut order: Vec<usize> = (0..m).collect();
+    order.sort_by_key(|&i| (Reverse(adj[i].iter().filter(|&&x| x).count()), i));
+    let mut best: Vec<usize> = Vec::new();
+    for &start in &order {
+        let mut clique = vec![start];
+        for &v in &order {
+            if v != start && clique.iter().all(|&u| adj[u][v]) {
+                clique.push(v);
+            }
+        }
+        if score(&clique) > score(&best) {
+            best = clique;
+        }
+    }
+    best
+}
+
+/// Step 1: the clusters of one pair's candidates (see the module docs).
+pub fn cluster_pair(candidates: &[Candidate], params: &ConsistencyParams) -> Vec<Cluster> {
+    let m = candidates.len();
+    let mut adj = vec![vec![false; m]; m];
+    for i in 0..m {
+        for j in i + 1..m {
+            let (ci, cj) = (&candidates[i], &candidates[j]);
+            if ci.observation == cj.observation {
+                continue;
+            }
+            let d2 = mahalanobis2(&ci.a_from_b, &ci.covariance, &cj.a_from_b, &cj.covariance);
+            if d2 <= params.gate_chi2 {
+                adj[i][j] = true;
+                adj[j][i] = true;
+            }
+        }
+    }
+    let mut remaining: Vec<usize> = (0..m).collect();
+    let mut clusters = Vec::new();
+    while !remaining.is_empty() && clusters.len() < params.max_clusters_per_pair {
+        let sub_adj: Vec<Vec<bool>> = remaining
+            .iter()
+            .map(|&i| remaining.iter().map(|&j| adj[i][j]).collect())
+            .collect();
+        let primary: Vec<bool> = remaining.iter().map(|&i| candidates[i].hypothesis == 0).collect();
+        let local = if remaining.len() <= params.exact_clique_limit {
+            exact_clique(&sub_adj, &primary, 200_000).unwrap_or_else(|| greedy_clique(&sub_adj, &primary))
+        } else {
+            greedy_clique(&sub_adj, &primary)
+        };
+        let mut members: Vec<usize> = local.iter().map(|&k| remaining[k]).collect();
+        members.sort_unstable();
+        let Some(mut fused) = fuse_members(candidates, &members) else {
+            break;
+        };
+        // Relaxation: a clique needs every pair consistent, so one noisy true
+        // candidate may miss it; admit any candidate (of an observation not yet
+        // in the cluster) consistent with the fused mean.
+        let in_obs: BTreeSet<usize> = members.iter().map(|&i| candidates[i].observation).collect();
+        let extra: Vec<usize> = remaining
+            .iter()
+            .copied()
+            .filter(|i| !members.contains(i) && !in_obs.contains(&candidates[*i].observation))
+            .filter(|&i| {
+                let c = &candidates[i];
+                mahalanobis2(&c.a_from_b, &c.covariance, &fused.0, &fused.1) <= params.gate_chi2
+            })
+            .collect();
+        if !extra.is_empty() {
+            let mut seen = in_obs;
+            for i in extra {
+                if seen.insert(candidates[i].observation) {
+                    members.push(i);
+                }
+            }
+            members.sort_unstable();
+            if let Some(f) = fuse_members(candidates, &members) {
+                fused = f;
+            }
+        }
+        remaining.retain(|i| !members.contains(i));
+        clusters.push(Cluster {
+            primaries: members.iter().filter(|&&i| candidates[i].hypothesis == 0).count(),
+            members,
+            a_from_b: fused.0,
+            covariance: fused.1,
+            votes: 0,
+        });
+    }
+    clusters
+}
+
+fn fuse_members(candidates: &[Candidate], members: &[usize]) -> Option<(Pose, Cov6)> {
+    let items: Vec<(Pose, Cov6)> = members
+        .iter()
+        .map(|&i| (candidates[i].a_from_b, candidates[i].covariance))
+        .collect();
+    fuse(&items)
+}
+
+/// Step 2: votes from consistent triangles (see the module docs). `pairs` must
+/// have `a < b` and be unique per pair.
+pub fn vote_triangles(pairs: &mut [PairCandidates], gate_chi2: f64) {
+    let index: BTreeMap<(VehicleId, VehicleId), usize> = pairs.iter().enumerate().map(|(i, p)| ((p.a, p.b), i)).collect();
+    let mut neighbours: BTreeMap<VehicleId, BTreeSet<VehicleId>> = BTreeMap::new();
+    for p in pairs.iter() {
+        neighbours.entry(p.a).or_default().insert(p.b);
+        neighbours.entry(p.b).or_default().insert(p.a);
+    }
+    let mut votes: Vec<Vec<usize>> = pairs.iter().map(|p| vec![0; p.clusters.len()]).collect();
+    for (&(a, b), &ab) in &index {
+        let (Some(na), Some(nb)) = (neighbours.get(&a), neighbours.get(&b)) else {
+            continue;
+        };
+        for &k in na.intersection(nb).filter(|&&k| k > b) {
+            let (bk, ak) = (index[&(b, k)], index[&(a, k)]);
+            let mut hit_ab = vec![false; pairs[ab].clusters.len()];
+            let mut hit_bk = vec![false; pairs[bk].clusters.len()];
+            let mut hit_ak = vec![false; pairs[ak].clusters.len()];
+            for (i, c_ab) in pairs[ab].clusters.iter().enumerate() {
+                for (j, c_bk) in pairs[bk].clusters.iter().enumerate() {
+                    let composed = PoseWithCovariance::new(c_ab.a_from_b, c_ab.covariance)
+                        .compose(&PoseWithCovariance::new(c_bk.a_from_b, c_bk.covariance));
+                    for (l, c_ak) in pairs[ak].clusters.iter().enumerate() {
+                        let d2 = mahalanobis2(&composed.pose, &composed.covariance, &c_ak.a_from_b, &c_ak.covariance);
+                        if d2 <= gate_chi2 {
+                            hit_ab[i] = true;
+                            hit_bk[j] = true;
+                            hit_ak[l] = true;
+                        }
+                    }
+                }
+            }
+            for (p, hits) in [(ab, hit_ab), (bk, hit_bk), (ak, hit_ak)] {
+                for (c, h) in hits.into_iter().enumerate() {
+                    votes[p][c] += usize::from(h);
+                }
+            }
+        }
+    }
+    for (p, v) in pairs.iter_mut().zip(votes) {
+        for (c, n) in p.clusters.iter_mut().zip(v) {
+            c.votes = n;
+        }
+    }
+}
+
+/// One spanning tree of the selection.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Tree {
+    pub root: VehicleId,
+    /// `(parent, parent_from_vehicle)` per non-root vehicle.
+    parents: BTreeMap<VehicleId, (VehicleId, PoseWithCovariance)>,
+    depth: BTreeMap<VehicleId, usize>,
+}
+
+impl Tree {
+    fn new(root: VehicleId) -> Self {
+        Self {
+            root,
+            parents: BTreeMap::new(),
+            depth: BTreeMap::from([(root, 0)]),
+        }
+    }
+    pub fn contains(&self, v: VehicleId) -> bool {
+        self.depth.contains_key(&v)
+    }
+    pub fn vehicles(&self) -> impl Iterator<Item = VehicleId> + '_ {
+        self.depth.keys().copied()
+    }
+    fn add(&mut self, parent: VehicleId, v: VehicleId, parent_from_v: PoseWithCovariance) {
+        let d = self.depth[&parent] + 1;
+        self.depth.insert(v, d);
+        self.parents.insert(v, (parent, parent_from_v));
+    }
+    /// `ancestor_from_v`, composed up the tree.
+    fn up_to(&self, mut v: VehicleId, ancestor: VehicleId) -> PoseWithCovariance {
+        let mut acc = PoseWithCovariance::new(Pose::identity(), Cov6::zeros());
+        while v != ancestor {
+            let (p, p_from_v) = &self.parents[&v];
+            acc = p_from_v.compose(&acc);
+            v = *p;
+        }
+        acc
+    }
+    /// `a_from_b` along the tree path (through the lowest common ancestor, so
+    /// the shared part of the paths adds no uncertainty).
+    pub fn relative(&self, a: VehicleId, b: VehicleId) -> PoseWithCovariance {
+        let (mut x, mut y) = (a, b);
+        while x != y {
+            if self.depth[&x] >= self.depth[&y] {
+                x = self.parents[&x].0;
+            } else {
+                y = self.parents[&y].0;
+            }
+        }
+        self.up_to(a, x).inverse().compose(&self.up_to(b, x))
+    }
+    /// `root_from_v` for every vehicle of the tree.
+    pub fn poses(&self) -> BTreeMap<VehicleId, Pose> {
+        self.depth.keys().map(|&v| (v, self.up_to(v, self.root).pose)).collect()
+    }
+}
+
+/// The result of step 3.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Selection {
+    /// Chosen cluster per pair (index into `pairs`), `None`: every cluster rejected
+    /// or the pair never decided.
+    pub choice: Vec<Option<usize>>,
+    /// The tree grown from the reference (first) and from any other component.
+    pub trees: Vec<Tree>,
+}
+
+/// Step 3: grow spanning trees and choose one cluster per pair (module docs).
+pub fn select(pairs: &[PairCandidates], reference: VehicleId, gate_chi2: f64) -> Selection {
+    let ranked: Vec<Vec<usize>> = pairs.iter().map(PairCandidates::ranked).collect();
+    let mut choice = vec![None; pairs.len()];
+    let mut decided = vec![false; pairs.len()];
+    let mut by_vehicle: BTreeMap<VehicleId, Vec<usize>> = BTreeMap::new();
+    for (i, p) in pairs.iter().enumerate() {
+        by_vehicle.entry(p.a).or_default().push(i);
+        by_vehicle.entry(p.b).or_default().push(i);
+    }
+    let mut trees: Vec<Tree> = Vec::new();
+    let mut tree_of: BTreeMap<VehicleId, usize> = BTreeMap::new();
+    let mut root = Some(reference);
+    while let Some(r) = root {
+        let t = trees.len();
+        trees.push(Tree::new(r));
+        tree_of.insert(r, t);
+        let mut just_added = vec![r];
+        loop {
+            // Verify every pair that closes a cycle with the new vehicles.
+            for v in just_added.drain(..) {
+                for &pi in by_vehicle.get(&v).into_iter().flatten() {
+                    let p = &pairs[pi];
+                    if decided[pi] || tree_of.get(&p.a) != Some(&t) || tree_of.get(&p.b) != Some(&t) {
+                        continue;
+                    }
+                    decided[pi] = true;
+                    let predicted = trees[t].relative(p.a, p.b);
+                    choice[pi] = ranked[pi].iter().copied().find(|&c| {
+                        let cl = &p.clusters[c];
+                        mahalanobis2(&cl.a_from_b, &cl.covariance, &predicted.pose, &predicted.covariance) <= gate_chi2
+                    });
+                }
+            }
+            // Extend by the most trustworthy frontier pair.
+            let frontier = pairs.iter().enumerate().filter(|(i, p)| {
+                !decided[*i] && !ranked[*i].is_empty() && (tree_of.get(&p.a) == Some(&t)) != (tree_of.get(&p.b) == Some(&t))
+            });
+            let best = frontier.max_by_key(|(i, p)| {
+                let r = &ranked[*i];
+                let top = &p.clusters[r[0]];
+                let (sv, ss) = r.get(1).map_or((0, 0), |&s| (p.clusters[s].votes, p.clusters[s].support()));
+                (
+                    top.votes,
+                    top.votes as i64 - sv as i64,
+                    top.support() as i64 - ss as i64,
+                    top.support(),
+                    top.primaries,
+                    Reverse((p.a, p.b)),
+                )
+            });
+            let Some((pi, p)) = best else { break };
+            decided[pi] = true;
+            let c = ranked[pi][0];
+            choice[pi] = Some(c);
+            let cl = &p.clusters[c];
+            let a_from_b = PoseWithCovariance::new(cl.a_from_b, cl.covariance);
+            let (parent, child, parent_from_child) = if tree_of.get(&p.a) == Some(&t) {
+                (p.a, p.b, a_from_b)
+            } else {
+                (p.b, p.a, a_from_b.inverse())
+            };
+            trees[t].add(parent, child, parent_from_child);
+            tree_of.insert(child, t);
+            just_added.push(child);
+        }
+        root = pairs
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| !decided[*i] && !ranked[*i].is_empty())
+            .flat_map(|(_, p)| [p.a, p.b])
+            .filter(|v| !tree_of.contains_key(v))
+            .min();
+    }
+    Selection { choice, trees }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proto::geometry::pose_from_xyz_rpy;
+
+    fn cand(obs: usize, hyp: u8, p: Pose) -> Candidate {
+        Candidate {
+            observation: obs,
+            hypothesis: hyp,
+            a_from_b: p,
+            covariance: Cov6::identity() * 1e-4,
+        }
+    }
+
+    #[test]
+    fn exclusive_hypotheses_never_share_a_cluster() {
+        let p = pose_from_xyz_rpy([1.0, 0.0, 0.0], [0.0, 0.0, 0.0]);
+        // One observation whose two hypotheses are (numerically) the same pose.
+        let cs = [cand(0, 0, p), cand(0, 1, p), cand(1, 0, p)];
+        let clusters = cluster_pair(&cs, &ConsistencyParams::default());
+        assert_eq!(clusters[0].members, vec![0, 2], "primary wins the tie");
+        assert_eq!(clusters[1].members, vec![1]);
+    }
+
+    #[test]
+    fn triangle_votes_pick_the_consistent_flip() {
+        let truth = |v: u32| pose_from_xyz_rpy([v as f64, 0.5 * v as f64, 0.0], [0.0, 0.0, 0.1 * v as f64]);
+        let rel = |a: u32, b: u32| truth(a).inverse() * truth(b);
+        let twin = pose_from_xyz_rpy([0.0, 0.0, 0.0], [0.6, 0.0, 0.0]);
+        let mut pairs = vec![
+            PairCandidates { a: 1, b: 2, candidates: vec![cand(0, 0, rel(1, 2))], clusters: vec![] },
+            PairCandidates { a: 2, b: 3, candidates: vec![cand(1, 0, rel(2, 3))], clusters: vec![] },
+            // Flipped primary, true alternative.
+            PairCandidates {
+                a: 1,
+                b: 3,
+                candidates: vec![cand(2, 0, twin * rel(1, 3)), cand(2, 1, rel(1, 3))],
+                clusters: vec![],
+            },
+        ];
+        for p in &mut pairs {
+            p.clusters = cluster_pair(&p.candidates, &ConsistencyParams::default());
+        }
+        vote_triangles(&mut pairs, 27.86);
+        let sel = select(&pairs, 1, 27.86);
+        let chosen = &pairs[2].clusters[sel.choice[2].unwrap()];
+        assert_eq!(pairs[2].candidates[chosen.members[0]].hypothesis, 1);
+    }
+}

@@ -1,0 +1,172 @@
+//! The sliding window of admitted observations, the checks that admit them,
+//! and the age inflation of their covariances.
+
+use proto::config::{Fleet, MarkerOwner};
+use proto::geometry::{covariance_problem, pose_is_finite, Cov6};
+use proto::{EdgeReport, Observation, RejectReason, VehicleId};
+use serde::{Deserialize, Serialize};
+use std::collections::{BTreeMap, BTreeSet};
+
+/// Growth of an observation's covariance with its age, for vehicles that keep
+/// moving after the frame was taken: a random walk,
+/// `Σ(age) = Σ + age · diag(q_t, q_t, q_t, q_r, q_r, q_r)`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct AgeInflation {
+    /// `q_t`, m²/s.
+    pub translation_m2_per_s: f64,
+    /// `q_r`, rad²/s.
+    pub rotation_rad2_per_s: f64,
+}
+
+impl Default for AgeInflation {
+    fn default() -> Self {
+        // 5 cm and ~1° of standard deviation after one second: relative
+        // drift of slowly manoeuvring AUVs holding a formation (≲ 0.5 m/s).
+        Self {
+            translation_m2_per_s: 0.05 * 0.05,
+            rotation_rad2_per_s: 1f64.to_radians().powi(2),
+        }
+    }
+}
+
+impl AgeInflation {
+    pub fn inflate(&self, covariance: &Cov6, age_s: f64) -> Cov6 {
+        let age = age_s.max(0.0);
+        let mut c = *covariance;
+        for i in 0..3 {
+            c[(i, i)] += age * self.translation_m2_per_s;
+            c[(i + 3, i + 3)] += age * self.rotation_rad2_per_s;
+        }
+        c
+    }
+}
+
+/// Ordering key of an observation: capture time first, then who/what.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub(crate) struct ObservationKey {
+    pub stamp_ns: u64,
+    pub observer: VehicleId,
+    pub camera: u8,
+    pub frame_seq: u64,
+    pub codes: &'static str,
+    pub marker: u32,
+}
+
+impl ObservationKey {
+    pub fn of(obs: &Observation) -> Self {
+        Self {
+            stamp_ns: obs.stamp_ns,
+            observer: obs.observer,
+            camera: obs.camera,
+            frame_seq: obs.frame_seq,
+            codes: obs.codes.name(),
+            marker: obs.target_marker,
+        }
+    }
+    /// What makes two observations the same detection.
+    pub fn duplicate_key(&self) -> (VehicleId, u8, u64, &'static str, u32) {
+        (self.observer, self.camera, self.frame_seq, self.codes, self.marker)
+    }
+}
+
+/// An admitted observation.
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) struct Stored {
+    pub obs: Observation,
+    /// The vehicle carrying the marker, per the fleet file.
+    pub target: VehicleId,
+}
+
+/// Limits the admission checks use.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Admission {
+    pub window_ns: u64,
+    pub max_clock_skew_ns: u64,
+    pub max_std: f64,
+}
+
+/// The sliding window.
+#[derive(Debug, Clone, Default)]
+pub(crate) struct Window {
+    pub entries: BTreeMap<ObservationKey, Stored>,
+    duplicates: BTreeSet<(VehicleId, u8, u64, &'static str, u32)>,
+}
+
+impl Window {
+    /// Admit `obs` or say why not (never double-counts a detection).
+    pub fn admit(
+        &mut self,
+        fleet: &Fleet,
+        obs: Observation,
+        arrived_on: VehicleId,
+        now_ns: u64,
+        limits: &Admission,
+    ) -> Result<VehicleId, RejectReason> {
+        if obs.observer != arrived_on {
+            return Err(RejectReason::ObserverMismatch);
+        }
+        if fleet.vehicle(obs.observer).is_none() {
+            return Err(RejectReason::Invalid);
+        }
+        if !pose_is_finite(&obs.observer_from_target)
+            || covariance_problem(&obs.covariance, limits.max_std).is_some()
+            || !obs.reprojection_rms_px.is_finite()
+        {
+            return Err(RejectReason::Invalid);
+        }
+        if let Some(alt) = &obs.alternative {
+            if !pose_is_finite(&alt.observer_from_target) || covariance_problem(&alt.covariance, limits.max_std).is_some() {
+                return Err(RejectReason::Invalid);
+            }
+        }
+        let target = match fleet.marker_owner(obs.codes, obs.target_marker) {
+            MarkerOwner::Unknown => return Err(RejectReason::UnknownMarker),
+            MarkerOwner::Ambiguous => return Err(RejectReason::AmbiguousMarker),
+            MarkerOwner::Vehicle(v) => v,
+        };
+        if target == obs.observer {
+            return Err(RejectReason::SelfObservation);
+        }
+        if obs.stamp_ns > now_ns.saturating_add(limits.max_clock_skew_ns) {
+            return Err(RejectReason::ClockSkew);
+        }
+        if obs.stamp_ns.saturating_add(limits.window_ns) < now_ns {
+            return Err(RejectReason::Stale);
+        }
+        let key = ObservationKey::of(&obs);
+        if !self.duplicates.insert(key.duplicate_key()) {
+            return Err(RejectReason::Duplicate);
+        }
+        self.entries.insert(key, Stored { obs, target });
+        Ok(target)
+    }
+
+    /// Drop what fell out of the window; returns how many.
+    pub fn evict(&mut self, now_ns: u64, window_ns: u64) -> usize {
+        let expired: Vec<ObservationKey> = self
+            .entries
+            .keys()
+            .take_while(|k| k.stamp_ns.saturating_add(window_ns) < now_ns)
+            .copied()
+            .collect();
+        for k in &expired {
+            self.entries.remove(k);
+            self.duplicates.remove(&k.duplicate_key());
+        }
+        expired.len()
+    }
+}
+
+/// The report of an observation rejected before the solve.
+pub(crate) fn early_report(obs: &Observation, target: Option<VehicleId>, reason: RejectReason) -> EdgeReport {
+    EdgeReport {
+        observer: obs.observer,
+        camera: obs.camera,
+        target_marker: obs.target_marker,
+        target_vehicle: target,
+        stamp_ns: obs.stamp_ns,
+        frame_seq: obs.frame_seq,
+        rejected: Some(reason),
+        chi2: f64::NAN,
+    }
+}

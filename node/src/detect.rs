@@ -1,0 +1,495 @@
+//! Marker detection (paper §5): contours → geometric filtering → grid code
+//! reading → 12 (or 4) corners → sub-pixel refinement.
+//!
+//! The pipeline of [`ShoalDetector`]:
+//!
+//! 1. **Pyramid level.** Quads are found on a downsampled level (half size
+//!    for frames wider than [`DetectParams::full_res_max_width`]); corners are
+//!    refined on the full-resolution image.
+//! 2. **Contours.** Adaptive mean threshold(s) (dark = foreground), all
+//!    contours, polygon approximation; kept when they are convex
+//!    quadrilaterals of sufficient size, clear of the image border (paper §5,
+//!    "shape, size, and edge proximity").
+//! 3. **Code reading.** Every quad is tried as the *code square* (the black
+//!    border around the data bits): a homography maps its module grid into
+//!    the image, each module's mean grey level is compared with a threshold
+//!    halfway between the black border's and the white ring's (or quiet
+//!    zone's) means, and the data bits are matched to the table under all
+//!    four rotations, correcting at most the code set's correction budget. A
+//!    code that does not match is dropped, never guessed.
+//! 4. **Enhanced marker frame.** For `shoal`, the frame's inner and outer
+//!    edges are predicted from the code square's homography (they sit one and
+//!    two modules outside it, the paper's 10x10 grid) and matched against the
+//!    other quads. We pair by geometry rather than by the contour hierarchy:
+//!    the hierarchy breaks whenever blur or a threshold glitch joins the code
+//!    border to the frame, while the prediction does not. A frame that is
+//!    clipped by the image border or occluded is simply not found and the
+//!    marker keeps its code's 4 corners ([`Detection::corner_ids`]).
+//! 5. **Sub-pixel corners** ([`refine`]): straight lines fitted to the
+//!    grey-level edge of each whole side, intersected.
+
+pub mod geom;
+pub mod paths;
+pub mod refine;
+
+use crate::mat::{GrayView, MatError};
+use geom::{apply, dist, homography_4, mean_side, min_side, signed_area2, Px};
+use opencv::core::{Mat, Point, Size, ToInputArray, Vector};
+use opencv::prelude::*;
+use opencv::imgproc;
+use refine::Polarity;
+use shoal_proto::marker::{rotate_code, CodeSet, MarkerId};
+
+pub use paths::{detect_paths, DetectSummary};
+
+/// Errors of detection.
+#[derive(Debug, thiserror::Error)]
+pub enum DetectError {
+    #[error("bad input image: {0}")]
+    Image(#[from] MatError),
+    #[error("OpenCV: {0}")]
+    OpenCv(#[from] opencv::Error),
+    #[error("code set {set} has no code table; run `cargo run -p shoal-node --example extract_code_tables`")]
+    NoCodes { set: &'static str },
+    #[error("AprilTag: {0}")]
+    AprilTag(String),
+    #[error("code set {set} is not supported by detector {detector}")]
+    Unsupported { detector: &'static str, set: &'static str },
+    #[error("{path}: {reason}")]
+    Input { path: String, reason: String },
+    #[error("writing output: {0}")]
+    Io(#[from] std::io::Error),
+}
+
+/// One detected marker.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Detection {
+    pub codes: CodeSet,
+    pub id: MarkerId,
+    /// Corner pixels, in the order of [`Detection::corner_ids`].
+    pub corners_px: Vec<[f64; 2]>,
+    /// Index of each corner into [`CodeSet::corners_3d`].
+    pub corner_ids: Vec<u8>,
+    /// Bits corrected when decoding.
+    pub hamming: u32,
+    /// Mean module size in pixels.
+    pub module_px: f64,
+}
+
+impl Detection {
+    /// The 3-D corners matching `corners_px`, for a marker of footprint `side_m`.
+    pub fn object_points(&self, side_m: f64) -> Vec<nalgebra::Point3<f64>> {
+        let all = self.codes.corners_3d(side_m);
+        self.corner_ids.iter().map(|&i| all[i as usize]).collect()
+    }
+}
+
+/// A detector of markers in 8-bit grey images.
+pub trait MarkerDetector: Send {
+    fn name(&self) -> &str;
+    fn detect(&mut self, gray: &Mat) -> Result<Vec<Detection>, DetectError>;
+}
+
+/// How corners are refined to sub-pixel precision.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Refinement {
+    /// Straight lines fitted to each side's grey-level edge, intersected (default).
+    EdgeLines,
+    /// `cv::cornerSubPix` with a window of 0.35 module.
+    CornerSubPix,
+    /// The polygon corners of the contour (integer pixels).
+    None,
+}
+
+/// Tuning of [`ShoalDetector`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct DetectParams {
+    /// Adaptive-threshold window sizes (odd, pixels at the detection level);
+    /// more windows find more marker sizes at more cost.
+    pub threshold_windows: Vec<i32>,
+    /// Offset subtracted from the local mean (grey levels).
+    pub threshold_offset: f64,
+    /// Frames wider than this are searched for quads at half resolution.
+    pub full_res_max_width: i32,
+    /// Smallest accepted code-square side in full-resolution pixels.
+    pub min_code_side_px: f64,
+    /// Quads with a corner closer than this to the image border (px) are dropped.
+    pub border_margin_px: f64,
+    /// Polygon approximation tolerance as a fraction of the contour perimeter.
+    pub approx_epsilon: f64,
+    /// Smallest black/white contrast (grey levels) for a readable code.
+    pub min_contrast: f64,
+    /// Fraction of border (and ring) modules allowed to read wrong.
+    pub max_border_error_rate: f64,
+    /// Bits corrected at most; `None` = the code table's `max_correction_bits`.
+    pub max_correction_bits: Option<u32>,
+    pub refinement: Refinement,
+}
+
+impl Default for DetectParams {
+    fn default() -> Self {
+        Self {
+            threshold_windows: vec![7, 17],
+            threshold_offset: 7.0,
+            full_res_max_width: 1000,
+            min_code_side_px: 14.0,
+            border_margin_px: 2.0,
+            approx_epsilon: 0.04,
+            min_contrast: 12.0,
+            max_border_error_rate: 0.2,
+            max_correction_bits: None,
+            refinement: Refinement::EdgeLines,
+        }
+    }
+}
+
+/// A convex quad, clockwise on screen, in full-resolution pixels.
+#[derive(Debug, Clone, Copy)]
+struct Quad {
+    pts: [Px; 4],
+}
+
+/// The detector of paper §5, for any [`CodeSet`].
+#[derive(Debug, Clone)]
+pub struct ShoalDetector {
+    codes: CodeSet,
+    params: DetectParams,
+    name: String,
+    /// Codes of the set, with all four rotations: `(rotated bits, id, k)`.
+    rotated: Vec<(u64, MarkerId, usize)>,
+    correction_bits: u32,
+}
+
+impl ShoalDetector {
+    pub fn new(codes: CodeSet, params: DetectParams) -> Self {
+        let n = codes.data_side();
+        let rotated = (0..codes.len() as MarkerId)
+            .filter_map(|id| codes.code(id).ok().map(|c| (id, c)))
+            .flat_map(|(id, c)| (0..4).map(move |k| (rotate_code(c, n, k), id, k)))
+            .collect();
+        let correction_bits = params
+            .max_correction_bits
+            .unwrap_or(codes.table().max_correction_bits);
+        Self {
+            codes,
+            name: format!("shoal-{}", codes.name()),
+            params,
+            rotated,
+            correction_bits,
+        }
+    }
+
+    pub fn codes(&self) -> CodeSet {
+        self.codes
+    }
+
+    pub fn params(&self) -> &DetectParams {
+        &self.params
+    }
+
+    /// Detect in a [`shoal_proto::image::GrayImage`] (wrapped without copying).
+    pub fn detect_gray(&mut self, img: &shoal_proto::image::GrayImage) -> Result<Vec<Detection>, DetectError> {
+        let mat = crate::mat::gray_as_mat(img)?;
+        self.detect_in(&mat)
+    }
+
+    /// Step 1–2: candidate quads from the contours of one pyramid level.
+    fn find_quads(&self, gray: &(impl MatTraitConst + ToInputArray)) -> Result<Vec<Quad>, DetectError> {
+        let p = &self.params;
+        let (level, scale) = if gray.cols() > p.full_res_max_width {
+            let mut half = Mat::default();
+            imgproc::resize(
+                gray,
+                &mut half,
+                Size::new(gray.cols() / 2, gray.rows() / 2),
+                0.0,
+                0.0,
+                imgproc::INTER_AREA,
+            )?;
+            (half, 2.0)
+        } else {
+            (gray.try_clone()?, 1.0)
+        };
+        let (w, h) = (f64::from(level.cols()), f64::from(level.rows()));
+        let min_side_lvl = p.min_code_side_px / scale;
+        let mut quads: Vec<Quad> = Vec::new();
+        let mut bin = Mat::default();
+        for &win in &p.threshold_windows {
+            let win = (win.max(3)) | 1;
+            imgproc::adaptive_threshold(
+                &level,
+                &mut bin,
+                255.0,
+                imgproc::ADAPTIVE_THRESH_MEAN_C,
+                imgproc::THRESH_BINARY_INV,
+                win,
+                p.threshold_offset,
+            )?;
+            let mut contours: Vector<Vector<Point>> = Vector::new();
+            imgproc::find_contours(
+                &bin,
+                &mut contours,
+                imgproc::RETR_LIST,
+                imgproc::CHAIN_APPROX_NONE,
+                Point::new(0, 0),
+            )?;
+            let mut approx: Vector<Point> = Vector::new();
+            for c in contours.iter() {
+                if (c.len() as f64) < 4.0 * min_side_lvl || c.len() as f64 > 4.0 * (w + h) {
+                    continue;
+                }
+                let perim = imgproc::arc_length(&c, true)?;
+                imgproc::approx_poly_dp(&c, &mut approx, p.approx_epsilon * perim, true)?;
+                if approx.len() != 4 || !imgproc::is_contour_convex(&approx)? {
+                    continue;
+                }
+                let mut q = [[0.0; 2]; 4];
+                for (i, pt) in approx.iter().enumerate() {
+                    q[i] = [f64::from(pt.x), f64::from(pt.y)];
+                }
+                let margin = p.border_margin_px / scale;
+                if q.iter().any(|c| c[0] < margin || c[1] < margin || c[0] > w - 1.0 - margin || c[1] > h - 1.0 - margin) {
+                    continue;
+                }
+                if min_side(&q) < min_side_lvl {
+                    continue;
+                }
+                if signed_area2(&q) < 0.0 {
+                    q.swap(1, 3);
+                }
+                // Level pixel centres to full-resolution pixel centres.
+                for c in &mut q {
+                    c[0] = (c[0] + 0.5) * scale - 0.5;
+                    c[1] = (c[1] + 0.5) * scale - 0.5;
+                }
+                // The same square found by another threshold window: keep one.
+                let tol = 0.1 * mean_side(&q);
+                if quads.iter().any(|o| same_quad(&o.pts, &q, tol)) {
+                    continue;
+                }
+                quads.push(Quad { pts: q });
+            }
+        }
+        Ok(quads)
+    }
+
+    /// Step 3: read the code inside a quad taken as the code square. Returns
+    /// `(id, hamming, corners in upright order TL, TR, BR, BL)`.
+    fn read_code(&self, view: &GrayView<'_>, quad: &Quad) -> Option<(MarkerId, u32, [Px; 4])> {
+        let n = self.codes.data_side();
+        let m = n + 2; // code square: black border + data
+        let ms = m as f64;
+        let cells = [[0.0, 0.0], [ms, 0.0], [ms, ms], [0.0, ms]];
+        let hmat = homography_4(&cells, &quad.pts)?;
+        let module_px = mean_side(&quad.pts) / ms;
+        // Sub-samples per module side: more for big modules, at most 4x4.
+        let s = (module_px / 3.0).clamp(1.0, 4.0) as usize;
+        let cell_mean = |r: i32, c: i32| -> f64 {
+            let mut acc = 0.0;
+            for i in 0..s {
+                for j in 0..s {
+                    // The central 60% of the module, away from blurred module edges.
+                    let fy = 0.2 + 0.6 * (i as f64 + 0.5) / s as f64;
+                    let fx = 0.2 + 0.6 * (j as f64 + 0.5) / s as f64;
+                    let p = apply(&hmat, [f64::from(c) + fx, f64::from(r) + fy]);
+                    acc += view.sample(p[0], p[1]);
+                }
+            }
+            acc / (s * s) as f64
+        };
+        let mi = m as i32;
+        // Border ring (black) and the ring one module outside (white: the
+        // enhanced marker's white ring, or the quiet zone of the others).
+        let ring_cells = |k: i32| -> Vec<(i32, i32)> {
+            let (lo, hi) = (-k, mi - 1 + k);
+            let mut v = Vec::new();
+            for c in lo..=hi {
+                v.push((lo, c));
+                v.push((hi, c));
+            }
+            for r in lo + 1..hi {
+                v.push((r, lo));
+                v.push((r, hi));
+            }
+            v
+        };
+        let border: Vec<f64> = ring_cells(0).into_iter().map(|(r, c)| cell_mean(r, c)).collect();
+        let outside: Vec<f64> = ring_cells(1)
+            .into_iter()
+            .filter_map(|(r, c)| {
+                let p = apply(&hmat, [f64::from(c) + 0.5, f64::from(r) + 0.5]);
+                view.contains(p[0], p[1], 1.0).then(|| cell_mean(r, c))
+            })
+            .collect();
+        if outside.len() < border.len() / 2 {
+            return None;
+        }
+        let black = median(&border);
+        let white = median(&outside);
+        if white - black < self.params.min_contrast {
+            return None;
+        }
+        let thr = 0.5 * (black + white);
+        let bad_border = border.iter().filter(|&&v| v > thr).count();
+        let bad_outside = outside.iter().filter(|&&v| v < thr).count();
+        let rate = self.params.max_border_error_rate;
+        if bad_border as f64 > rate * border.len() as f64 || bad_outside as f64 > rate * outside.len() as f64 {
+            return None;
+        }
+        let mut bits = 0u64;
+        for r in 0..n {
+            for c in 0..n {
+                bits = (bits << 1) | u64::from(cell_mean(r as i32 + 1, c as i32 + 1) > thr);
+            }
+        }
+        let mut best: Option<(u32, MarkerId, usize)> = None;
+        let mut tie = false;
+        for &(code, id, k) in &self.rotated {
+            let d = (code ^ bits).count_ones();
+            match best {
+                Some((bd, bid, _)) if d == bd && bid != id => tie = true,
+                Some((bd, _, _)) if d >= bd => {}
+                _ => {
+                    best = Some((d, id, k));
+                    tie = false;
+                }
+            }
+        }
+        let (d, id, k) = best?;
+        if d > self.correction_bits || (tie && d > 0) {
+            return None;
+        }
+        // Seen rotated clockwise k times: the upright corner i sits at quad corner (i + k) mod 4.
+        let mut upright = [[0.0; 2]; 4];
+        for i in 0..4 {
+            upright[i] = quad.pts[(i + k) % 4];
+        }
+        Some((id, d, upright))
+    }
+
+    /// Step 4: the frame square whose corners sit `off` modules outside the
+    /// code square (enhanced marker: 1 = frame inner edge, 2 = outer edge).
+    fn find_frame(&self, code: &[Px; 4], module_px: f64, off: f64, quads: &[Quad]) -> Option<[Px; 4]> {
+        let ms = self.codes.data_side() as f64 + 2.0;
+        let cells = [[0.0, 0.0], [ms, 0.0], [ms, ms], [0.0, ms]];
+        let hmat = homography_4(&cells, code)?;
+        let pred = [
+            apply(&hmat, [-off, -off]),
+            apply(&hmat, [ms + off, -off]),
+            apply(&hmat, [ms + off, ms + off]),
+            apply(&hmat, [-off, ms + off]),
+        ];
+        let tol = 0.45 * module_px;
+        let mut best: Option<(f64, [Px; 4])> = None;
+        for q in quads {
+            let mut out = [[0.0; 2]; 4];
+            let mut total = 0.0;
+            let mut ok = true;
+            for i in 0..4 {
+                let (j, d) = (0..4)
+                    .map(|j| (j, dist(q.pts[j], pred[i])))
+                    .min_by(|a, b| a.1.total_cmp(&b.1))
+                    .unwrap_or((0, f64::INFINITY));
+                if d > tol {
+                    ok = false;
+                    break;
+                }
+                out[i] = q.pts[j];
+                total += d;
+            }
+            if ok && best.as_ref().is_none_or(|b| total < b.0) {
+                best = Some((total, out));
+            }
+        }
+        best.map(|b| b.1)
+    }
+
+    fn refine(&self, gray: &impl ToInputArray, view: &GrayView<'_>, quad: &[Px; 4], module_px: f64, polarity: Polarity) -> [Px; 4] {
+        match self.params.refinement {
+            Refinement::EdgeLines => refine::refine_by_edge_lines(view, quad, module_px, polarity).unwrap_or(*quad),
+            Refinement::CornerSubPix => refine::refine_by_corner_subpix(gray, quad, module_px).unwrap_or(*quad),
+            Refinement::None => *quad,
+        }
+    }
+}
+
+fn median(v: &[f64]) -> f64 {
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    if s.is_empty() {
+        return f64::NAN;
+    }
+    s[s.len() / 2]
+}
+
+/// True when two quads have the same corners (in any cyclic order) within `tol`.
+fn same_quad(a: &[Px; 4], b: &[Px; 4], tol: f64) -> bool {
+    a.iter().all(|p| b.iter().any(|q| dist(*p, *q) < tol))
+}
+
+impl MarkerDetector for ShoalDetector {
+    fn name(&self) -> &str {
+        &self.name
+    }
+
+    fn detect(&mut self, gray: &Mat) -> Result<Vec<Detection>, DetectError> {
+        self.detect_in(gray)
+    }
+}
+
+impl ShoalDetector {
+    /// [`MarkerDetector::detect`] for any grey `Mat`-like input (a borrowed `BoxedRef<Mat>` too).
+    pub fn detect_in(&mut self, gray: &(impl MatTraitConst + ToInputArray)) -> Result<Vec<Detection>, DetectError> {
+        let view = GrayView::new(gray)?;
+        if self.rotated.is_empty() {
+            return Err(DetectError::NoCodes { set: self.codes.name() });
+        }
+        let quads = self.find_quads(gray)?;
+        let mut out: Vec<Detection> = Vec::new();
+        let m = (self.codes.data_side() + 2) as f64;
+        for q in &quads {
+            let Some((id, hamming, code)) = self.read_code(&view, q) else {
+                continue;
+            };
+            let module_px = mean_side(&code) / m;
+            if out.iter().any(|d| {
+                d.id == id && {
+                    let c = &d.corners_px[d.corners_px.len() - 4..];
+                    dist(c[0], code[0]) < module_px
+                }
+            }) {
+                continue;
+            }
+            let code_fine = self.refine(gray, &view, &code, module_px, Polarity::DarkInside);
+            let mut corners_px = Vec::with_capacity(12);
+            let mut corner_ids = Vec::with_capacity(12);
+            if self.codes == CodeSet::Shoal {
+                // Outer frame edge (corners 0..4), frame inner edge (4..8): paper §3.2.
+                if let Some(outer) = self.find_frame(&code, module_px, 2.0, &quads) {
+                    let fine = self.refine(gray, &view, &outer, module_px, Polarity::DarkInside);
+                    corners_px.extend_from_slice(&fine);
+                    corner_ids.extend(0..4u8);
+                }
+                if let Some(inner) = self.find_frame(&code, module_px, 1.0, &quads) {
+                    let fine = self.refine(gray, &view, &inner, module_px, Polarity::BrightInside);
+                    corners_px.extend_from_slice(&fine);
+                    corner_ids.extend(4..8u8);
+                }
+                corners_px.extend_from_slice(&code_fine);
+                corner_ids.extend(8..12u8);
+            } else {
+                corners_px.extend_from_slice(&code_fine);
+                corner_ids.extend(0..4u8);
+            }
+            out.push(Detection {
+                codes: self.codes,
+                id,
+                corners_px,
+                corner_ids,
+                hamming,
+                module_px,
+            });
+        }
+        Ok(out)
+    }
+}

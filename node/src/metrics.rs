@@ -1,0 +1,451 @@
+//! Image-quality metrics for scoring restoration against the simulator's
+//! clean image (paper §6.1, Tables 1–4): SSIM, PSNR and the marker's
+//! contrast-to-noise ratio (CNR).
+//!
+//! - [`ssim`]: Wang, Bovik, Sheikh, Simoncelli 2004 ("Image quality
+//!   assessment: from error visibility to structural similarity", the
+//!   paper's [45]) exactly as their reference `ssim_index.m`: an 11x11
+//!   Gaussian window with σ = 1.5, `K1 = 0.01`, `K2 = 0.03`, dynamic range
+//!   `L = 255`, statistics only where the window fits inside the image
+//!   ("valid" filtering), and the mean of the SSIM map.
+//! - [`psnr`]: `10·log10(255² / MSE)` in dB; `+∞` for identical images.
+//! - [`cnr`]: `|μ_w − μ_b| / sqrt(σ_w² + σ_b²)` between the pixels of a
+//!   marker's white cells and of its black cells (population variances).
+//!   This is the two-region CNR of the paper's [46]: a difference of means
+//!   in units of the pooled noise. It is signless (a contrast reversal is
+//!   still contrast) and dimensionless, so it is invariant to any affine
+//!   grey-level change `a·I + b` — CLAHE-like gains do not raise it by
+//!   themselves; only a better separation of the two populations does.
+//!
+//! All functions take 8-bit grey [`GrayImage`]s; `*_mat` variants take
+//! single-channel 8-bit `cv::Mat`s.
+
+use opencv::core::{Mat, CV_8UC1};
+use opencv::prelude::*;
+use shoal_proto::GrayImage;
+
+/// Side of the SSIM window (Wang et al. 2004).
+pub const SSIM_WINDOW: usize = 11;
+/// Standard deviation of the SSIM Gaussian window, pixels.
+pub const SSIM_SIGMA: f64 = 1.5;
+/// SSIM stabilizing constants' factors.
+pub const SSIM_K1: f64 = 0.01;
+pub const SSIM_K2: f64 = 0.03;
+/// Dynamic range of 8-bit images.
+const L: f64 = 255.0;
+
+/// Errors of the metrics.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum MetricError {
+    #[error("image sizes differ: {a_width}x{a_height} vs {b_width}x{b_height}")]
+    SizeMismatch {
+        a_width: u32,
+        a_height: u32,
+        b_width: u32,
+        b_height: u32,
+    },
+    #[error("image {width}x{height} is smaller than the {min}x{min} minimum of this metric")]
+    TooSmall { width: u32, height: u32, min: u32 },
+    #[error("image {width}x{height} holds {actual} bytes, expected {expected}")]
+    BadBuffer {
+        width: u32,
+        height: u32,
+        actual: usize,
+        expected: usize,
+    },
+    #[error("mask {which} has {actual} entries, the image {expected} pixels")]
+    MaskSize {
+        which: &'static str,
+        actual: usize,
+        expected: usize,
+    },
+    #[error("mask {which} selects fewer than 2 pixels ({count})")]
+    MaskTooSmall { which: &'static str, count: usize },
+    #[error("both regions are noiseless (σ_w = σ_b = 0): CNR is undefined")]
+    NoNoise,
+    #[error("Mat is not single-channel 8-bit (type {typ})")]
+    MatType { typ: i32 },
+    #[error("OpenCV: {0}")]
+    OpenCv(String),
+}
+
+impl From<opencv::Error> for MetricError {
+    fn from(e: opencv::Error) -> Self {
+        MetricError::OpenCv(e.to_string())
+    }
+}
+
+fn check_buffer(img: &GrayImage) -> Result<(), MetricError> {
+    let expected = img.width as usize * img.height as usize;
+    if img.data.len() != expected {
+        return Err(MetricError::BadBuffer {
+            width: img.width,
+            height: img.height,
+            actual: img.data.len(),
+            expected,
+        });
+    }
+    Ok(())
+}
+
+fn check_pair(a: &GrayImage, b: &GrayImage) -> Result<(), MetricError> {
+    check_buffer(a)?;
+    check_buffer(b)?;
+    if a.width != b.width || a.height != b.height {
+        return Err(MetricError::SizeMismatch {
+            a_width: a.width,
+            a_height: a.height,
+            b_width: b.width,
+            b_height: b.height,
+        });
+    }
+    Ok(())
+}
+
+/// The normalized 1-D Gaussian of the SSIM window (its outer product is the 2-D window).
+fn gaussian_1d() -> [f64; SSIM_WINDOW] {
+    let mut g = [0.0; SSIM_WINDOW];
+    let c = (SSIM_WINDOW / 2) as f64;
+    for (i, v) in g.iter_mut().enumerate() {
+        let d = i as f64 - c;
+        *v = (-d * d / (2.0 * SSIM_SIGMA * SSIM_SIGMA)).exp();
+    }
+    let s: f64 = g.iter().sum();
+    g.iter_mut().for_each(|v| *v /= s);
+    g
+}
+
+/// "Valid" separable filtering of a `w`x`h` f64 image with the SSIM window.
+fn filter_valid(src: &[f64], w: usize, h: usize, g: &[f64; SSIM_WINDOW]) -> Vec<f64> {
+    let ow = w + 1 - SSIM_WINDOW;
+    let oh = h + 1 - SSIM_WINDOW;
+    // Horizontal pass: h rows x ow columns.
+    let mut tmp = vec![0.0; ow * h];
+    for y in 0..h {
+        let row = &src[y * w..(y + 1) * w];
+        for x in 0..ow {
+            let mut s = 0.0;
+            for k in 0..SSIM_WINDOW {
+                s += g[k] * row[x + k];
+            }
+            tmp[y * ow + x] = s;
+        }
+    }
+    let mut out = vec![0.0; ow * oh];
+    for y in 0..oh {
+        for k in 0..SSIM_WINDOW {
+            let gk = g[k];
+            let row = &tmp[(y + k) * ow..(y + k + 1) * ow];
+            let orow = &mut out[y * ow..(y + 1) * ow];
+            for x in 0..ow {
+                orow[x] += gk * row[x];
+            }
+        }
+    }
+    out
+}
+
+/// Mean structural similarity of `a` and `b` (Wang et al. 2004), in `[-1, 1]`, 1 iff identical.
+pub fn ssim(a: &GrayImage, b: &GrayImage) -> Result<f64, MetricError> {
+    check_pair(a, b)?;
+    let (w, h) = (a.width as usize, a.height as usize);
+    if w < SSIM_WINDOW || h < SSIM_WINDOW {
+        return Err(MetricError::TooSmall {
+            width: a.width,
+            height: a.height,
+            min: SSIM_WINDOW as u32,
+        });
+    }
+    let g = gaussian_1d();
+    let fa: Vec<f64> = a.data.iter().map(|&v| v as f64).collect();
+    let fb: Vec<f64> = b.data.iter().map(|&v| v as f64).collect();
+    let aa: Vec<f64> = fa.iter().map(|v| v * v).collect();
+    let bb: Vec<f64> = fb.iter().map(|v| v * v).collect();
+    let ab: Vec<f64> = fa.iter().zip(&fb).map(|(x, y)| x * y).collect();
+    let mu_a = filter_valid(&fa, w, h, &g);
+    let mu_b = filter_valid(&fb, w, h, &g);
+    let e_aa = filter_valid(&aa, w, h, &g);
+    let e_bb = filter_valid(&bb, w, h, &g);
+    let e_ab = filter_valid(&ab, w, h, &g);
+    let c1 = (SSIM_K1 * L).powi(2);
+    let c2 = (SSIM_K2 * L).powi(2);
+    let n = mu_a.len();
+    let mut sum = 0.0;
+    for i in 0..n {
+        let (ma, mb) = (mu_a[i], mu_b[i]);
+        let va = e_aa[i] - ma * ma;
+        let vb = e_bb[i] - mb * mb;
+        let cov = e_ab[i] - ma * mb;
+        sum += ((2.0 * ma * mb + c1) * (2.0 * cov + c2))
+            / ((ma * ma + mb * mb + c1) * (va + vb + c2));
+    }
+    Ok(sum / n as f64)
+}
+
+/// Mean squared error between two same-size images.
+pub fn mse(a: &GrayImage, b: &GrayImage) -> Result<f64, MetricError> {
+    check_pair(a, b)?;
+    if a.data.is_empty() {
+        return Err(MetricError::TooSmall {
+            width: a.width,
+            height: a.height,
+            min: 1,
+        });
+    }
+    let s: f64 = a
+        .data
+        .iter()
+        .zip(&b.data)
+        .map(|(&x, &y)| {
+            let d = x as f64 - y as f64;
+            d * d
+        })
+        .sum();
+    Ok(s / a.data.len() as f64)
+}
+
+/// Peak signal-to-noise ratio in dB for 8-bit images: `10·log10(255²/MSE)`;
+/// `f64::INFINITY` when the images are identical.
+pub fn psnr(a: &GrayImage, b: &GrayImage) -> Result<f64, MetricError> {
+    let m = mse(a, b)?;
+    if m == 0.0 {
+        return Ok(f64::INFINITY);
+    }
+    Ok(10.0 * (L * L / m).log10())
+}
+
+/// Mean and population variance of the pixels selected by `mask`.
+fn masked_stats(
+    img: &GrayImage,
+    mask: &[bool],
+    which: &'static str,
+) -> Result<(f64, f64), MetricError> {
+    if mask.len() != img.data.len() {
+        return Err(MetricError::MaskSize {
+            which,
+            actual: mask.len(),
+            expected: img.data.len(),
+        });
+    }
+    let (mut n, mut s, mut s2) = (0usize, 0.0, 0.0);
+    for (&v, &m) in img.data.iter().zip(mask) {
+        if m {
+            let v = v as f64;
+            n += 1;
+            s += v;
+            s2 += v * v;
+        }
+    }
+    if n < 2 {
+        return Err(MetricError::MaskTooSmall { which, count: n });
+    }
+    let mean = s / n as f64;
+    let var = (s2 / n as f64 - mean * mean).max(0.0);
+    Ok((mean, var))
+}
+
+/// Contrast-to-noise ratio between the `white` and `black` regions (row-major
+/// masks of the image's size): `|μ_w − μ_b| / sqrt(σ_w² + σ_b²)`.
+pub fn cnr(img: &GrayImage, white: &[bool], black: &[bool]) -> Result<f64, MetricError> {
+    check_buffer(img)?;
+    let (mw, vw) = masked_stats(img, white, "white")?;
+    let (mb, vb) = masked_stats(img, black, "black")?;
+    let noise = (vw + vb).sqrt();
+    if noise == 0.0 {
+        return Err(MetricError::NoNoise);
+    }
+    Ok((mw - mb).abs() / noise)
+}
+
+/// Copy a single-channel 8-bit `Mat` into a [`GrayImage`].
+pub fn gray_from_mat(m: &Mat) -> Result<GrayImage, MetricError> {
+    if m.typ() != CV_8UC1 {
+        return Err(MetricError::MatType { typ: m.typ() });
+    }
+    let (w, h) = (m.cols().max(0) as u32, m.rows().max(0) as u32);
+    let mut data = Vec::with_capacity(w as usize * h as usize);
+    for y in 0..h as i32 {
+        data.extend_from_slice(m.at_row::<u8>(y)?);
+    }
+    Ok(GrayImage {
+        width: w,
+        height: h,
+        data,
+    })
+}
+
+/// [`ssim`] of two 8-bit single-channel `Mat`s.
+pub fn ssim_mat(a: &Mat, b: &Mat) -> Result<f64, MetricError> {
+    ssim(&gray_from_mat(a)?, &gray_from_mat(b)?)
+}
+
+/// [`psnr`] of two 8-bit single-channel `Mat`s.
+pub fn psnr_mat(a: &Mat, b: &Mat) -> Result<f64, MetricError> {
+    psnr(&gray_from_mat(a)?, &gray_from_mat(b)?)
+}
+
+/// [`cnr`] of an 8-bit single-channel `Mat`.
+pub fn cnr_mat(img: &Mat, white: &[bool], black: &[bool]) -> Result<f64, MetricError> {
+    cnr(&gray_from_mat(img)?, white, black)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    fn random_image(w: u32, h: u32, seed: u64) -> GrayImage {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let data = (0..w * h).map(|_| rng.gen::<u8>()).collect();
+        GrayImage::from_vec(w, h, data).unwrap()
+    }
+
+    #[test]
+    fn ssim_of_an_image_with_itself_is_one() {
+        let a = random_image(40, 30, 1);
+        assert!((ssim(&a, &a).unwrap() - 1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn ssim_of_two_flat_images_matches_the_luminance_term_by_hand() {
+        // Flat 100 vs flat 120: variances and covariance are 0, so
+        // SSIM = (2·100·120 + C1) / (100² + 120² + C1), C1 = (0.01·255)² = 6.5025.
+        let a = GrayImage::filled(20, 15, 100);
+        let b = GrayImage::filled(20, 15, 120);
+        let expected = (24_000.0 + 6.5025) / (24_400.0 + 6.5025);
+        assert!((ssim(&a, &b).unwrap() - expected).abs() < 1e-12);
+    }
+
+    #[test]
+    fn ssim_of_an_11x11_image_equals_the_single_window_formula() {
+        // On an 11x11 image "valid" filtering leaves exactly one window:
+        // compute its weighted statistics directly with the 2-D Gaussian.
+        let a = random_image(11, 11, 2);
+        let b = random_image(11, 11, 3);
+        let mut wsum = 0.0;
+        let (mut ma, mut mb, mut saa, mut sbb, mut sab) = (0.0, 0.0, 0.0, 0.0, 0.0);
+        for y in 0..11 {
+            for x in 0..11 {
+                let (dx, dy) = (x as f64 - 5.0, y as f64 - 5.0);
+                let wgt = (-(dx * dx + dy * dy) / (2.0 * 1.5 * 1.5)).exp();
+                let (va, vb) = (a.get(x, y) as f64, b.get(x, y) as f64);
+                wsum += wgt;
+                ma += wgt * va;
+                mb += wgt * vb;
+                saa += wgt * va * va;
+                sbb += wgt * vb * vb;
+                sab += wgt * va * vb;
+            }
+        }
+        let (ma, mb) = (ma / wsum, mb / wsum);
+        let va = saa / wsum - ma * ma;
+        let vb = sbb / wsum - mb * mb;
+        let cov = sab / wsum - ma * mb;
+        let (c1, c2) = (6.5025, 58.5225);
+        let expected =
+            ((2.0 * ma * mb + c1) * (2.0 * cov + c2)) / ((ma * ma + mb * mb + c1) * (va + vb + c2));
+        assert!((ssim(&a, &b).unwrap() - expected).abs() < 1e-9);
+    }
+
+    #[test]
+    fn ssim_rejects_images_smaller_than_the_window_and_mismatched_sizes() {
+        let a = GrayImage::filled(10, 20, 0);
+        assert!(matches!(ssim(&a, &a), Err(MetricError::TooSmall { .. })));
+        let b = GrayImage::filled(20, 20, 0);
+        let c = GrayImage::filled(20, 21, 0);
+        assert!(matches!(ssim(&b, &c), Err(MetricError::SizeMismatch { .. })));
+        let bad = GrayImage {
+            width: 20,
+            height: 20,
+            data: vec![0; 5],
+        };
+        assert!(matches!(ssim(&bad, &b), Err(MetricError::BadBuffer { .. })));
+    }
+
+    #[test]
+    fn psnr_of_a_known_mse() {
+        // Every pixel off by 5: MSE = 25, PSNR = 10·log10(65025/25) = 34.1514 dB.
+        let a = GrayImage::filled(8, 8, 100);
+        let b = GrayImage::filled(8, 8, 105);
+        let expected = 10.0 * (65025.0f64 / 25.0).log10();
+        assert!((psnr(&a, &b).unwrap() - expected).abs() < 1e-12);
+        assert!((expected - 34.1514).abs() < 1e-3);
+        assert_eq!(psnr(&a, &a).unwrap(), f64::INFINITY);
+    }
+
+    #[test]
+    fn cnr_of_a_two_level_image_with_known_noise() {
+        // Left half 60, right half 180, each ± a symmetric ±d pattern:
+        // σ_w² = σ_b² = d², CNR = 120 / sqrt(2 d²).
+        let (w, h) = (64u32, 32u32);
+        let d = 10i32;
+        let mut data = Vec::new();
+        let mut white = Vec::new();
+        let mut black = Vec::new();
+        for y in 0..h {
+            for x in 0..w {
+                let sign = if (x + y) % 2 == 0 { 1 } else { -1 };
+                let base = if x < w / 2 { 60 } else { 180 };
+                data.push((base + sign * d) as u8);
+                white.push(x >= w / 2);
+                black.push(x < w / 2);
+            }
+        }
+        let img = GrayImage::from_vec(w, h, data).unwrap();
+        let expected = 120.0 / (2.0 * (d * d) as f64).sqrt();
+        assert!((cnr(&img, &white, &black).unwrap() - expected).abs() < 1e-9);
+    }
+
+    #[test]
+    fn cnr_of_gaussian_noise_is_near_its_expected_value() {
+        use rand_distr::{Distribution, Normal};
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        let noise = Normal::new(0.0, 8.0).unwrap();
+        let (w, h) = (200u32, 200u32);
+        let mut data = Vec::new();
+        let mut white = Vec::new();
+        for y in 0..h {
+            for _x in 0..w {
+                let is_white = y < h / 2;
+                let base = if is_white { 170.0 } else { 90.0 };
+                let v: f64 = base + noise.sample(&mut rng);
+                data.push(v.round().clamp(0.0, 255.0) as u8);
+                white.push(is_white);
+            }
+        }
+        let black: Vec<bool> = white.iter().map(|w| !w).collect();
+        let img = GrayImage::from_vec(w, h, data).unwrap();
+        // 80 / sqrt(64 + 64) = 7.07; rounding adds 1/12 to each variance.
+        let expected = 80.0 / (2.0 * (64.0 + 1.0 / 12.0f64)).sqrt();
+        let got = cnr(&img, &white, &black).unwrap();
+        assert!((got - expected).abs() < 0.1, "got {got}, expected {expected}");
+    }
+
+    #[test]
+    fn cnr_rejects_bad_masks() {
+        let img = GrayImage::filled(4, 4, 9);
+        let m = vec![true; 16];
+        assert!(matches!(
+            cnr(&img, &m[..3], &m),
+            Err(MetricError::MaskSize { .. })
+        ));
+        let none = vec![false; 16];
+        assert!(matches!(
+            cnr(&img, &m, &none),
+            Err(MetricError::MaskTooSmall { .. })
+        ));
+        assert!(matches!(cnr(&img, &m, &m), Err(MetricError::NoNoise)));
+    }
+
+    #[test]
+    fn mat_variants_agree_with_gray_image_ones() {
+        let a = random_image(30, 20, 4);
+        let b = random_image(30, 20, 5);
+        let ma = Mat::new_rows_cols_with_data(20, 30, &a.data).unwrap().try_clone().unwrap();
+        let mb = Mat::new_rows_cols_with_data(20, 30, &b.data).unwrap().try_clone().unwrap();
+        assert_eq!(gray_from_mat(&ma).unwrap(), a);
+        assert_eq!(ssim_mat(&ma, &mb).unwrap(), ssim(&a, &b).unwrap());
+        assert_eq!(psnr_mat(&ma, &mb).unwrap(), psnr(&a, &b).unwrap());
+    }
+}

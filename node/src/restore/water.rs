@@ -1,0 +1,262 @@
+//! Water quality estimated from the image itself, and HOIRM's parameters as
+//! functions of the attenuation coefficient `c`.
+//!
+//! The estimate uses the 1/8 area-averaged level (noise averaged away):
+//! - **backscatter** `B`: the 2nd percentile of the coarse level — the veiling
+//!   light over the darkest things in view (the marker's black cells, shadows),
+//!   the grey analogue of the dark channel prior's haze level;
+//! - **bright** level: the 99.5th percentile;
+//! - **veil fraction** `v = B / bright`: 0 in clear water (black stays black),
+//!   → 1 as backscatter swamps the signal;
+//! - **contrast** `(bright − B) / (bright + B)` (Michelson);
+//! - **noise** σ: Immerkær's Laplacian-difference estimator with a median
+//!   (robust to edges) on every 4th row of the full-resolution frame.
+//!
+//! With a single-scattering model (paper Eq. 6) a black object at range `d`
+//! reads `B∞(1 − t)` and a white one `ρE·t + B∞(1 − t)`; taking the white
+//! signal as the scale, `t ≈ 1 − v` and `c ≈ −ln(1 − v) / d_ref`, with
+//! `d_ref` the reference range ([`super::RestoreParams::reference_range_m`],
+//! the paper's 600 mm). This is an index of the water rather than a
+//! measurement (range and reflectances are unknown); it only drives the
+//! parameters below, and its agreement with the simulator's `c` is reported
+//! in `docs/restoration.md`.
+
+use super::{RestoreError, RestoreParams};
+use opencv::core::Mat;
+use opencv::prelude::*;
+
+/// What the image says about the water.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct WaterEstimate {
+    /// Veiling light over the darkest objects, grey levels.
+    pub backscatter: f64,
+    /// 99.5th percentile of the coarse level, grey levels.
+    pub bright: f64,
+    /// Mean of the coarse level, grey levels.
+    pub mean: f64,
+    /// `backscatter / bright`.
+    pub veil_fraction: f64,
+    /// Michelson contrast of the coarse level.
+    pub contrast: f64,
+    /// Full-resolution noise standard deviation, grey levels.
+    pub noise_sigma: f64,
+    /// Attenuation coefficient inferred at the reference range, 1/m.
+    pub c_per_m: f64,
+}
+
+/// Largest `c` the estimate reports (a fully veiled image), 1/m.
+pub const C_MAX_PER_M: f64 = 20.0;
+
+impl WaterEstimate {
+    /// Estimate from the full-resolution frame and its 1/8 level.
+    pub fn from_image(
+        full: &Mat,
+        coarse: &Mat,
+        params: &RestoreParams,
+    ) -> Result<WaterEstimate, RestoreError> {
+        let hist = histogram(coarse)?;
+        let backscatter = percentile(&hist, 0.02);
+        let bright = percentile(&hist, 0.995).max(1.0);
+        let mean = hist_mean(&hist);
+        let veil_fraction = (backscatter / bright).clamp(0.0, 1.0);
+        let contrast = (bright - backscatter) / (bright + backscatter).max(1.0);
+        let noise_sigma = noise_sigma(full, 4)?;
+        let t = (1.0 - veil_fraction).max(1e-6);
+        let c_per_m = (-t.ln() / params.reference_range_m).clamp(0.0, C_MAX_PER_M);
+        Ok(WaterEstimate {
+            backscatter,
+            bright,
+            mean,
+            veil_fraction,
+            contrast,
+            noise_sigma,
+            c_per_m,
+        })
+    }
+}
+
+/// Generalized-Gaussian shape `p` for water of attenuation `c` (Eq. 14's "p is
+/// related to water quality"): `p_clear / (1 + c / c_half)`. Clear water keeps
+/// a Gaussian (p = 2) core; turbid water's forward scatter has heavier tails
+/// (smaller p), as in the paper's Fig. 6 family.
+pub fn psf_p(c_per_m: f64, params: &RestoreParams) -> f64 {
+    (params.psf_p_clear / (1.0 + c_per_m.max(0.0) / params.psf_c_half_per_m)).clamp(0.3, 4.0)
+}
+
+/// Eq. (14)'s σ = 1/(2√p), converted to pixels with `psf_px_per_unit`.
+pub fn psf_sigma_px(p: f64, params: &RestoreParams) -> f64 {
+    params.psf_px_per_unit / (2.0 * p.sqrt())
+}
+
+/// HOIRM's CLAHE clip limit for water of attenuation `c`: more veil, more
+/// stretch allowed.
+pub fn clahe_clip(c_per_m: f64, params: &RestoreParams) -> f64 {
+    params.clahe_clip_base + params.clahe_clip_per_c * c_per_m.max(0.0)
+}
+
+/// A 256-bin histogram of an 8-bit Mat.
+pub(crate) fn histogram(m: &impl MatTraitConst) -> Result<[u64; 256], RestoreError> {
+    let mut h = [0u64; 256];
+    for y in 0..m.rows() {
+        for &v in m.at_row::<u8>(y)? {
+            h[v as usize] += 1;
+        }
+    }
+    Ok(h)
+}
+
+/// The grey level below which a fraction `q` of the pixels lie.
+pub(crate) fn percentile(hist: &[u64; 256], q: f64) -> f64 {
+    let total: u64 = hist.iter().sum();
+    if total == 0 {
+        return 0.0;
+    }
+    let target = (q.clamp(0.0, 1.0) * total as f64).ceil().max(1.0) as u64;
+    let mut acc = 0;
+    for (v, &n) in hist.iter().enumerate() {
+        acc += n;
+        if acc >= target {
+            return v as f64;
+        }
+    }
+    255.0
+}
+
+fn hist_mean(hist: &[u64; 256]) -> f64 {
+    let total: u64 = hist.iter().sum();
+    if total == 0 {
+        return 0.0;
+    }
+    hist.iter()
+        .enumerate()
+        .map(|(v, &n)| v as f64 * n as f64)
+        .sum::<f64>()
+        / total as f64
+}
+
+/// The noise floor reported for noiseless (or 8-bit-quantized only) images:
+/// the standard deviation of uniform quantization error, 1/√12.
+pub const QUANTIZATION_SIGMA: f64 = 0.288_675_134_594_812_9;
+
+/// Noise standard deviation of an 8-bit image (Immerkær 1996, "Fast noise
+/// variance estimation", with a median instead of a mean so edges do not
+/// count): the 3x3 mask `[1 −2 1; −2 4 −2; 1 −2 1]` annihilates smooth
+/// content, its output on white noise σ has standard deviation 6σ, and the
+/// median of a half-normal is 0.6745 times its scale. Every `row_step`-th row.
+pub fn noise_sigma(m: &impl MatTraitConst, row_step: usize) -> Result<f64, RestoreError> {
+    let (rows, cols) = (m.rows(), m.cols());
+    if rows < 3 || cols < 3 {
+        return Ok(QUANTIZATION_SIGMA);
+    }
+    let mut hist = vec![0u64; 16 * 255 + 1];
+    let mut y = 1;
+    while y < rows - 1 {
+        let r0 = m.at_row::<u8>(y - 1)?;
+        let r1 = m.at_row::<u8>(y)?;
+        let r2 = m.at_row::<u8>(y + 1)?;
+        for x in 1..cols as usize - 1 {
+            let v = r0[x - 1] as i32 - 2 * r0[x] as i32 + r0[x + 1] as i32
+                - 2 * r1[x - 1] as i32
+                + 4 * r1[x] as i32
+                - 2 * r1[x + 1] as i32
+                + r2[x - 1] as i32
+                - 2 * r2[x] as i32
+                + r2[x + 1] as i32;
+            hist[v.unsigned_abs() as usize] += 1;
+        }
+        y += row_step.max(1) as i32;
+    }
+    let total: u64 = hist.iter().sum();
+    let half = total.div_ceil(2);
+    let mut acc = 0;
+    let mut median = 0.0;
+    for (v, &n) in hist.iter().enumerate() {
+        acc += n;
+        if acc >= half {
+            // Interpolate inside the bin: the mask output is integer-valued.
+            let below = acc - n;
+            median = v as f64 - 0.5 + (half - below) as f64 / n.max(1) as f64;
+            break;
+        }
+    }
+    Ok((median.max(0.0) / (0.6745 * 6.0)).max(QUANTIZATION_SIGMA))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use opencv::core::{Mat, Scalar, CV_8UC1};
+    use rand::SeedableRng;
+    use rand_chacha::ChaCha8Rng;
+    use rand_distr::{Distribution, Normal};
+
+    fn noisy_flat(mean: f64, sigma: f64, seed: u64) -> Mat {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let n = Normal::new(mean, sigma).unwrap();
+        let mut m =
+            Mat::new_rows_cols_with_default(200, 300, CV_8UC1, Scalar::all(0.0)).unwrap();
+        for y in 0..200 {
+            for v in m.at_row_mut::<u8>(y).unwrap() {
+                *v = n.sample(&mut rng).round().clamp(0.0, 255.0) as u8;
+            }
+        }
+        m
+    }
+
+    #[test]
+    fn noise_estimate_recovers_gaussian_noise_sigma() {
+        for sigma in [2.0, 5.0, 12.0] {
+            let m = noisy_flat(120.0, sigma, 3);
+            let est = noise_sigma(&m, 1).unwrap();
+            assert!((est - sigma).abs() < 0.12 * sigma + 0.3, "σ {sigma}: estimated {est}");
+        }
+    }
+
+    #[test]
+    fn noise_estimate_ignores_a_step_edge() {
+        let mut m =
+            Mat::new_rows_cols_with_default(100, 100, CV_8UC1, Scalar::all(40.0)).unwrap();
+        for y in 0..100 {
+            for v in &mut m.at_row_mut::<u8>(y).unwrap()[50..] {
+                *v = 200;
+            }
+        }
+        assert!(noise_sigma(&m, 1).unwrap() <= QUANTIZATION_SIGMA + 1e-12);
+    }
+
+    #[test]
+    fn percentile_of_a_two_level_histogram() {
+        let mut h = [0u64; 256];
+        h[10] = 30;
+        h[200] = 70;
+        assert_eq!(percentile(&h, 0.02), 10.0);
+        assert_eq!(percentile(&h, 0.30), 10.0);
+        assert_eq!(percentile(&h, 0.31), 200.0);
+    }
+
+    #[test]
+    fn veil_raises_estimated_attenuation() {
+        let params = RestoreParams::default();
+        // Clear: black 10, white 200. Veiled: black 120, white 200.
+        let make = |black: f64| {
+            let mut m =
+                Mat::new_rows_cols_with_default(160, 160, CV_8UC1, Scalar::all(200.0)).unwrap();
+            for y in 40..120 {
+                for v in &mut m.at_row_mut::<u8>(y).unwrap()[40..120] {
+                    *v = black as u8;
+                }
+            }
+            m
+        };
+        let est = |m: &Mat| {
+            let coarse = crate::restore::coarse_level(m, 8).unwrap();
+            WaterEstimate::from_image(m, &coarse, &params).unwrap()
+        };
+        let clear = est(&make(10.0));
+        let veiled = est(&make(120.0));
+        assert_eq!(clear.backscatter, 10.0);
+        assert_eq!(veiled.backscatter, 120.0);
+        assert!(veiled.c_per_m > clear.c_per_m + 1.0);
+        assert!(veiled.contrast < clear.contrast);
+    }
+}

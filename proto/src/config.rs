@@ -1,0 +1,562 @@
+//! Fleet files (TOML) and camera calibrations (OpenCV / ROS YAML).
+//!
+//! A fleet file names the vehicles, the markers each carries
+//! (`body_from_marker`) and its cameras (`body_from_camera`, intrinsics).
+//! Cameras are usually shared through a named *rig*. Loading rejects unknown
+//! fields and reports the file, the field and the reason. See
+//! `configs/fleets/paper.toml` for a complete, commented example.
+
+use crate::camera::CameraModel;
+use crate::geometry::{pose_from_xyz_rpy, Pose};
+use crate::keys::Keys;
+use crate::marker::{CodeSet, MarkerId};
+use crate::messages::VehicleId;
+use serde::Deserialize;
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("{}: cannot read", path.display())]
+    Read {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{}: {message}", path.display())]
+    Parse { path: PathBuf, message: String },
+    #[error("{}: field `{field}`: {reason}", path.display())]
+    Invalid {
+        path: PathBuf,
+        field: String,
+        reason: String,
+    },
+}
+
+/// A mounting transform as written in config files.
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MountSpec {
+    /// Translation, metres.
+    pub xyz_m: [f64; 3],
+    /// Roll, pitch, yaw in degrees, `R = Rz(yaw)·Ry(pitch)·Rx(roll)`.
+    #[serde(default)]
+    pub rpy_deg: [f64; 3],
+}
+
+impl MountSpec {
+    pub fn pose(&self) -> Pose {
+        pose_from_xyz_rpy(self.xyz_m, self.rpy_deg.map(f64::to_radians))
+    }
+}
+
+/// Intrinsics written inline.
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct IntrinsicsSpec {
+    pub width: u32,
+    pub height: u32,
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    #[serde(default)]
+    pub distortion: [f64; 5],
+}
+
+/// One camera of a rig: exactly one of `preset`, `calibration`, `intrinsics`.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraSpec {
+    pub name: String,
+    /// `vehicle_1440` or `paper_eq3`.
+    pub preset: Option<String>,
+    /// OpenCV or ROS calibration YAML, relative to the fleet file.
+    pub calibration: Option<PathBuf>,
+    pub intrinsics: Option<IntrinsicsSpec>,
+    pub body_from_camera: MountSpec,
+}
+
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RigSpec {
+    pub cameras: Vec<CameraSpec>,
+}
+
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MarkerSpec {
+    /// Code set name (`shoal`, `aruco4x4_50`, `apriltag36h11`, …).
+    pub codes: String,
+    pub id: MarkerId,
+    /// Side of the outer black square, metres.
+    pub side_m: f64,
+    pub body_from_marker: MountSpec,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct HullSpec {
+    pub diameter_m: f64,
+    pub length_m: f64,
+}
+
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct VehicleSpec {
+    pub id: VehicleId,
+    pub name: String,
+    pub hull: HullSpec,
+    /// Name of a rig in `[rigs]`.
+    pub rig: String,
+    #[serde(default)]
+    pub markers: Vec<MarkerSpec>,
+}
+
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct FleetFile {
+    fleet: String,
+    reference_vehicle: VehicleId,
+    #[serde(default)]
+    description: String,
+    rigs: BTreeMap<String, RigSpec>,
+    vehicles: Vec<VehicleSpec>,
+}
+
+/// A resolved camera.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Camera {
+    pub index: u8,
+    pub name: String,
+    pub model: CameraModel,
+    pub body_from_camera: Pose,
+}
+
+/// A resolved marker mounted on a vehicle.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Marker {
+    pub codes: CodeSet,
+    pub id: MarkerId,
+    pub side_m: f64,
+    pub body_from_marker: Pose,
+}
+
+/// A resolved vehicle.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Vehicle {
+    pub id: VehicleId,
+    pub name: String,
+    pub hull: HullSpec,
+    pub markers: Vec<Marker>,
+    pub cameras: Vec<Camera>,
+}
+
+/// A loaded, validated fleet.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Fleet {
+    pub name: String,
+    pub description: String,
+    pub reference_vehicle: VehicleId,
+    pub vehicles: Vec<Vehicle>,
+    /// Where it was loaded from (for messages and relative paths).
+    pub source: PathBuf,
+}
+
+/// Who carries a marker, as far as the fleet file says.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum MarkerOwner {
+    Vehicle(VehicleId),
+    Unknown,
+    /// Two or more vehicles list the same code set and ID.
+    Ambiguous,
+}
+
+impl Fleet {
+    /// Load and validate a fleet file.
+    pub fn load(path: &Path) -> Result<Fleet, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::parse(&text, path)
+    }
+
+    /// Parse fleet TOML; `path` is used in messages and to resolve calibration files.
+    pub fn parse(text: &str, path: &Path) -> Result<Fleet, ConfigError> {
+        let file: FleetFile = toml::from_str(text).map_err(|e| ConfigError::Parse {
+            path: path.to_path_buf(),
+            message: e.to_string().trim_end().to_string(),
+        })?;
+        let invalid = |field: String, reason: String| ConfigError::Invalid {
+            path: path.to_path_buf(),
+            field,
+            reason,
+        };
+        Keys::new(&file.fleet).map_err(|e| invalid("fleet".into(), e.to_string()))?;
+        if file.vehicles.is_empty() {
+            return Err(invalid("vehicles".into(), "a fleet needs at least one vehicle".into()));
+        }
+        let base = path.parent().unwrap_or(Path::new("."));
+        let mut rigs: HashMap<&str, Vec<Camera>> = HashMap::new();
+        for (rig_name, rig) in &file.rigs {
+            if rig.cameras.len() > 255 {
+                return Err(invalid(format!("rigs.{rig_name}.cameras"), "at most 255 cameras".into()));
+            }
+            let mut cams = Vec::new();
+            for (i, c) in rig.cameras.iter().enumerate() {
+                let field = format!("rigs.{rig_name}.cameras[{i}]");
+                let model = resolve_camera(c, base).map_err(|r| invalid(field.clone(), r))?;
+                if let Some(p) = model.problem() {
+                    return Err(invalid(field, p));
+                }
+                check_mount(&c.body_from_camera).map_err(|r| invalid(format!("{field}.body_from_camera"), r))?;
+                cams.push(Camera {
+                    index: i as u8,
+                    name: c.name.clone(),
+                    model,
+                    body_from_camera: c.body_from_camera.pose(),
+                });
+            }
+            rigs.insert(rig_name.as_str(), cams);
+        }
+        let mut vehicles = Vec::new();
+        let mut seen_ids = HashMap::new();
+        for (vi, v) in file.vehicles.iter().enumerate() {
+            let field = format!("vehicles[{vi}]");
+            if let Some(prev) = seen_ids.insert(v.id, vi) {
+                return Err(invalid(
+                    format!("{field}.id"),
+                    format!("vehicle ID {} already used by vehicles[{prev}]", v.id),
+                ));
+            }
+            let h = v.hull;
+            if !(h.diameter_m > 0.0 && h.length_m > 0.0 && h.diameter_m.is_finite() && h.length_m.is_finite()) {
+                return Err(invalid(format!("{field}.hull"), "diameter and length must be positive".into()));
+            }
+            let cameras = rigs
+                .get(v.rig.as_str())
+                .cloned()
+                .ok_or_else(|| {
+                    invalid(
+                        format!("{field}.rig"),
+                        format!(
+                            "no rig named {:?} (rigs: {})",
+                            v.rig,
+                            file.rigs.keys().cloned().collect::<Vec<_>>().join(", ")
+                        ),
+                    )
+                })?;
+            let mut markers = Vec::new();
+            for (mi, m) in v.markers.iter().enumerate() {
+                let mfield = format!("{field}.markers[{mi}]");
+                let codes = CodeSet::from_name(&m.codes).map_err(|e| invalid(format!("{mfield}.codes"), e.to_string()))?;
+                if (m.id as usize) >= codes.len() && !codes.table().codes.is_empty() {
+                    return Err(invalid(
+                        format!("{mfield}.id"),
+                        format!("ID {} is not in {} (0..{})", m.id, codes, codes.len()),
+                    ));
+                }
+                if !(m.side_m > 0.0 && m.side_m < 10.0) {
+                    return Err(invalid(format!("{mfield}.side_m"), format!("{} m is not a plausible marker side", m.side_m)));
+                }
+                check_mount(&m.body_from_marker).map_err(|r| invalid(format!("{mfield}.body_from_marker"), r))?;
+                markers.push(Marker {
+                    codes,
+                    id: m.id,
+                    side_m: m.side_m,
+                    body_from_marker: m.body_from_marker.pose(),
+                });
+            }
+            vehicles.push(Vehicle {
+                id: v.id,
+                name: v.name.clone(),
+                hull: v.hull,
+                markers,
+                cameras,
+            });
+        }
+        if !vehicles.iter().any(|v| v.id == file.reference_vehicle) {
+            return Err(invalid(
+                "reference_vehicle".into(),
+                format!("vehicle {} is not in the fleet", file.reference_vehicle),
+            ));
+        }
+        Ok(Fleet {
+            name: file.fleet,
+            description: file.description,
+            reference_vehicle: file.reference_vehicle,
+            vehicles,
+            source: path.to_path_buf(),
+        })
+    }
+
+    pub fn vehicle(&self, id: VehicleId) -> Option<&Vehicle> {
+        self.vehicles.iter().find(|v| v.id == id)
+    }
+
+    pub fn keys(&self) -> Keys {
+        // Validated at load time.
+        Keys::new(&self.name).expect("fleet name validated in Fleet::parse")
+    }
+
+    /// The vehicle carrying marker `id` of `codes`, if exactly one does.
+    pub fn marker_owner(&self, codes: CodeSet, id: MarkerId) -> MarkerOwner {
+        let mut owners = self
+            .vehicles
+            .iter()
+            .filter(|v| v.markers.iter().any(|m| m.codes == codes && m.id == id))
+            .map(|v| v.id);
+        match (owners.next(), owners.next()) {
+            (None, _) => MarkerOwner::Unknown,
+            (Some(v), None) => MarkerOwner::Vehicle(v),
+            (Some(_), Some(_)) => MarkerOwner::Ambiguous,
+        }
+    }
+
+    /// The mounted marker `id` of `codes` on vehicle `vehicle`.
+    pub fn marker(&self, vehicle: VehicleId, codes: CodeSet, id: MarkerId) -> Option<&Marker> {
+        self.vehicle(vehicle)?
+            .markers
+            .iter()
+            .find(|m| m.codes == codes && m.id == id)
+    }
+
+    /// A one-screen human summary (for `shoal config check`).
+    pub fn summary(&self) -> String {
+        let mut s = format!(
+            "fleet {:?}: {} vehicles, reference vehicle {}\n",
+            self.name,
+            self.vehicles.len(),
+            self.reference_vehicle
+        );
+        for v in &self.vehicles {
+            let markers: Vec<String> = v.markers.iter().map(|m| format!("{}#{} ({:.0} mm)", m.codes, m.id, m.side_m * 1e3)).collect();
+            let cams: Vec<String> = v
+                .cameras
+                .iter()
+                .map(|c| format!("{} {}x{}", c.name, c.model.width, c.model.height))
+                .collect();
+            s += &format!(
+                "  vehicle {:>3} {:<12} hull {:.3} m x {:.2} m  markers [{}]  cameras [{}]\n",
+                v.id,
+                v.name,
+                v.hull.diameter_m,
+                v.hull.length_m,
+                markers.join(", "),
+                cams.join(", ")
+            );
+        }
+        for v in &self.vehicles {
+            for m in &v.markers {
+                if self.marker_owner(m.codes, m.id) == MarkerOwner::Ambiguous {
+                    s += &format!("  warning: {}#{} is carried by more than one vehicle\n", m.codes, m.id);
+                }
+            }
+        }
+        s
+    }
+}
+
+fn check_mount(m: &MountSpec) -> Result<(), String> {
+    if m.xyz_m.iter().chain(m.rpy_deg.iter()).all(|v| v.is_finite()) {
+        Ok(())
+    } else {
+        Err("values must be finite".into())
+    }
+}
+
+fn resolve_camera(c: &CameraSpec, base: &Path) -> Result<CameraModel, String> {
+    match (&c.preset, &c.calibration, &c.intrinsics) {
+        (Some(p), None, None) => camera_preset(p),
+        (None, Some(file), None) => {
+            let path = base.join(file);
+            let text = std::fs::read_to_string(&path).map_err(|e| format!("cannot read calibration {}: {e}", path.display()))?;
+            parse_calibration_yaml(&text).map_err(|e| format!("calibration {}: {e}", path.display()))
+        }
+        (None, None, Some(i)) => Ok(CameraModel {
+            width: i.width,
+            height: i.height,
+            fx: i.fx,
+            fy: i.fy,
+            cx: i.cx,
+            cy: i.cy,
+            distortion: i.distortion,
+        }),
+        _ => Err("give exactly one of `preset`, `calibration`, `intrinsics`".into()),
+    }
+}
+
+/// A camera preset by name.
+pub fn camera_preset(name: &str) -> Result<CameraModel, String> {
+    match name {
+        "vehicle_1440" => Ok(CameraModel::vehicle_1440()),
+        "paper_eq3" => Ok(CameraModel::paper_eq3()),
+        other => Err(format!("unknown camera preset {other:?} (known: vehicle_1440, paper_eq3)")),
+    }
+}
+
+/// Read a camera calibration in OpenCV `FileStorage` YAML (`camera_matrix:
+/// !!opencv-matrix`, `distortion_coefficients`, `image_width`,
+/// `image_height`) or ROS `camera_info` YAML (the same keys with plain
+/// `rows/cols/data` maps). Only the fields shoal needs are read.
+pub fn parse_calibration_yaml(text: &str) -> Result<CameraModel, String> {
+    let mut scalars: HashMap<String, String> = HashMap::new();
+    let mut matrices: HashMap<String, Vec<f64>> = HashMap::new();
+    let mut current: Option<String> = None;
+    let mut collecting: Option<String> = None;
+    for raw in text.lines() {
+        let line = raw.split('#').next().unwrap_or("");
+        if line.trim().is_empty() || line.starts_with('%') || line.trim() == "---" {
+            continue;
+        }
+        if let Some(buf) = collecting.as_mut() {
+            buf.push_str(line);
+            if line.contains(']') {
+                let key = current.clone().unwrap_or_default();
+                let data = parse_list(buf)?;
+                matrices.insert(key, data);
+                collecting = None;
+            }
+            continue;
+        }
+        let indented = line.starts_with(' ') || line.starts_with('\t');
+        let Some((k, v)) = line.split_once(':') else {
+            continue;
+        };
+        let (k, v) = (k.trim().to_string(), v.trim());
+        if !indented {
+            current = Some(k.clone());
+            if !v.is_empty() && !v.starts_with("!!") {
+                scalars.insert(k, v.to_string());
+            }
+        } else if k == "data" {
+            let key = current.clone().ok_or("`data` outside a matrix")?;
+            if v.contains(']') {
+                matrices.insert(key, parse_list(v)?);
+            } else {
+                collecting = Some(v.to_string());
+            }
+        }
+    }
+    if collecting.is_some() {
+        return Err("unterminated `data: [` list".into());
+    }
+    let get_u32 = |k: &str| -> Result<u32, String> {
+        scalars
+            .get(k)
+            .ok_or(format!("missing `{k}`"))?
+            .parse()
+            .map_err(|e| format!("`{k}`: {e}"))
+    };
+    let k = matrices.get("camera_matrix").ok_or("missing `camera_matrix`")?;
+    if k.len() != 9 {
+        return Err(format!("`camera_matrix` has {} values, expected 9", k.len()));
+    }
+    let d = matrices
+        .get("distortion_coefficients")
+        .cloned()
+        .unwrap_or_default();
+    if d.len() > 5 && d[5..].iter().any(|v| *v != 0.0) {
+        return Err(format!(
+            "`distortion_coefficients` has {} values; only the 5-parameter plumb-bob model is supported",
+            d.len()
+        ));
+    }
+    let mut dist = [0.0; 5];
+    for (i, v) in d.iter().take(5).enumerate() {
+        dist[i] = *v;
+    }
+    let model = CameraModel {
+        width: get_u32("image_width")?,
+        height: get_u32("image_height")?,
+        fx: k[0],
+        fy: k[4],
+        cx: k[2],
+        cy: k[5],
+        distortion: dist,
+    };
+    match model.problem() {
+        Some(p) => Err(p),
+        None => Ok(model),
+    }
+}
+
+fn parse_list(s: &str) -> Result<Vec<f64>, String> {
+    let inner = s
+        .trim()
+        .trim_start_matches('[')
+        .split(']')
+        .next()
+        .unwrap_or("");
+    inner
+        .split(',')
+        .map(str::trim)
+        .filter(|t| !t.is_empty())
+        .map(|t| t.parse::<f64>().map_err(|e| format!("bad number {t:?}: {e}")))
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MINI: &str = r#"
+fleet = "mini"
+reference_vehicle = 1
+[rigs.one]
+cameras = [ { name = "fwd", preset = "vehicle_1440", body_from_camera = { xyz_m = [0.5, 0, 0], rpy_deg = [90, 0, 90] } } ]
+[[vehicles]]
+id = 1
+name = "a"
+rig = "one"
+hull = { diameter_m = 0.125, length_m = 1.5 }
+[[vehicles]]
+id = 2
+name = "b"
+rig = "one"
+hull = { diameter_m = 0.125, length_m = 1.5 }
+markers = [ { codes = "shoal", id = 7, side_m = 0.1, body_from_marker = { xyz_m = [0, 0.07, 0], rpy_deg = [-90, 0, 0] } } ]
+"#;
+
+    #[test]
+    fn loads_a_minimal_fleet() {
+        let f = Fleet::parse(MINI, Path::new("mini.toml")).unwrap();
+        assert_eq!(f.vehicles.len(), 2);
+        assert_eq!(f.marker_owner(CodeSet::Shoal, 7), MarkerOwner::Vehicle(2));
+        assert_eq!(f.marker_owner(CodeSet::Shoal, 8), MarkerOwner::Unknown);
+        assert_eq!(f.vehicle(1).unwrap().cameras[0].model.width, 1440);
+    }
+
+    #[test]
+    fn unknown_field_is_named() {
+        let bad = MINI.replace("name = \"a\"", "name = \"a\"\nspeed = 3");
+        let e = Fleet::parse(&bad, Path::new("mini.toml")).unwrap_err().to_string();
+        assert!(e.contains("mini.toml") && e.contains("speed"), "{e}");
+    }
+
+    #[test]
+    fn duplicate_vehicle_and_bad_rig_are_named() {
+        let dup = MINI.replace("id = 2", "id = 1");
+        let e = Fleet::parse(&dup, Path::new("f.toml")).unwrap_err().to_string();
+        assert!(e.contains("vehicles[1].id"), "{e}");
+        let rig = MINI.replace("rig = \"one\"\nhull", "rig = \"two\"\nhull");
+        let e = Fleet::parse(&rig, Path::new("f.toml")).unwrap_err().to_string();
+        assert!(e.contains("rig") && e.contains("two"), "{e}");
+        let codes = MINI.replace("codes = \"shoal\"", "codes = \"qr\"");
+        let e = Fleet::parse(&codes, Path::new("f.toml")).unwrap_err().to_string();
+        assert!(e.contains("markers[0].codes"), "{e}");
+    }
+
+    #[test]
+    fn reads_opencv_and_ros_calibrations() {
+        let opencv = "%YAML:1.0\n---\nimage_width: 1440\nimage_height: 1080\ncamera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ 1250., 0., 719.5, 0.,\n       1251., 539.5, 0., 0., 1. ]\ndistortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n   data: [ -0.1, 0.02, 0., 0., 0. ]\n";
+        let m = parse_calibration_yaml(opencv).unwrap();
+        assert_eq!((m.width, m.fx, m.fy, m.cy), (1440, 1250.0, 1251.0, 539.5));
+        assert_eq!(m.distortion[0], -0.1);
+        let ros = "image_width: 640\nimage_height: 480\ncamera_name: cam\ncamera_matrix:\n  rows: 3\n  cols: 3\n  data: [500, 0, 320, 0, 500, 240, 0, 0, 1]\ndistortion_model: plumb_bob\ndistortion_coefficients:\n  rows: 1\n  cols: 5\n  data: [0.1, 0, 0, 0, 0]\n";
+        let m = parse_calibration_yaml(ros).unwrap();
+        assert_eq!((m.width, m.cx), (640, 320.0));
+        assert!(parse_calibration_yaml("image_width: 3\n").is_err());
+    }
+}

@@ -1,0 +1,31 @@
+//! shoal's shared vocabulary: everything two shoal processes must agree on,
+//! and nothing about how bytes move (no Zenoh) or how pixels are processed
+//! (no OpenCV).
+//!
+//! - [`messages`]: the wire types (observations, fleet map, camera frames,
+//!   ground truth, node status, vehicle commands);
+//! - [`codec`]: the versioned envelope around their bincode 2 payloads
+//!   (layout in `docs/wire.md`);
+//! - [`keys`]: every Zenoh key expression, built and parsed in one place;
+//! - [`geometry`]: SE(3) poses and the 6x6 covariance convention;
+//! - [`camera`]: the pinhole + distortion camera model shared by simulator
+//!   and detector;
+//! - [`marker`]: code sets (enhanced marker, ArUco, AprilTag) and their layouts;
+//! - [`config`]: fleet files and camera calibrations.
+
+pub mod camera;
+pub mod codec;
+pub mod config;
+pub mod geometry;
+pub mod image;
+pub mod keys;
+pub mod marker;
+pub mod messages;
+
+pub use camera::CameraModel;
+pub use codec::{decode, encode, DecodeError, EncodeError};
+pub use geometry::{Cov6, Pose, PoseWithCovariance};
+pub use image::GrayImage;
+pub use keys::{KeyKind, Keys};
+pub use marker::{CodeSet, MarkerId};
+pub use messages::*;

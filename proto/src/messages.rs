@@ -1,0 +1,404 @@
+//! The messages shoal's processes exchange. Each implements [`WireMessage`]
+//! and travels inside the versioned envelope of [`crate::codec`].
+//!
+//! Vehicle IDs are `u32`; a vehicle is usually numbered after the marker it
+//! carries (the paper's 10, 15, 17). Times are nanoseconds of the injected
+//! clock (`stamp_ns`): simulation time in the simulator, the capture clock on
+//! a vehicle.
+
+use crate::camera::CameraModel;
+use crate::geometry::{covariance_problem, pose_is_finite, Cov6, Pose};
+use crate::marker::{CodeSet, MarkerId};
+use serde::{Deserialize, Serialize};
+
+pub type VehicleId = u32;
+
+/// Message kinds, as carried in the envelope header (`u16`, never reused).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[repr(u16)]
+pub enum MessageKind {
+    Observation = 1,
+    FleetMap = 2,
+    CameraFrame = 3,
+    SimTruth = 4,
+    NodeStatus = 5,
+    VehicleCommand = 6,
+}
+
+impl MessageKind {
+    pub const ALL: [MessageKind; 6] = [
+        MessageKind::Observation,
+        MessageKind::FleetMap,
+        MessageKind::CameraFrame,
+        MessageKind::SimTruth,
+        MessageKind::NodeStatus,
+        MessageKind::VehicleCommand,
+    ];
+
+    pub fn from_u16(v: u16) -> Option<MessageKind> {
+        Self::ALL.iter().copied().find(|k| *k as u16 == v)
+    }
+
+    /// Schema name, as written in MCAP channel metadata.
+    pub fn schema_name(self) -> &'static str {
+        match self {
+            MessageKind::Observation => "shoal.Observation",
+            MessageKind::FleetMap => "shoal.FleetMap",
+            MessageKind::CameraFrame => "shoal.CameraFrame",
+            MessageKind::SimTruth => "shoal.SimTruth",
+            MessageKind::NodeStatus => "shoal.NodeStatus",
+            MessageKind::VehicleCommand => "shoal.VehicleCommand",
+        }
+    }
+}
+
+/// A message type that can cross the wire.
+pub trait WireMessage: Serialize + for<'de> Deserialize<'de> {
+    const KIND: MessageKind;
+    /// Semantic checks beyond what decoding proves (finite poses, sizes that
+    /// agree); `Err` names the field and the reason.
+    fn validate(&self) -> Result<(), (&'static str, String)> {
+        Ok(())
+    }
+}
+
+/// Image-quality figures the node measured on the frame a detection came from.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct ImageQuality {
+    /// Michelson contrast between the marker's black and white cells (0..1).
+    pub marker_contrast: f32,
+    /// Contrast-to-noise ratio between black and white cells.
+    pub cnr: f32,
+    /// Estimated backscatter (veiling light) level, 0..1 of full scale.
+    pub backscatter: f32,
+    /// Water attenuation coefficient the restoration estimated or was told, per metre.
+    pub estimated_c_per_m: f32,
+}
+
+/// The other solution of a planar PnP (the "flip" of IPPE).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct PoseHypothesis {
+    pub observer_from_target: Pose,
+    pub covariance: Cov6,
+    pub reprojection_rms_px: f64,
+}
+
+/// One vehicle's marker-derived estimate of another vehicle's pose.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Observation {
+    /// The vehicle whose camera saw the marker.
+    pub observer: VehicleId,
+    /// Camera index on the observer (order of the fleet file).
+    pub camera: u8,
+    /// Code set and ID of the marker read.
+    pub codes: CodeSet,
+    pub target_marker: MarkerId,
+    /// The vehicle the fleet file says carries that marker (`None`: unknown ID).
+    pub target_vehicle: Option<VehicleId>,
+    /// Capture time of the frame.
+    pub stamp_ns: u64,
+    /// Frame sequence number of that camera.
+    pub frame_seq: u64,
+    /// Best hypothesis: target body in observer body frame (FRD).
+    pub observer_from_target: Pose,
+    /// Covariance of `observer_from_target` (see [`crate::geometry`]).
+    pub covariance: Cov6,
+    pub reprojection_rms_px: f64,
+    /// The planar flip, when PnP found a second minimum.
+    pub alternative: Option<PoseHypothesis>,
+    /// Corners used by PnP (12 for a fully visible enhanced marker).
+    pub corner_count: u8,
+    /// Refined corner positions in the image (pixels), for annotation.
+    pub corners_px: Vec<[f32; 2]>,
+    pub quality: ImageQuality,
+    /// True when this pose is the tracker's prediction bridging an occlusion, not a measurement.
+    pub predicted: bool,
+}
+
+impl WireMessage for Observation {
+    const KIND: MessageKind = MessageKind::Observation;
+    fn validate(&self) -> Result<(), (&'static str, String)> {
+        if !pose_is_finite(&self.observer_from_target) {
+            return Err(("observer_from_target", "pose is not finite".into()));
+        }
+        if let Some(p) = covariance_problem(&self.covariance, 1e3) {
+            return Err(("covariance", p.into()));
+        }
+        if let Some(alt) = &self.alternative {
+            if !pose_is_finite(&alt.observer_from_target) {
+                return Err(("alternative.observer_from_target", "pose is not finite".into()));
+            }
+            if let Some(p) = covariance_problem(&alt.covariance, 1e3) {
+                return Err(("alternative.covariance", p.into()));
+            }
+        }
+        if !self.reprojection_rms_px.is_finite() || self.reprojection_rms_px < 0.0 {
+            return Err(("reprojection_rms_px", "must be finite and non-negative".into()));
+        }
+        if self.corners_px.len() > 64 {
+            return Err(("corners_px", format!("{} corners is too many", self.corners_px.len())));
+        }
+        Ok(())
+    }
+}
+
+/// Liveness of a vehicle in the fleet map.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum VehicleState {
+    /// Localized from fresh observations.
+    Live,
+    /// Its liveliness token disappeared or its data is older than the window.
+    Stale,
+    /// In the fleet but not connected to the reference by any accepted edge.
+    Unobserved,
+}
+
+/// One vehicle in the fused map.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct VehicleEstimate {
+    pub vehicle: VehicleId,
+    pub state: VehicleState,
+    /// Pose relative to the map's reference vehicle (identity for the reference).
+    pub reference_from_vehicle: Pose,
+    pub covariance: Cov6,
+    /// Capture time of the newest observation involving this vehicle (0: never).
+    pub last_seen_ns: u64,
+}
+
+/// Why fusion rejected an observation.
+#[derive(Debug, Clone, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum RejectReason {
+    /// The marker ID belongs to no vehicle of the fleet.
+    UnknownMarker,
+    /// The marker ID is claimed by more than one vehicle in the fleet file.
+    AmbiguousMarker,
+    /// The observation names the observer as its own target.
+    SelfObservation,
+    /// Older than the sliding window, or from the future beyond the skew bound.
+    Stale,
+    ClockSkew,
+    /// The claimed observer is not the vehicle whose key it arrived on.
+    ObserverMismatch,
+    /// Mahalanobis distance to the fused estimate above the chi-square gate.
+    ChiSquare,
+    /// The planar-flip hypothesis lost against its twin.
+    FlippedHypothesis,
+    /// Inconsistent with the largest mutually consistent set (pairwise / cycle check).
+    Inconsistent,
+    /// Pose or covariance unusable.
+    Invalid,
+    /// Same observer, camera, frame and marker already seen.
+    Duplicate,
+}
+
+/// Verdict on one edge (an observation between two vehicles).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EdgeReport {
+    pub observer: VehicleId,
+    pub camera: u8,
+    pub target_marker: MarkerId,
+    pub target_vehicle: Option<VehicleId>,
+    pub stamp_ns: u64,
+    pub frame_seq: u64,
+    /// `None` when accepted.
+    pub rejected: Option<RejectReason>,
+    /// Mahalanobis distance squared against the fused solution (NaN when not computed).
+    pub chi2: f64,
+}
+
+/// The fused, fleet-wide relative map.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FleetMap {
+    pub fleet: String,
+    /// Which fusion instance produced it (`"central"` or a vehicle's ID in decentralized mode).
+    pub producer: String,
+    pub seq: u64,
+    pub stamp_ns: u64,
+    pub reference: VehicleId,
+    pub vehicles: Vec<VehicleEstimate>,
+    pub edges: Vec<EdgeReport>,
+    /// Wall time the solve took.
+    pub solve_time_us: u64,
+}
+
+impl WireMessage for FleetMap {
+    const KIND: MessageKind = MessageKind::FleetMap;
+    fn validate(&self) -> Result<(), (&'static str, String)> {
+        for v in &self.vehicles {
+            if !pose_is_finite(&v.reference_from_vehicle) {
+                return Err(("vehicles.reference_from_vehicle", format!("vehicle {} pose is not finite", v.vehicle)));
+            }
+            if !v.covariance.iter().all(|x| x.is_finite()) {
+                return Err(("vehicles.covariance", format!("vehicle {} covariance is not finite", v.vehicle)));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Pixel layout of a camera frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum PixelFormat {
+    /// 8-bit grey, one byte per pixel.
+    Mono8,
+    /// 8-bit RGB, three bytes per pixel.
+    Rgb8,
+}
+
+impl PixelFormat {
+    pub fn channels(self) -> usize {
+        match self {
+            PixelFormat::Mono8 => 1,
+            PixelFormat::Rgb8 => 3,
+        }
+    }
+}
+
+/// Calibration and mounting of the camera a frame came from.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct CameraInfo {
+    pub model: CameraModel,
+    pub body_from_camera: Pose,
+}
+
+/// One 8-bit image from a vehicle camera (or the simulator standing in for it).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CameraFrame {
+    pub vehicle: VehicleId,
+    pub camera: u8,
+    pub seq: u64,
+    pub stamp_ns: u64,
+    pub info: CameraInfo,
+    pub format: PixelFormat,
+    /// Row-major pixels, `width * height * channels` bytes, no padding.
+    pub data: Vec<u8>,
+}
+
+impl WireMessage for CameraFrame {
+    const KIND: MessageKind = MessageKind::CameraFrame;
+    fn validate(&self) -> Result<(), (&'static str, String)> {
+        if let Some(p) = self.info.model.problem() {
+            return Err(("info.model", p));
+        }
+        let want = self.info.model.width as usize * self.info.model.height as usize * self.format.channels();
+        if self.data.len() != want {
+            return Err((
+                "data",
+                format!(
+                    "{} bytes for a {}x{} {:?} frame (expected {want})",
+                    self.data.len(),
+                    self.info.model.width,
+                    self.info.model.height,
+                    self.format
+                ),
+            ));
+        }
+        if !pose_is_finite(&self.info.body_from_camera) {
+            return Err(("info.body_from_camera", "pose is not finite".into()));
+        }
+        Ok(())
+    }
+}
+
+/// Where a marker is visible in one simulated camera frame.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct VisibleMarker {
+    pub observer: VehicleId,
+    pub camera: u8,
+    pub frame_seq: u64,
+    pub codes: CodeSet,
+    pub marker: MarkerId,
+    pub target_vehicle: VehicleId,
+    /// Projected corners (pixels), in [`CodeSet::corners_3d`] order.
+    pub corners_px: Vec<[f64; 2]>,
+    /// Fraction of the marker's face not occluded (0..1).
+    pub visible_fraction: f32,
+    pub range_m: f64,
+}
+
+/// Ground truth of a vehicle in the simulated world.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct VehicleTruth {
+    pub vehicle: VehicleId,
+    /// World frame is NED.
+    pub world_from_body: Pose,
+    /// Body-frame linear velocity (m/s).
+    pub velocity_body: [f64; 3],
+}
+
+/// The simulator's ground truth at one tick.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SimTruth {
+    pub stamp_ns: u64,
+    pub tick: u64,
+    pub water_c_per_m: f64,
+    pub vehicles: Vec<VehicleTruth>,
+    pub visible: Vec<VisibleMarker>,
+}
+
+impl WireMessage for SimTruth {
+    const KIND: MessageKind = MessageKind::SimTruth;
+    fn validate(&self) -> Result<(), (&'static str, String)> {
+        if let Some(v) = self.vehicles.iter().find(|v| !pose_is_finite(&v.world_from_body)) {
+            return Err(("vehicles.world_from_body", format!("vehicle {} pose is not finite", v.vehicle)));
+        }
+        Ok(())
+    }
+}
+
+/// Per-camera counters and timings of a node.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct CameraStatus {
+    pub camera: u8,
+    pub name: String,
+    pub frames_in: u64,
+    /// Dropped because the stage's queue was full (oldest frame dropped).
+    pub frames_dropped: u64,
+    /// Frames rejected as malformed (wrong size, format, undecodable).
+    pub frames_invalid: u64,
+    pub detections: u64,
+    /// Frames per second over the last status period.
+    pub frame_rate_hz: f32,
+    /// Mean stage latencies over the last status period, milliseconds.
+    pub restore_ms: f32,
+    pub detect_ms: f32,
+    pub pose_ms: f32,
+}
+
+/// Periodic health report of a vehicle node.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct NodeStatus {
+    pub vehicle: VehicleId,
+    pub stamp_ns: u64,
+    pub uptime_s: f64,
+    pub cameras: Vec<CameraStatus>,
+    /// Observations published since start.
+    pub observations_sent: u64,
+    /// Messages received that failed decoding or validation.
+    pub messages_rejected: u64,
+}
+
+impl WireMessage for NodeStatus {
+    const KIND: MessageKind = MessageKind::NodeStatus;
+}
+
+/// A velocity command for a (simulated) vehicle, body frame FRD.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct VehicleCommand {
+    pub vehicle: VehicleId,
+    pub stamp_ns: u64,
+    /// Forward, starboard, down velocities (m/s).
+    pub velocity_body: [f64; 3],
+    /// Yaw rate (rad/s), positive turning to starboard.
+    pub yaw_rate: f64,
+}
+
+impl WireMessage for VehicleCommand {
+    const KIND: MessageKind = MessageKind::VehicleCommand;
+    fn validate(&self) -> Result<(), (&'static str, String)> {
+        if !self.velocity_body.iter().chain([&self.yaw_rate]).all(|v| v.is_finite()) {
+            return Err(("velocity_body", "command is not finite".into()));
+        }
+        Ok(())
+    }
+}

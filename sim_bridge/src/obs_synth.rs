@@ -1,0 +1,583 @@
+//! Observation-level synthesizer: relative-pose [`Observation`]s straight from
+//! ground truth, without rendering a pixel, so fusion can be exercised with
+//! hundreds of vehicles.
+//!
+//! For every observer camera and every marker of every other vehicle:
+//!
+//! - **visibility**: the marker centre is in front of the camera and inside its
+//!   image (pinhole, distortion ignored), within [`VisibilityModel::max_range_m`]
+//!   (4 m: the paper's effective range at c = 0.5/m, §6.3), seen from its front
+//!   side at an incidence below [`VisibilityModel::max_incidence_deg`], and
+//!   detected with a probability that falls with range. Hulls do not occlude
+//!   each other here.
+//! - **noise** ([`NoiseModel`]): a perturbation of `camera_from_marker` drawn in
+//!   the camera frame, σ growing with range; the observation carries the
+//!   matching covariance propagated to `observer_from_target` (body frames,
+//!   [`shoal_proto::geometry`] convention), so the noise is exactly what the
+//!   covariance claims.
+//! - **outliers** ([`OutlierModel`]), each labelled ([`OutlierKind`]) for
+//!   precision/recall: a wrong marker ID (another vehicle's, or one no vehicle
+//!   carries), and the planar flip: the IPPE twin of the marker pose, the
+//!   marker's normal mirrored about the line of sight, reported as the primary
+//!   hypothesis with the true (noisy) pose as `alternative`.
+//!
+//! Deterministic for a seed (ChaCha8). [`synthetic_fleet`] builds fleets of N
+//! vehicles and [`grid_formation`] / [`line_abreast`] their ground truth.
+
+use nalgebra::{Matrix6, Unit, UnitQuaternion, Vector3, Vector6};
+use rand::Rng;
+use rand_chacha::rand_core::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, StandardNormal};
+use shoal_proto::config::{Fleet, MarkerOwner};
+use shoal_proto::geometry::{compose_jacobians, perturb, pose_from_xyz_rpy, Cov6, Pose};
+use shoal_proto::{CodeSet, ImageQuality, MarkerId, Observation, PoseHypothesis, VehicleId, VehicleTruth};
+use std::collections::BTreeMap;
+use std::path::Path;
+
+/// Errors of this module.
+#[derive(Debug, thiserror::Error)]
+pub enum ObsSynthError {
+    #[error("a synthetic fleet of {n} vehicles needs {needed} IDs but {codes} has {available}")]
+    TooManyVehicles {
+        n: usize,
+        needed: usize,
+        codes: &'static str,
+        available: usize,
+    },
+    #[error("a synthetic fleet needs at least one vehicle")]
+    EmptyFleet,
+    #[error("generated fleet file is invalid: {0}")]
+    Fleet(#[from] shoal_proto::config::ConfigError),
+}
+
+/// Measurement noise of one marker pose, in the camera frame.
+///
+/// The defaults are placeholders of the right order for a 100 mm enhanced
+/// marker seen by a 1440x1080, 60° camera; they are **to be fitted** to what the
+/// image-level pipeline (render → node) measures at each range.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NoiseModel {
+    /// σ of the position across the line of sight, metres per metre of range.
+    pub lateral_std_per_m: f64,
+    /// σ of the position along the line of sight (depth), metres per metre of range.
+    pub depth_std_per_m: f64,
+    /// Added to both translation σ, metres.
+    pub translation_std_floor_m: f64,
+    /// σ of the marker's tilt (rotation about the camera x and y axes), radians, at zero range.
+    pub tilt_std_rad: f64,
+    /// Growth of the tilt σ with range, radians per metre.
+    pub tilt_std_per_m: f64,
+    /// σ of the rotation about the optical axis, radians.
+    pub roll_std_rad: f64,
+}
+
+impl Default for NoiseModel {
+    fn default() -> Self {
+        Self {
+            lateral_std_per_m: 0.001,
+            depth_std_per_m: 0.004,
+            translation_std_floor_m: 0.0005,
+            tilt_std_rad: 0.3f64.to_radians(),
+            tilt_std_per_m: 0.3f64.to_radians(),
+            roll_std_rad: 0.2f64.to_radians(),
+        }
+    }
+}
+
+impl NoiseModel {
+    /// Covariance of `camera_from_marker` at `range_m` (camera frame, translation then rotation).
+    pub fn camera_covariance(&self, range_m: f64) -> Cov6 {
+        let lat = self.translation_std_floor_m + self.lateral_std_per_m * range_m;
+        let depth = self.translation_std_floor_m + self.depth_std_per_m * range_m;
+        let tilt = self.tilt_std_rad + self.tilt_std_per_m * range_m;
+        Cov6::from_diagonal(&Vector6::new(
+            lat * lat,
+            lat * lat,
+            depth * depth,
+            tilt * tilt,
+            tilt * tilt,
+            self.roll_std_rad * self.roll_std_rad,
+        ))
+    }
+}
+
+/// Which markers a camera detects.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct VisibilityModel {
+    pub max_range_m: f64,
+    /// Largest angle between the marker's normal and the direction to the camera.
+    pub max_incidence_deg: f64,
+    /// Detection probability up to `full_detection_range_m`…
+    pub detection_prob_near: f64,
+    pub full_detection_range_m: f64,
+    /// …falling linearly to this at `max_range_m`.
+    pub detection_prob_at_max: f64,
+}
+
+impl Default for VisibilityModel {
+    fn default() -> Self {
+        Self {
+            max_range_m: 4.0,
+            max_incidence_deg: 70.0,
+            detection_prob_near: 0.98,
+            full_detection_range_m: 2.0,
+            detection_prob_at_max: 0.3,
+        }
+    }
+}
+
+impl VisibilityModel {
+    pub fn detection_probability(&self, range_m: f64) -> f64 {
+        if range_m > self.max_range_m {
+            0.0
+        } else if range_m <= self.full_detection_range_m {
+            self.detection_prob_near
+        } else {
+            let f = (range_m - self.full_detection_range_m) / (self.max_range_m - self.full_detection_range_m).max(1e-9);
+            self.detection_prob_near + f * (self.detection_prob_at_max - self.detection_prob_near)
+        }
+    }
+}
+
+/// Outlier injection rates (per detected observation).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct OutlierModel {
+    /// Probability the ID read is another vehicle's marker.
+    pub wrong_id_rate: f64,
+    /// Probability the ID read is one no vehicle carries.
+    pub unknown_id_rate: f64,
+    /// Probability the primary hypothesis is the planar flip (when the flip is
+    /// at least `min_flip_deg` away from the truth; smaller "flips" are
+    /// indistinguishable from noise and are not generated).
+    pub flip_rate: f64,
+    pub min_flip_deg: f64,
+    /// Probability a correct observation still reports its twin as `alternative`.
+    pub alternative_rate: f64,
+}
+
+impl Default for OutlierModel {
+    fn default() -> Self {
+        Self {
+            wrong_id_rate: 0.0,
+            unknown_id_rate: 0.0,
+            flip_rate: 0.0,
+            min_flip_deg: 15.0,
+            alternative_rate: 0.5,
+        }
+    }
+}
+
+/// All settings of the synthesizer.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ObsSynthParams {
+    pub noise: NoiseModel,
+    pub visibility: VisibilityModel,
+    pub outliers: OutlierModel,
+}
+
+/// Ground-truth label of a synthetic observation.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum OutlierKind {
+    /// Correct ID, primary hypothesis true (the alternative, if any, is the twin).
+    Inlier,
+    /// The ID of another vehicle's marker: no hypothesis is true.
+    WrongId,
+    /// An ID no vehicle carries.
+    UnknownId,
+    /// Primary is the planar flip; the alternative is true.
+    Flipped,
+}
+
+/// One synthetic observation with its ground truth.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SyntheticObservation {
+    pub obs: Observation,
+    /// The vehicle actually seen.
+    pub true_target: VehicleId,
+    /// True `observer_from_target` of the vehicle actually seen.
+    pub truth_observer_from_target: Pose,
+    pub outlier: OutlierKind,
+    /// Angle between the true marker pose and its planar-flip twin, radians.
+    pub twin_angle_rad: f64,
+}
+
+impl SyntheticObservation {
+    /// Whether hypothesis `h` (0 primary, 1 alternative) of this observation is true.
+    pub fn hypothesis_is_true(&self, h: u8) -> bool {
+        match (self.outlier, h) {
+            (OutlierKind::Inlier, 0) | (OutlierKind::Flipped, 1) => true,
+            _ => false,
+        }
+    }
+}
+
+/// The synthesizer. One call of [`ObsSynth::observe`] is one frame of every camera.
+#[derive(Debug, Clone)]
+pub struct ObsSynth {
+    fleet: Fleet,
+    params: ObsSynthParams,
+    rng: ChaCha8Rng,
+    frame_seq: BTreeMap<(VehicleId, u8), u64>,
+    /// Every (code set, ID) carried, for wrong-ID draws.
+    markers: Vec<(CodeSet, MarkerId, VehicleId)>,
+}
+
+/// The planar-flip (IPPE) twin of `camera_from_marker`: the marker normal
+/// mirrored about the line of sight, same position. Returns the twin and the
+/// angle between the two rotations.
+pub fn planar_flip_twin(camera_from_marker: &Pose) -> (Pose, f64) {
+    let p = camera_from_marker.translation.vector;
+    let n = camera_from_marker.rotation * Vector3::z();
+    let v = -p / p.norm().max(1e-12);
+    let axis = n.cross(&v);
+    let theta = n.dot(&v).clamp(-1.0, 1.0).acos();
+    if axis.norm() < 1e-9 {
+        return (*camera_from_marker, 0.0);
+    }
+    let rot = UnitQuaternion::from_axis_angle(&Unit::new_normalize(axis), 2.0 * theta);
+    let mut twin = *camera_from_marker;
+    twin.rotation = rot * camera_from_marker.rotation;
+    (twin, 2.0 * theta)
+}
+
+impl ObsSynth {
+    pub fn new(fleet: &Fleet, params: ObsSynthParams, seed: u64) -> Self {
+        let mut markers: Vec<(CodeSet, MarkerId, VehicleId)> = fleet
+            .vehicles
+            .iter()
+            .flat_map(|v| v.markers.iter().map(move |m| (m.codes, m.id, v.id)))
+            .collect();
+        markers.sort_by_key(|(c, id, v)| (c.name(), *id, *v));
+        Self {
+            fleet: fleet.clone(),
+            params,
+            rng: ChaCha8Rng::seed_from_u64(seed),
+            frame_seq: BTreeMap::new(),
+            markers,
+        }
+    }
+
+    pub fn params(&self) -> &ObsSynthParams {
+        &self.params
+    }
+
+    fn gaussian6(&mut self, cov: &Cov6) -> Vector6<f64> {
+        let l = cov.cholesky().map(|c| c.l()).unwrap_or_else(Matrix6::zeros);
+        let z = Vector6::from_fn(|_, _| StandardNormal.sample(&mut self.rng));
+        l * z
+    }
+
+    /// One frame of every camera of every vehicle with a truth entry, captured at `stamp_ns`.
+    pub fn observe(&mut self, truth: &[VehicleTruth], stamp_ns: u64) -> Vec<SyntheticObservation> {
+        let world_from: BTreeMap<VehicleId, Pose> = truth.iter().map(|t| (t.vehicle, t.world_from_body)).collect();
+        let fleet = self.fleet.clone();
+        let params = self.params;
+        let mut out = Vec::new();
+        for observer in &fleet.vehicles {
+            let Some(world_from_obs) = world_from.get(&observer.id) else { continue };
+            for cam in &observer.cameras {
+                let seq = self.frame_seq.entry((observer.id, cam.index)).or_insert(0);
+                *seq += 1;
+                let frame_seq = *seq;
+                let world_from_cam = world_from_obs * cam.body_from_camera;
+                for target in &fleet.vehicles {
+                    if target.id == observer.id {
+                        continue;
+                    }
+                    let Some(world_from_tgt) = world_from.get(&target.id) else { continue };
+                    for marker in &target.markers {
+                        let cam_from_marker = world_from_cam.inverse() * world_from_tgt * marker.body_from_marker;
+                        let p = cam_from_marker.translation.vector;
+                        let range = p.norm();
+                        if p.z <= 0.0 || range > params.visibility.max_range_m {
+                            continue;
+                        }
+                        let m = &cam.model;
+                        let (u, v) = (m.fx * p.x / p.z + m.cx, m.fy * p.y / p.z + m.cy);
+                        if u < 0.0 || v < 0.0 || u > m.width as f64 - 1.0 || v > m.height as f64 - 1.0 {
+                            continue;
+                        }
+                        let normal = cam_from_marker.rotation * Vector3::z();
+                        let incidence = normal.dot(&(-p / range)).clamp(-1.0, 1.0).acos();
+                        if incidence > params.visibility.max_incidence_deg.to_radians() {
+                            continue;
+                        }
+                        if !self.rng.gen_bool(params.visibility.detection_probability(range).clamp(0.0, 1.0)) {
+                            continue;
+                        }
+                        out.push(self.measure(
+                            observer.id,
+                            cam.index,
+                            frame_seq,
+                            stamp_ns,
+                            &cam.body_from_camera,
+                            &cam_from_marker,
+                            target.id,
+                            marker.codes,
+                            marker.id,
+                            &marker.body_from_marker,
+                            &(world_from_obs.inverse() * world_from_tgt),
+                        ));
+                    }
+                }
+            }
+        }
+        out
+    }
+
+    fn measure(
+        &mut self,
+        observer: VehicleId,
+        camera: u8,
+        frame_seq: u64,
+        stamp_ns: u64,
+        body_from_camera: &Pose,
+        cam_from_marker: &Pose,
+        target: VehicleId,
+        codes: CodeSet,
+        marker_id: MarkerId,
+        body_from_marker: &Pose,
+        truth: &Pose,
+    ) -> SyntheticObservation {
+        let o = self.params.outliers;
+        let range = cam_from_marker.translation.vector.norm();
+        let cam_cov = self.params.noise.camera_covariance(range);
+        let measured = perturb(cam_from_marker, &self.gaussian6(&cam_cov));
+        // The ID read, and the mount the node would use for it.
+        let mut outlier = OutlierKind::Inlier;
+        let (mut read_id, mut claimed_mount, mut claimed_vehicle) = (marker_id, *body_from_marker, Some(target));
+        let draw: f64 = self.rng.gen();
+        if draw < o.wrong_id_rate {
+            let others: Vec<(CodeSet, MarkerId, VehicleId)> = self
+                .markers
+                .iter()
+                .copied()
+                .filter(|(c, _, v)| *c == codes && *v != target && *v != observer)
+                .collect();
+            if !others.is_empty() {
+                let (c, id, v) = others[self.rng.gen_range(0..others.len())];
+                read_id = id;
+                claimed_vehicle = Some(v);
+                claimed_mount = self.fleet.marker(v, c, id).map_or(*body_from_marker, |m| m.body_from_marker);
+                outlier = OutlierKind::WrongId;
+            }
+        } else if draw < o.wrong_id_rate + o.unknown_id_rate {
+            let used: Vec<MarkerId> = self.markers.iter().filter(|(c, _, _)| *c == codes).map(|(_, id, _)| *id).collect();
+            // Any ID of the set no vehicle carries (the set's size, or past the largest used ID
+            // while the code tables are not extracted).
+            let n = (codes.len() as MarkerId).max(used.iter().max().map_or(1, |m| m + 2));
+            let free: Vec<MarkerId> = (0..n).filter(|id| !used.contains(id)).collect();
+            if !free.is_empty() {
+                read_id = free[self.rng.gen_range(0..free.len())];
+                claimed_vehicle = None;
+                outlier = OutlierKind::UnknownId;
+            }
+        }
+        let (twin, twin_angle) = planar_flip_twin(&measured);
+        let flip = self.rng.gen_bool(o.flip_rate.clamp(0.0, 1.0)) && twin_angle >= o.min_flip_deg.to_radians();
+        let with_alt = flip || self.rng.gen_bool(o.alternative_rate.clamp(0.0, 1.0));
+        if flip && outlier == OutlierKind::Inlier {
+            outlier = OutlierKind::Flipped;
+        }
+        // Covariance of observer_from_target = body_from_camera · camera_from_marker · marker_from_target.
+        let marker_from_target = claimed_mount.inverse();
+        let body_from_marker_meas = body_from_camera * measured;
+        let (_, j_cm) = compose_jacobians(body_from_camera, &measured);
+        let (j_bm, _) = compose_jacobians(&body_from_marker_meas, &marker_from_target);
+        let j = j_bm * j_cm;
+        let cov = j * cam_cov * j.transpose();
+        let cov = (cov + cov.transpose()) * 0.5;
+        let true_pose = body_from_marker_meas * marker_from_target;
+        let twin_pose = body_from_camera * twin * marker_from_target;
+        let (primary, alternative) = if flip { (twin_pose, true_pose) } else { (true_pose, twin_pose) };
+        let rms = 0.3 + 0.1 * range;
+        let obs = Observation {
+            observer,
+            camera,
+            codes,
+            target_marker: read_id,
+            target_vehicle: claimed_vehicle.filter(|v| self.fleet.marker_owner(codes, read_id) == MarkerOwner::Vehicle(*v)),
+            stamp_ns,
+            frame_seq,
+            observer_from_target: primary,
+            covariance: cov,
+            reprojection_rms_px: rms,
+            alternative: with_alt.then_some(PoseHypothesis {
+                observer_from_target: alternative,
+                covariance: cov,
+                reprojection_rms_px: rms * 1.2,
+            }),
+            corner_count: codes.corner_count() as u8,
+            corners_px: Vec::new(),
+            quality: ImageQuality::default(),
+            predicted: false,
+        };
+        SyntheticObservation {
+            obs,
+            true_target: target,
+            truth_observer_from_target: *truth,
+            outlier,
+            twin_angle_rad: twin_angle,
+        }
+    }
+}
+
+/// Fleet TOML of `n` vehicles (IDs 1..=n, reference 1), each with the paper's
+/// five-camera 1.5 m rig and four 100 mm markers of `codes` (IDs `4(i−1)+k`):
+/// starboard and port mid-body as in `configs/fleets/paper.toml`, and one on
+/// top and one underneath 0.3 m ahead of mid-body, so that stacked layers see
+/// each other through the up/down cameras.
+pub fn synthetic_fleet_toml(n: usize, codes: CodeSet) -> Result<String, ObsSynthError> {
+    if n == 0 {
+        return Err(ObsSynthError::EmptyFleet);
+    }
+    // `len()` is 0 while the code tables are not extracted; Fleet::parse checks IDs then.
+    if !codes.is_empty() && 4 * n > codes.len() {
+        return Err(ObsSynthError::TooManyVehicles {
+            n,
+            needed: 4 * n,
+            codes: codes.name(),
+            available: codes.len(),
+        });
+    }
+    let mut s = format!(
+        "fleet = \"synthetic{n}\"\ndescription = \"{n} generated vehicles\"\nreference_vehicle = 1\n\n\
+[[rigs.mini.cameras]]\nname = \"forward\"\npreset = \"vehicle_1440\"\nbody_from_camera = {{ xyz_m = [0.750, 0.0, 0.0], rpy_deg = [90, 0, 90] }}\n\
+[[rigs.mini.cameras]]\nname = \"up\"\npreset = \"vehicle_1440\"\nbody_from_camera = {{ xyz_m = [0.600, 0.0, -0.0625], rpy_deg = [180, 0, 90] }}\n\
+[[rigs.mini.cameras]]\nname = \"down\"\npreset = \"vehicle_1440\"\nbody_from_camera = {{ xyz_m = [0.600, 0.0, 0.0625], rpy_deg = [0, 0, 90] }}\n\
+[[rigs.mini.cameras]]\nname = \"port\"\npreset = \"vehicle_1440\"\nbody_from_camera = {{ xyz_m = [0.600, -0.0625, 0.0], rpy_deg = [90, 0, 0] }}\n\
+[[rigs.mini.cameras]]\nname = \"starboard\"\npreset = \"vehicle_1440\"\nbody_from_camera = {{ xyz_m = [0.600, 0.0625, 0.0], rpy_deg = [90, 0, 180] }}\n\n"
+    );
+    let c = codes.name();
+    for i in 1..=n {
+        let k = 4 * (i - 1) as u32;
+        s += &format!(
+            "[[vehicles]]\nid = {i}\nname = \"auv-{i}\"\nrig = \"mini\"\nhull = {{ diameter_m = 0.125, length_m = 1.5 }}\nmarkers = [\n\
+  {{ codes = \"{c}\", id = {}, side_m = 0.100, body_from_marker = {{ xyz_m = [0.0, 0.0655, 0.0], rpy_deg = [-90, 0, 0] }} }},\n\
+  {{ codes = \"{c}\", id = {}, side_m = 0.100, body_from_marker = {{ xyz_m = [0.0, -0.0655, 0.0], rpy_deg = [-90, 0, 180] }} }},\n\
+  {{ codes = \"{c}\", id = {}, side_m = 0.100, body_from_marker = {{ xyz_m = [0.3, 0.0, -0.0655], rpy_deg = [180, 0, 0] }} }},\n\
+  {{ codes = \"{c}\", id = {}, side_m = 0.100, body_from_marker = {{ xyz_m = [0.3, 0.0, 0.0655], rpy_deg = [0, 0, 0] }} }},\n]\n\n",
+            k,
+            k + 1,
+            k + 2,
+            k + 3
+        );
+    }
+    Ok(s)
+}
+
+/// The fleet of [`synthetic_fleet_toml`], parsed.
+pub fn synthetic_fleet(n: usize, codes: CodeSet) -> Result<Fleet, ObsSynthError> {
+    let text = synthetic_fleet_toml(n, codes)?;
+    Ok(Fleet::parse(&text, Path::new(&format!("synthetic{n}.toml")))?)
+}
+
+/// Line abreast heading north (+x), `spacing_m` apart to starboard (+y), in the order given.
+pub fn line_abreast(ids: &[VehicleId], spacing_m: f64) -> Vec<VehicleTruth> {
+    ids.iter()
+        .enumerate()
+        .map(|(i, &vehicle)| VehicleTruth {
+            vehicle,
+            world_from_body: pose_from_xyz_rpy([0.0, spacing_m * i as f64, 5.0], [0.0, 0.0, 0.0]),
+            velocity_body: [0.0; 3],
+        })
+        .collect()
+}
+
+/// Random perturbation of a formation.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FormationJitter {
+    /// Uniform ± offset of each position coordinate, metres.
+    pub position_m: f64,
+    /// Uniform ± roll, pitch and yaw, degrees.
+    pub attitude_deg: f64,
+}
+
+impl Default for FormationJitter {
+    fn default() -> Self {
+        Self {
+            position_m: 0.15,
+            attitude_deg: 8.0,
+        }
+    }
+}
+
+/// Vehicles abreast in `columns` (along +y) and stacked in layers (along +z,
+/// deeper), `spacing_m` apart, all heading north, jittered (seeded).
+pub fn grid_formation(ids: &[VehicleId], columns: usize, spacing_m: f64, jitter: FormationJitter, seed: u64) -> Vec<VehicleTruth> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let columns = columns.max(1);
+    ids.iter()
+        .enumerate()
+        .map(|(i, &vehicle)| {
+            let (col, layer) = ((i % columns) as f64, (i / columns) as f64);
+            let mut j = || rng.gen_range(-1.0..=1.0);
+            let xyz = [
+                jitter.position_m * j(),
+                spacing_m * col + jitter.position_m * j(),
+                5.0 + spacing_m * layer + jitter.position_m * j(),
+            ];
+            let a = jitter.attitude_deg.to_radians();
+            let rpy = [a * j(), a * j(), a * j()];
+            VehicleTruth {
+                vehicle,
+                world_from_body: pose_from_xyz_rpy(xyz, rpy),
+                velocity_body: [0.0; 3],
+            }
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use shoal_proto::geometry::difference;
+
+    #[test]
+    fn planar_flip_twin_mirrors_the_tilt_about_the_line_of_sight() {
+        // Marker 2 m ahead, tilted 20° about the camera y axis.
+        let m = pose_from_xyz_rpy([0.0, 0.0, 2.0], [0.0, std::f64::consts::PI + 0.35, 0.0]);
+        let (twin, angle) = planar_flip_twin(&m);
+        let n = m.rotation * Vector3::z();
+        let n2 = twin.rotation * Vector3::z();
+        assert!((n.x + n2.x).abs() < 1e-9 && (n.z - n2.z).abs() < 1e-9, "{n} vs {n2}");
+        assert!((angle - 0.70).abs() < 1e-9);
+        assert_eq!(twin.translation, m.translation);
+    }
+
+    #[test]
+    fn synthetic_fleet_has_unique_markers_and_line_abreast_neighbours_see_each_other() {
+        let fleet = synthetic_fleet(3, CodeSet::Aruco4x4_1000).unwrap();
+        assert_eq!(fleet.vehicles.len(), 3);
+        assert_eq!(fleet.marker_owner(CodeSet::Aruco4x4_1000, 5), MarkerOwner::Vehicle(2));
+        let truth = line_abreast(&[1, 2, 3], 1.5);
+        let mut synth = ObsSynth::new(&fleet, ObsSynthParams::default(), 7);
+        let obs = synth.observe(&truth, 1_000);
+        assert!(obs.iter().any(|o| o.obs.observer == 1 && o.true_target == 2));
+        assert!(obs.iter().any(|o| o.obs.observer == 2 && o.true_target == 1));
+        for o in &obs {
+            let err = difference(&o.obs.observer_from_target, &o.truth_observer_from_target);
+            assert!(err.norm() < 0.2, "{err}");
+            assert_eq!(o.outlier, OutlierKind::Inlier);
+        }
+    }
+
+    #[test]
+    fn same_seed_same_observations() {
+        let fleet = synthetic_fleet(4, CodeSet::Aruco4x4_1000).unwrap();
+        let truth = grid_formation(&[1, 2, 3, 4], 2, 1.5, FormationJitter::default(), 3);
+        let params = ObsSynthParams {
+            outliers: OutlierModel {
+                wrong_id_rate: 0.1,
+                flip_rate: 0.1,
+                ..OutlierModel::default()
+            },
+            ..ObsSynthParams::default()
+        };
+        let a = ObsSynth::new(&fleet, params, 11).observe(&truth, 5);
+        let b = ObsSynth::new(&fleet, params, 11).observe(&truth, 5);
+        assert!(!a.is_empty());
+        assert_eq!(a, b);
+    }
+}

@@ -1,0 +1,43 @@
+use anyhow::Context;
+use clap::Subcommand;
+use shoal_proto::config::{parse_calibration_yaml, Fleet};
+use std::path::PathBuf;
+
+#[derive(Debug, Subcommand)]
+pub enum ConfigCmd {
+    /// Load and validate a fleet file (TOML) or a camera calibration (OpenCV/ROS YAML), and print a summary.
+    Check {
+        /// `configs/fleets/paper.toml`, `configs/cameras/vehicle_1440.yaml`, …
+        file: PathBuf,
+    },
+}
+
+pub fn run(cmd: ConfigCmd) -> anyhow::Result<()> {
+    match cmd {
+        ConfigCmd::Check { file } => {
+            let ext = file.extension().and_then(|e| e.to_str()).unwrap_or("");
+            if ext == "yaml" || ext == "yml" {
+                let text = std::fs::read_to_string(&file)
+                    .with_context(|| format!("cannot read {}", file.display()))?;
+                let m = parse_calibration_yaml(&text)
+                    .map_err(|e| anyhow::anyhow!("{}: {e}", file.display()))?;
+                println!(
+                    "camera {}: {}x{}, fx {:.2} fy {:.2}, principal point ({:.2}, {:.2}), distortion {:?}",
+                    file.display(),
+                    m.width,
+                    m.height,
+                    m.fx,
+                    m.fy,
+                    m.cx,
+                    m.cy,
+                    m.distortion
+                );
+            } else {
+                let fleet = Fleet::load(&file)?;
+                print!("{}", fleet.summary());
+                println!("ok");
+            }
+            Ok(())
+        }
+    }
+}

@@ -1,0 +1,3 @@
+//! One module per subcommand: argument types and a `run` that calls the libraries.
+
+pub mod config;

@@ -1,0 +1,51 @@
+//! `shoal`: the one command-line tool. Each subcommand parses its arguments
+//! and calls a library crate; no algorithm lives here.
+
+mod cmd;
+
+use clap::{Parser, Subcommand};
+
+#[derive(Debug, Parser)]
+#[command(
+    name = "shoal",
+    version,
+    about = "Camera-only relative localization for AUV swarms (enhanced AR markers, HOIRM restoration, Zenoh)",
+    long_about = "shoal finds where the vehicles of an AUV swarm are relative to each other from their \
+cameras alone: HOIRM underwater image restoration, 12-corner enhanced AR markers, iterative PnP with \
+covariance, and a Zenoh-based fusion service that keeps one consistent swarm map.\n\n\
+Start with `shoal demo` (a simulated three-vehicle swarm, no setup needed)."
+)]
+struct Cli {
+    /// Log filter (tracing EnvFilter syntax), e.g. `info`, `shoal=debug,zenoh=warn`.
+    #[arg(long, global = true, env = "SHOAL_LOG", default_value = "info,zenoh=warn")]
+    log: String,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Validate configuration files.
+    #[command(subcommand)]
+    Config(cmd::config::ConfigCmd),
+}
+
+fn main() -> std::process::ExitCode {
+    let cli = Cli::parse();
+    let filter = tracing_subscriber::EnvFilter::try_new(&cli.log)
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .init();
+    let result = match cli.command {
+        Command::Config(c) => cmd::config::run(c),
+    };
+    match result {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
