@@ -25,6 +25,8 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
+    /// Run the simulated three-vehicle swarm of the paper's §6.3 end to end (no setup needed).
+    Demo(cmd::demo::DemoArgs),
     /// Validate configuration files.
     #[command(subcommand)]
     Config(cmd::config::ConfigCmd),
@@ -40,6 +42,7 @@ fn main() -> std::process::ExitCode {
         .init();
     let result = match cli.command {
         Command::Config(c) => cmd::config::run(c),
+        Command::Demo(a) => cmd::demo::run_demo(a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

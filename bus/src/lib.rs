@@ -11,7 +11,10 @@
 //!
 //! It uses Zenoh's synchronous API (`Wait`), so services are plain threads.
 
+pub mod clock;
 pub mod queue;
+
+pub use clock::{Clock, ManualClock, WallClock};
 
 pub use queue::{DropOldestQueue, PopError};
 

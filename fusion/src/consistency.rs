@@ -72,6 +72,23 @@ pub struct Candidate {
     pub hypothesis: u8,
     pub a_from_b: Pose,
     pub covariance: Cov6,
+    /// `covariance⁻¹`.
+    pub information: Cov6,
+}
+
+impl Candidate {
+    /// A candidate; `None` when the covariance is not invertible.
+    pub fn new(observation: usize, hypothesis: u8, a_from_b: Pose, covariance: Cov6) -> Option<Self> {
+        let covariance = (covariance + covariance.transpose()) * 0.5;
+        let information = covariance.cholesky()?.inverse();
+        Some(Self {
+            observation,
+            hypothesis,
+            a_from_b,
+            covariance,
+            information,
+        })
+    }
 }
 
 /// Mutually consistent candidates of one pair, fused into one edge.
@@ -126,17 +143,18 @@ pub fn mahalanobis2(x: &Pose, cov_x: &Cov6, y: &Pose, cov_y: &Cov6) -> f64 {
     }
 }
 
-/// Information-weighted mean of `poses` in the tangent space (two Gauss–Newton
-/// passes around the first one) and the covariance of that mean.
+/// Information-weighted mean of poses given with their information matrices,
+/// in the tangent space (Gauss–Newton passes around the first one), and the
+/// covariance of that mean. Treats the items as independent: frames of one
+/// camera with a common bias make the fused covariance optimistic.
 pub fn fuse(items: &[(Pose, Cov6)]) -> Option<(Pose, Cov6)> {
     let (first, _) = items.first()?;
-    let infos: Vec<Cov6> = items.iter().map(|(_, c)| c.try_inverse()).collect::<Option<_>>()?;
-    let total: Cov6 = infos.iter().sum();
-    let cov = total.try_inverse()?;
+    let total: Cov6 = items.iter().map(|(_, info)| info).sum();
+    let cov = total.cholesky()?.inverse();
     let mut mean = *first;
-    for _ in 0..3 {
+    for _ in 0..2 {
         let mut acc = nalgebra::Vector6::zeros();
-        for ((p, _), info) in items.iter().zip(&infos) {
+        for (p, info) in items {
             acc += info * difference(p, &mean);
         }
         mean = proto::geometry::perturb(&mean, &(cov * acc));
@@ -224,8 +242,65 @@ fn greedy_clique(adj: &[Vec<bool>], primary: &[bool]) -> Vec<usize> {
     best
 }
 
+/// Squared Mahalanobis distance of `c` to a pose whose covariance is about
+/// `c`'s divided by `n` (a fused cluster of `n` similar members): `rᵀΛr / (1 + 1/n)`.
+fn distance_to_cluster(c: &Candidate, pose: &Pose, n: usize) -> f64 {
+    let r = difference(&c.a_from_b, pose);
+    (r.transpose() * c.information * r)[0] / (1.0 + 1.0 / n.max(1) as f64)
+}
+
+/// Step 1 for large candidate sets (many frames of a pair in the window): a
+/// linear-time stand-in for the maximum clique. Leader clustering in window
+/// order (a candidate joins the first cluster whose leader it is consistent
+/// with and that lacks its observation), then one reassignment pass of every
+/// candidate to the best-supported fused cluster it is consistent with.
+fn cluster_pair_large(candidates: &[Candidate], params: &ConsistencyParams) -> Vec<Cluster> {
+    let mut leaders: Vec<(usize, Vec<usize>)> = Vec::new();
+    for (i, c) in candidates.iter().enumerate() {
+        let home = leaders.iter_mut().find(|(l, members)| {
+            members.iter().all(|&m| candidates[m].observation != c.observation)
+                && distance_to_cluster(c, &candidates[*l].a_from_b, 1) <= params.gate_chi2
+        });
+        match home {
+            Some((_, members)) => members.push(i),
+            None => leaders.push((i, vec![i])),
+        }
+    }
+    leaders.sort_by_key(|(l, members)| (Reverse(members.len()), *l));
+    leaders.truncate(params.max_clusters_per_pair);
+    let fused: Vec<(Pose, usize)> = leaders
+        .iter()
+        .filter_map(|(_, members)| fuse_members(candidates, members).map(|(p, _)| (p, members.len())))
+        .collect();
+    let mut assigned: Vec<Vec<usize>> = vec![Vec::new(); fused.len()];
+    let mut taken: Vec<BTreeSet<usize>> = vec![BTreeSet::new(); fused.len()];
+    for (i, c) in candidates.iter().enumerate() {
+        if let Some(k) = (0..fused.len()).find(|&k| !taken[k].contains(&c.observation) && distance_to_cluster(c, &fused[k].0, fused[k].1) <= params.gate_chi2) {
+            assigned[k].push(i);
+            taken[k].insert(c.observation);
+        }
+    }
+    assigned
+        .into_iter()
+        .filter(|m| !m.is_empty())
+        .filter_map(|members| {
+            let (pose, cov) = fuse_members(candidates, &members)?;
+            Some(Cluster {
+                primaries: members.iter().filter(|&&i| candidates[i].hypothesis == 0).count(),
+                members,
+                a_from_b: pose,
+                covariance: cov,
+                votes: 0,
+            })
+        })
+        .collect()
+}
+
 /// Step 1: the clusters of one pair's candidates (see the module docs).
 pub fn cluster_pair(candidates: &[Candidate], params: &ConsistencyParams) -> Vec<Cluster> {
+    if candidates.len() > params.exact_clique_limit {
+        return cluster_pair_large(candidates, params);
+    }
     let m = candidates.len();
     let mut adj = vec![vec![false; m]; m];
     for i in 0..m {
@@ -249,11 +324,7 @@ pub fn cluster_pair(candidates: &[Candidate], params: &ConsistencyParams) -> Vec
             .map(|&i| remaining.iter().map(|&j| adj[i][j]).collect())
             .collect();
         let primary: Vec<bool> = remaining.iter().map(|&i| candidates[i].hypothesis == 0).collect();
-        let local = if remaining.len() <= params.exact_clique_limit {
-            exact_clique(&sub_adj, &primary, 200_000).unwrap_or_else(|| greedy_clique(&sub_adj, &primary))
-        } else {
-            greedy_clique(&sub_adj, &primary)
-        };
+        let local = exact_clique(&sub_adj, &primary, 200_000).unwrap_or_else(|| greedy_clique(&sub_adj, &primary));
         let mut members: Vec<usize> = local.iter().map(|&k| remaining[k]).collect();
         members.sort_unstable();
         let Some(mut fused) = fuse_members(candidates, &members) else {
@@ -299,7 +370,7 @@ pub fn cluster_pair(candidates: &[Candidate], params: &ConsistencyParams) -> Vec
 fn fuse_members(candidates: &[Candidate], members: &[usize]) -> Option<(Pose, Cov6)> {
     let items: Vec<(Pose, Cov6)> = members
         .iter()
-        .map(|&i| (candidates[i].a_from_b, candidates[i].covariance))
+        .map(|&i| (candidates[i].a_from_b, candidates[i].information))
         .collect();
     fuse(&items)
 }
@@ -501,12 +572,7 @@ mod tests {
     use proto::geometry::pose_from_xyz_rpy;
 
     fn cand(obs: usize, hyp: u8, p: Pose) -> Candidate {
-        Candidate {
-            observation: obs,
-            hypothesis: hyp,
-            a_from_b: p,
-            covariance: Cov6::identity() * 1e-4,
-        }
+        Candidate::new(obs, hyp, p, Cov6::identity() * 1e-4).unwrap()
     }
 
     #[test]

@@ -40,6 +40,8 @@ extern crate shoal_proto as proto;
 
 pub mod client;
 pub mod consistency;
+pub mod formation;
+pub mod service;
 pub mod solver;
 mod window;
 
@@ -304,12 +306,9 @@ impl Fusion {
                 } else {
                     (s.target, o.observer, pwc.inverse())
                 };
-                by_pair.entry((a, b)).or_default().push(Candidate {
-                    observation: i,
-                    hypothesis: h as u8,
-                    a_from_b: a_from_b.pose,
-                    covariance: (a_from_b.covariance + a_from_b.covariance.transpose()) * 0.5,
-                });
+                if let Some(c) = Candidate::new(i, h as u8, a_from_b.pose, a_from_b.covariance) {
+                    by_pair.entry((a, b)).or_default().push(c);
+                }
             }
         }
         let mut pairs: Vec<PairCandidates> = by_pair
@@ -319,6 +318,13 @@ impl Fusion {
                 PairCandidates { a, b, candidates, clusters }
             })
             .collect();
+        // Where each hypothesis went: (pair, candidate) per (observation, hypothesis).
+        let mut cand_index: Vec<[Option<(usize, usize)>; 2]> = vec![[None; 2]; entries.len()];
+        for (pi, p) in pairs.iter().enumerate() {
+            for (ci, c) in p.candidates.iter().enumerate() {
+                cand_index[c.observation][usize::from(c.hypothesis)] = Some((pi, ci));
+            }
+        }
         consistency::vote_triangles(&mut pairs, self.params.consistency.gate_chi2);
         let selection = consistency::select(&pairs, reference, self.params.consistency.gate_chi2);
         solve_stats.pairs = pairs.len();
@@ -352,7 +358,7 @@ impl Fusion {
                     .iter()
                     .map(|&m| &p.candidates[m])
                     .filter(|cand| !gated.contains(&(cand.observation, cand.hypothesis)))
-                    .map(|cand| (cand.a_from_b, cand.covariance))
+                    .map(|cand| (cand.a_from_b, cand.information))
                     .collect();
                 if let Some((pose, cov)) = consistency::fuse(&items) {
                     constraints.push(solver::Constraint {
@@ -391,7 +397,8 @@ impl Fusion {
                 }
                 let p = &pairs[pi];
                 let (Some(xa), Some(xb)) = (solution.get(&p.a), solution.get(&p.b)) else { continue };
-                let cand = p.candidates.iter().find(|c| c.observation == oi && c.hypothesis == h).expect("accepted candidate is in its pair");
+                let Some((_, ci)) = cand_index[oi][usize::from(h)] else { continue };
+                let cand = &p.candidates[ci];
                 let chi2 = candidate_chi2(&xa.0, &xb.0, cand);
                 if chi2 > self.params.chi2_gate {
                     gated.insert((oi, h));
@@ -420,15 +427,13 @@ impl Fusion {
                 } else {
                     Some(RejectReason::Inconsistent)
                 };
-                let (pose, cov) = if h == 0 { (o.observer_from_target, o.covariance) } else { let alt = o.alternative.as_ref().expect("n_hyp"); (alt.observer_from_target, alt.covariance) };
-                let chi2 = match (solution.get(&o.observer), solution.get(&s.target)) {
-                    (Some(xo), Some(xt)) => {
-                        let age_s = now_ns.saturating_sub(o.stamp_ns) as f64 * 1e-9;
-                        let cov = self.params.age_inflation.inflate(&cov, age_s);
-                        cov.try_inverse().map_or(f64::NAN, |info| solver::edge_chi2(&xo.0, &xt.0, &pose, &info))
+                let chi2 = cand_index[i][usize::from(h)].map_or(f64::NAN, |(pi, ci)| {
+                    let p = &pairs[pi];
+                    match (solution.get(&p.a), solution.get(&p.b)) {
+                        (Some(xa), Some(xb)) => candidate_chi2(&xa.0, &xb.0, &p.candidates[ci]),
+                        _ => f64::NAN,
                     }
-                    _ => f64::NAN,
-                };
+                });
                 match &verdict {
                     Some(r) => rejected.add(r),
                     None => solve_stats.accepted += 1,
@@ -523,9 +528,7 @@ fn report_order(r: &EdgeReport) -> (u64, VehicleId, u8, u64, u32, Option<usize>,
 }
 
 fn candidate_chi2(ref_from_a: &Pose, ref_from_b: &Pose, c: &Candidate) -> f64 {
-    c.covariance
-        .try_inverse()
-        .map_or(f64::INFINITY, |info| solver::edge_chi2(ref_from_a, ref_from_b, &c.a_from_b, &info))
+    solver::edge_chi2(ref_from_a, ref_from_b, &c.a_from_b, &c.information)
 }
 
 /// Vehicles reachable from `root` through `constraints`.

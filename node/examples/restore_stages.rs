@@ -4,7 +4,6 @@
 //! `cargo run -p shoal-node --example restore_stages [c_per_m] [out_dir]`
 
 use opencv::core::{Mat, Vector};
-use opencv::prelude::*;
 use shoal_node::metrics::{cnr_mat, gray_from_mat};
 use shoal_node::restore::synthetic::{marker_frame, Degradation};
 use shoal_node::restore::{Hoirm, RestoreParams, StageOrder};

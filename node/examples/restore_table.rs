@@ -70,16 +70,24 @@ fn main() {
     println!("|---|---|---|---|---|---|---|---|");
     for c in WATERS {
         let water = WaterParams::preset(c);
+        let mut params = RestoreParams::default();
+        // Tuning hooks: SHOAL_PSF_PX_PER_UNIT, SHOAL_ORDER=physical.
+        if let Some(s) = std::env::var("SHOAL_PSF_PX_PER_UNIT").ok().and_then(|v| v.parse().ok()) {
+            params.psf_px_per_unit = s;
+        }
+        if std::env::var("SHOAL_ORDER").is_ok_and(|v| v == "physical") {
+            params.order = shoal_node::restore::StageOrder::Physical;
+        }
         let mut restorers: Vec<_> = Method::ALL
             .iter()
-            .map(|&m| restorer(m, &RestoreParams::default()))
+            .map(|&m| restorer(m, &params))
             .collect();
         let mut sums = vec![[0.0f64; 6]; Method::ALL.len()];
         for k in 0..frames {
             let t = k as f64 / 30.0;
             let pose: Pose = pose_from_xyz_rpy(
                 [0.03 * (t * 2.0).sin(), -0.02 + 0.01 * t, 0.6],
-                [0.15, 0.2 + 0.05 * t, 0.1],
+                [std::f64::consts::PI + 0.15, 0.2 + 0.05 * t, 0.1],
             );
             let scene = Scene::single_marker(CodeSet::Shoal, 17, 0.1, pose);
             let out = renderer

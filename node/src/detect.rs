@@ -129,13 +129,13 @@ pub struct DetectParams {
 impl Default for DetectParams {
     fn default() -> Self {
         Self {
-            threshold_windows: vec![7, 17],
-            threshold_offset: 7.0,
+            threshold_windows: vec![19],
+            threshold_offset: 3.0,
             full_res_max_width: 1000,
             min_code_side_px: 14.0,
             border_margin_px: 2.0,
             approx_epsilon: 0.04,
-            min_contrast: 12.0,
+            min_contrast: 6.0,
             max_border_error_rate: 0.2,
             max_correction_bits: None,
             refinement: Refinement::EdgeLines,
@@ -163,13 +163,13 @@ pub struct ShoalDetector {
 impl ShoalDetector {
     pub fn new(codes: CodeSet, params: DetectParams) -> Self {
         let n = codes.data_side();
-        let rotated = (0..codes.len() as MarkerId)
+        let rotated: Vec<(u64, MarkerId, usize)> = (0..codes.len() as MarkerId)
             .filter_map(|id| codes.code(id).ok().map(|c| (id, c)))
             .flat_map(|(id, c)| (0..4).map(move |k| (rotate_code(c, n, k), id, k)))
             .collect();
         let correction_bits = params
             .max_correction_bits
-            .unwrap_or(codes.table().max_correction_bits);
+            .unwrap_or_else(|| codes.table().max_correction_bits.max(unique_decoding_radius(&rotated)));
         Self {
             codes,
             name: format!("shoal-{}", codes.name()),
@@ -230,15 +230,18 @@ impl ShoalDetector {
                 &bin,
                 &mut contours,
                 imgproc::RETR_LIST,
-                imgproc::CHAIN_APPROX_NONE,
+                imgproc::CHAIN_APPROX_SIMPLE,
                 Point::new(0, 0),
             )?;
             let mut approx: Vector<Point> = Vector::new();
             for c in contours.iter() {
-                if (c.len() as f64) < 4.0 * min_side_lvl || c.len() as f64 > 4.0 * (w + h) {
+                if c.len() < 4 {
                     continue;
                 }
                 let perim = imgproc::arc_length(&c, true)?;
+                if perim < 4.0 * min_side_lvl || perim > 2.0 * (w + h) {
+                    continue;
+                }
                 imgproc::approx_poly_dp(&c, &mut approx, p.approx_epsilon * perim, true)?;
                 if approx.len() != 4 || !imgproc::is_contour_convex(&approx)? {
                     continue;
@@ -413,6 +416,34 @@ impl ShoalDetector {
     }
 }
 
+/// Bits that can be corrected without ambiguity in the codes actually in use
+/// (`(d_min − 1) / 2` over all IDs and rotations). OpenCV's figure for
+/// `DICT_4X4_1000` is 0, but the 50 codes of the enhanced marker's set are
+/// farther apart, as OpenCV's own `DICT_4X4_50` (1 bit) says.
+fn unique_decoding_radius(rotated: &[(u64, MarkerId, usize)]) -> u32 {
+    let mut dmin = u32::MAX;
+    for (i, a) in rotated.iter().enumerate() {
+        for b in &rotated[i + 1..] {
+            if a.1 != b.1 {
+                dmin = dmin.min((a.0 ^ b.0).count_ones());
+            }
+        }
+    }
+    // A code equal to its own rotation is ambiguous in orientation: count that too.
+    for a in rotated {
+        for b in rotated {
+            if a.1 == b.1 && a.2 != b.2 && a.0 == b.0 {
+                return 0;
+            }
+        }
+    }
+    if dmin == u32::MAX {
+        0
+    } else {
+        dmin.saturating_sub(1) / 2
+    }
+}
+
 fn median(v: &[f64]) -> f64 {
     let mut s = v.to_vec();
     s.sort_by(f64::total_cmp);
@@ -445,32 +476,39 @@ impl ShoalDetector {
             return Err(DetectError::NoCodes { set: self.codes.name() });
         }
         let quads = self.find_quads(gray)?;
-        let mut out: Vec<Detection> = Vec::new();
         let m = (self.codes.data_side() + 2) as f64;
+        // Decode every quad as a code square and refine it; the same marker is
+        // usually found several times (threshold windows, both sides of a thin
+        // dark band), and refinement pulls all of them onto the same edges.
+        let mut found: Vec<(MarkerId, u32, [Px; 4], f64)> = Vec::new();
         for q in &quads {
             let Some((id, hamming, code)) = self.read_code(&view, q) else {
                 continue;
             };
-            let module_px = mean_side(&code) / m;
-            if out.iter().any(|d| {
-                d.id == id && {
-                    let c = &d.corners_px[d.corners_px.len() - 4..];
-                    dist(c[0], code[0]) < module_px
-                }
-            }) {
-                continue;
+            let rough_module = mean_side(&code) / m;
+            let fine = self.refine(gray, &view, &code, rough_module, Polarity::DarkInside);
+            let module_px = mean_side(&fine) / m;
+            match found
+                .iter_mut()
+                .find(|f| f.0 == id && dist(f.2[0], fine[0]) < 0.5 * module_px)
+            {
+                Some(f) if hamming < f.1 => *f = (id, hamming, fine, module_px),
+                Some(_) => {}
+                None => found.push((id, hamming, fine, module_px)),
             }
-            let code_fine = self.refine(gray, &view, &code, module_px, Polarity::DarkInside);
+        }
+        let mut out: Vec<Detection> = Vec::with_capacity(found.len());
+        for (id, hamming, code_fine, module_px) in found {
             let mut corners_px = Vec::with_capacity(12);
             let mut corner_ids = Vec::with_capacity(12);
             if self.codes == CodeSet::Shoal {
                 // Outer frame edge (corners 0..4), frame inner edge (4..8): paper §3.2.
-                if let Some(outer) = self.find_frame(&code, module_px, 2.0, &quads) {
+                if let Some(outer) = self.find_frame(&code_fine, module_px, 2.0, &quads) {
                     let fine = self.refine(gray, &view, &outer, module_px, Polarity::DarkInside);
                     corners_px.extend_from_slice(&fine);
                     corner_ids.extend(0..4u8);
                 }
-                if let Some(inner) = self.find_frame(&code, module_px, 1.0, &quads) {
+                if let Some(inner) = self.find_frame(&code_fine, module_px, 1.0, &quads) {
                     let fine = self.refine(gray, &view, &inner, module_px, Polarity::BrightInside);
                     corners_px.extend_from_slice(&fine);
                     corner_ids.extend(4..8u8);

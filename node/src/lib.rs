@@ -8,12 +8,19 @@
 //! - [`pose`]: IPPE-initialized iterative PnP keeping both planar hypotheses, with covariance;
 //! - [`baseline`]: OpenCV's ArUco detector and AprilTag 3 behind the same interface;
 //! - [`print`]: printable markers (SVG, PNG);
-//! - [`mat`]: zero-fuss conversions between `GrayImage` and `cv::Mat`.
+//! - [`mat`]: zero-fuss conversions between `GrayImage` and `cv::Mat`;
+//! - [`pipeline`]: one camera's chain, restore → detect → PnP → body-frame observations;
+//! - [`track`]: constant-velocity SE(3) tracking that bridges short occlusions;
+//! - [`service`], [`source`]: the Zenoh node service and its frame sources.
 
 pub mod baseline;
 pub mod detect;
 pub mod mat;
 pub mod metrics;
+pub mod pipeline;
 pub mod pose;
 pub mod print;
 pub mod restore;
+pub mod service;
+pub mod source;
+pub mod track;

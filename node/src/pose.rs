@@ -226,7 +226,8 @@ fn refine_lm(cam: &CameraModel, obj: &[Point3<f64>], img: &[[f64; 2]], init: Pos
                     cost = c;
                     lambda = (lambda * 0.3).max(1e-9);
                     improved = true;
-                    if rel < 1e-12 || xi.norm() < 1e-12 {
+                    // Converged: the cost no longer changes at a level that matters (1e-9 relative).
+                    if rel < 1e-9 || xi.norm() < 1e-10 {
                         return Some(pose);
                     }
                     break;

@@ -128,8 +128,16 @@ pub struct RestoreParams {
     pub nsr_gain: f64,
     pub nsr_min: f64,
     pub nsr_max: f64,
-    /// Range at which `c` is inferred from the veil fraction (the paper's test range, 600 mm).
+    /// Range at which `c` is inferred from the image (the paper's test range, 600 mm).
     pub reference_range_m: f64,
+    /// Veil at infinity over a white object's radiance, `B∞/W`, for the `c` estimate.
+    pub white_over_veil: f64,
+    /// Part of `c` that is small-angle forward scatter (still reaches the camera), for the `c` estimate.
+    pub forward_scatter_fraction: f64,
+    /// Grey level the 99.5th percentile of `I − B_L` is stretched to (global de-attenuation, 1/t).
+    pub stretch_target: f64,
+    /// Largest global de-attenuation gain.
+    pub stretch_max_gain: f64,
     /// Coarsest pyramid level handed to the detector.
     pub max_pyramid_level: u32,
     /// Edge step / noise ratio the detector wants at the chosen level.
@@ -170,11 +178,15 @@ impl Default for RestoreParams {
             clahe_clip_per_c: 0.15,
             psf_p_clear: 2.0,
             psf_c_half_per_m: 6.0,
-            psf_px_per_unit: 2.5,
+            psf_px_per_unit: 10.0,
             nsr_gain: 1.0,
             nsr_min: 2e-3,
             nsr_max: 0.5,
             reference_range_m: 0.6,
+            white_over_veil: 0.5,
+            forward_scatter_fraction: 0.3,
+            stretch_target: 235.0,
+            stretch_max_gain: 6.0,
             max_pyramid_level: 3,
             edge_snr_target: 12.0,
             min_roi_side_at_level_px: 48,
@@ -214,6 +226,9 @@ impl RestoreParams {
             ("psf_px_per_unit", self.psf_px_per_unit),
             ("nsr_min", self.nsr_min),
             ("reference_range_m", self.reference_range_m),
+            ("white_over_veil", self.white_over_veil),
+            ("stretch_target", self.stretch_target),
+            ("stretch_max_gain", self.stretch_max_gain),
             ("edge_snr_target", self.edge_snr_target),
             ("baseline_clahe_clip", self.baseline_clahe_clip),
             ("clahe_clip_base", self.clahe_clip_base),
@@ -232,6 +247,13 @@ impl RestoreParams {
         }
         if !(self.nsr_max >= self.nsr_min && self.nsr_max.is_finite()) {
             return bad("nsr_max", self.nsr_max, "must be finite and >= nsr_min");
+        }
+        if !(self.forward_scatter_fraction >= 0.0 && self.forward_scatter_fraction < 1.0) {
+            return bad(
+                "forward_scatter_fraction",
+                self.forward_scatter_fraction,
+                "must be in [0, 1)",
+            );
         }
         if !(self.dcp_omega > 0.0 && self.dcp_omega <= 1.0) {
             return bad("dcp_omega", self.dcp_omega, "must be in (0, 1]");

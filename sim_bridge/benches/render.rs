@@ -1,1 +1,76 @@
-fn main() {}
+//! One 1440x1080 frame with two vehicles in view: vehicle 10's starboard
+//! camera in the paper fleet's line abreast (2 m), vehicle 17 (the far one)
+//! moved 0.5 m deeper so it shows below vehicle 15; water 0.5 /m, with noise.
+//!
+//! Run: `cargo bench -p shoal-sim-bridge --bench render`.
+
+use criterion::{criterion_group, criterion_main, Criterion};
+use shoal_proto::config::Fleet;
+use shoal_proto::{CameraModel, CodeSet, Pose};
+use shoal_sim_bridge::render::{facing_camera, render_fleet_view, Renderer, Scene};
+use shoal_sim_bridge::water::WaterParams;
+use shoal_sim_bridge::world::{Formation, SwarmWorld};
+use std::path::Path;
+
+fn bench(c: &mut Criterion) {
+    let fleet =
+        Fleet::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/fleets/paper.toml"))
+            .expect("paper fleet");
+    let world = SwarmWorld::new(&fleet, Formation::Line, 2.0, 1);
+    let mut truth = world.truth();
+    truth[2].world_from_body.translation.z += 0.5;
+    let water = WaterParams::preset(0.5);
+    let mut renderer = Renderer::new();
+    let probe =
+        render_fleet_view(&mut renderer, &fleet, &truth, 10, 4, &water, 0.0, 0, 1).expect("render");
+    let owners: std::collections::BTreeSet<u32> =
+        probe.visible.iter().map(|v| v.target_vehicle).collect();
+    assert!(
+        owners.len() == 2,
+        "two vehicles' markers in view: {owners:?}"
+    );
+    println!(
+        "visible markers: {:?} (vehicles {owners:?})",
+        probe.visible.iter().map(|v| v.marker).collect::<Vec<_>>()
+    );
+    let mut seed = 0;
+    c.bench_function("render_1440x1080_two_vehicles", |b| {
+        b.iter(|| {
+            seed += 1;
+            render_fleet_view(
+                &mut renderer,
+                &fleet,
+                &truth,
+                10,
+                4,
+                &water,
+                0.0,
+                seed,
+                seed,
+            )
+            .expect("render")
+        })
+    });
+    let cam = CameraModel::vehicle_1440();
+    let scene = Scene::single_marker(
+        CodeSet::Shoal,
+        17,
+        0.1,
+        facing_camera([0.0, 0.0, 0.6], [0.0, 0.35, 0.0]),
+    );
+    let murky = WaterParams::preset(8.22);
+    c.bench_function("render_1440x1080_marker_600mm_c8.22", |b| {
+        b.iter(|| {
+            renderer
+                .render(&cam, &Pose::identity(), &scene, &murky, 0.0, 1)
+                .expect("render")
+        })
+    });
+}
+
+criterion_group! {
+    name = benches;
+    config = Criterion::default().sample_size(10);
+    targets = bench
+}
+criterion_main!(benches);

@@ -3,6 +3,7 @@
 //! an observation-level synthesizer for fusion at scale, and the Zenoh bridge
 //! that publishes it all as a real fleet would.
 
+pub mod bridge;
 pub mod error;
 pub mod obs_synth;
 pub mod render;

@@ -158,7 +158,7 @@ impl WaterParams {
     pub fn baseline(c_per_m: f64) -> WaterParams {
         WaterParams {
             c_per_m,
-            forward_scatter: 0.3,
+            forward_scatter: 0.4,
             psf_shape_p: 1.5,
             psf_angle_rad: 0.004,
             backscatter_inf: 0.5,
@@ -227,7 +227,13 @@ impl WaterParams {
 
     /// Check every field; `Err` names the first bad one.
     pub fn validate(&self) -> Result<(), SimError> {
-        let bad = |field, value, reason| Err(SimError::WaterInvalid { field, value, reason });
+        let bad = |field, value, reason| {
+            Err(SimError::WaterInvalid {
+                field,
+                value,
+                reason,
+            })
+        };
         let nonneg: [(&'static str, f64); 10] = [
             ("c_per_m", self.c_per_m),
             ("psf_angle_rad", self.psf_angle_rad),
@@ -260,10 +266,18 @@ impl WaterParams {
             return bad("psf_shape_p", self.psf_shape_p, "must be in 0.5..=4");
         }
         if !(self.gain_e_per_dn > 0.0) || self.gain_e_per_dn.is_nan() {
-            return bad("gain_e_per_dn", self.gain_e_per_dn, "must be positive (inf = no shot noise)");
+            return bad(
+                "gain_e_per_dn",
+                self.gain_e_per_dn,
+                "must be positive (inf = no shot noise)",
+            );
         }
         if self.c_per_m > 100.0 {
-            return bad("c_per_m", self.c_per_m, "above 100 /m is not water one can see through");
+            return bad(
+                "c_per_m",
+                self.c_per_m,
+                "above 100 /m is not water one can see through",
+            );
         }
         Ok(())
     }
@@ -285,7 +299,11 @@ impl WaterParams {
             ambient_spatial: l(a.ambient_spatial, b.ambient_spatial),
             ambient_temporal: l(a.ambient_temporal, b.ambient_temporal),
             ambient_period_s: l(a.ambient_period_s, b.ambient_period_s),
-            ambient_seed: if w < 0.5 { a.ambient_seed } else { b.ambient_seed },
+            ambient_seed: if w < 0.5 {
+                a.ambient_seed
+            } else {
+                b.ambient_seed
+            },
             illumination: l(a.illumination, b.illumination),
             lamp_power: l(a.lamp_power, b.lamp_power),
             lamp_backscatter: l(a.lamp_backscatter, b.lamp_backscatter),
@@ -293,7 +311,10 @@ impl WaterParams {
             vignetting: l(a.vignetting, b.vignetting),
             // Interpolate noise in σ, not in gain.
             gain_e_per_dn: {
-                let (sa, sb) = (a.gain_e_per_dn.recip().sqrt(), b.gain_e_per_dn.recip().sqrt());
+                let (sa, sb) = (
+                    a.gain_e_per_dn.recip().sqrt(),
+                    b.gain_e_per_dn.recip().sqrt(),
+                );
                 let s = l(sa, sb);
                 if s > 0.0 {
                     1.0 / (s * s)
@@ -319,11 +340,12 @@ impl WaterPresets {
     /// The presets shipped in `configs/water.toml` (compiled in).
     pub fn builtin() -> WaterPresets {
         // The shipped file is checked by a unit test, so this cannot fail at run time.
-        Self::parse(SHIPPED_PRESETS, Path::new("configs/water.toml"))
-            .unwrap_or_else(|_| WaterPresets {
+        Self::parse(SHIPPED_PRESETS, Path::new("configs/water.toml")).unwrap_or_else(|_| {
+            WaterPresets {
                 presets: vec![WaterParams::baseline(0.0), WaterParams::baseline(20.0)],
                 knobs: WaterKnobs::default(),
-            })
+            }
+        })
     }
 
     /// Load a presets file.
@@ -341,7 +363,8 @@ impl WaterPresets {
             path: path.to_path_buf(),
             message,
         };
-        let file: PresetsFile = toml::from_str(text).map_err(|e| perr(e.to_string().trim_end().to_string()))?;
+        let file: PresetsFile =
+            toml::from_str(text).map_err(|e| perr(e.to_string().trim_end().to_string()))?;
         if file.preset.is_empty() {
             return Err(perr("no [[preset]] tables".into()));
         }
@@ -353,11 +376,15 @@ impl WaterPresets {
             let mut p = WaterParams::baseline(0.0);
             file.defaults.apply(&mut p);
             spec.apply(&mut p);
-            p.validate().map_err(|e| perr(format!("preset[{i}]: {e}")))?;
+            p.validate()
+                .map_err(|e| perr(format!("preset[{i}]: {e}")))?;
             presets.push(p);
         }
         presets.sort_by(|a, b| a.c_per_m.total_cmp(&b.c_per_m));
-        if presets.windows(2).any(|w| w[1].c_per_m - w[0].c_per_m < 1e-9) {
+        if presets
+            .windows(2)
+            .any(|w| w[1].c_per_m - w[0].c_per_m < 1e-9)
+        {
             return Err(perr("two presets have the same c_per_m".into()));
         }
         let k = file.knobs;
@@ -369,7 +396,9 @@ impl WaterPresets {
             ("knobs.exposure_scale", k.exposure_scale),
         ] {
             if !(v.is_finite() && v >= 0.0) {
-                return Err(perr(format!("{name} = {v} must be finite and non-negative")));
+                return Err(perr(format!(
+                    "{name} = {v} must be finite and non-negative"
+                )));
             }
         }
         Ok(WaterPresets { presets, knobs: k })
@@ -402,13 +431,21 @@ impl WaterPresets {
         if !c_per_m.is_finite() {
             return Err(out());
         }
-        if let Some(p) = self.presets.iter().find(|p| (p.c_per_m - c_per_m).abs() <= 0.005 * p.c_per_m.max(1e-3)) {
+        if let Some(p) = self
+            .presets
+            .iter()
+            .find(|p| (p.c_per_m - c_per_m).abs() <= 0.005 * p.c_per_m.max(1e-3))
+        {
             return Ok(p.with_knobs(knobs));
         }
         if c_per_m < min || c_per_m > max {
             return Err(out());
         }
-        let hi = self.presets.iter().position(|p| p.c_per_m >= c_per_m).ok_or_else(out)?;
+        let hi = self
+            .presets
+            .iter()
+            .position(|p| p.c_per_m >= c_per_m)
+            .ok_or_else(out)?;
         let (a, b) = (&self.presets[hi - 1], &self.presets[hi]);
         let w = (c_per_m - a.c_per_m) / (b.c_per_m - a.c_per_m);
         let mut p = WaterParams::lerp(a, b, w);
@@ -421,7 +458,9 @@ impl WaterPresets {
 mod tests {
     use super::*;
 
-    const PAPER_C: [f64; 10] = [0.126, 0.5, 1.38, 3.92, 5.16, 6.12, 8.22, 10.13, 12.20, 14.20];
+    const PAPER_C: [f64; 10] = [
+        0.126, 0.5, 1.38, 3.92, 5.16, 6.12, 8.22, 10.13, 12.20, 14.20,
+    ];
 
     #[test]
     fn shipped_file_parses_and_has_the_papers_coefficients() {
@@ -459,21 +498,33 @@ mod tests {
         let lo = a.backscatter_inf.min(b.backscatter_inf);
         let hi = a.backscatter_inf.max(b.backscatter_inf);
         assert!(p.backscatter_inf >= lo && p.backscatter_inf <= hi);
-        assert!(matches!(pr.get(50.0), Err(SimError::WaterOutOfRange { .. })));
-        assert!(matches!(pr.get(f64::NAN), Err(SimError::WaterOutOfRange { .. })));
+        assert!(matches!(
+            pr.get(50.0),
+            Err(SimError::WaterOutOfRange { .. })
+        ));
+        assert!(matches!(
+            pr.get(f64::NAN),
+            Err(SimError::WaterOutOfRange { .. })
+        ));
         // The infallible form clamps.
         assert_eq!(WaterParams::preset(50.0).c_per_m, 14.2);
     }
 
     #[test]
     fn unknown_field_and_bad_value_are_reported() {
-        let e = WaterPresets::parse("[[preset]]\nc_per_m = 1.0\nturbidity = 3\n", Path::new("w.toml"))
-            .unwrap_err()
-            .to_string();
+        let e = WaterPresets::parse(
+            "[[preset]]\nc_per_m = 1.0\nturbidity = 3\n",
+            Path::new("w.toml"),
+        )
+        .unwrap_err()
+        .to_string();
         assert!(e.contains("w.toml") && e.contains("turbidity"), "{e}");
-        let e = WaterPresets::parse("[[preset]]\nc_per_m = 1.0\nforward_scatter = 2\n", Path::new("w.toml"))
-            .unwrap_err()
-            .to_string();
+        let e = WaterPresets::parse(
+            "[[preset]]\nc_per_m = 1.0\nforward_scatter = 2\n",
+            Path::new("w.toml"),
+        )
+        .unwrap_err()
+        .to_string();
         assert!(e.contains("forward_scatter"), "{e}");
         assert!(WaterPresets::parse("[[preset]]\nexposure = 1.0\n", Path::new("w.toml")).is_err());
     }

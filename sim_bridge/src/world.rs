@@ -173,7 +173,11 @@ impl SwarmWorld {
     /// `spacing_m` apart), at [`DEFAULT_DEPTH_M`], heading north, in
     /// formation mode; the formation moves north at 0.2 m/s.
     pub fn new(fleet: &Fleet, formation: Formation, spacing_m: f64, seed: u64) -> Self {
-        let spacing_m = if spacing_m.is_finite() && spacing_m > 0.0 { spacing_m } else { 1.5 };
+        let spacing_m = if spacing_m.is_finite() && spacing_m > 0.0 {
+            spacing_m
+        } else {
+            1.5
+        };
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let reference = Vector3::new(0.0, 0.0, DEFAULT_DEPTH_M);
         let vehicles = fleet
@@ -252,7 +256,12 @@ impl SwarmWorld {
     /// Closed-loop control: the vehicle now tracks this body velocity and
     /// yaw rate (first-order response) until the next command or mode change.
     pub fn apply_command(&mut self, cmd: &VehicleCommand) -> Result<(), SimError> {
-        if let Some(&bad) = cmd.velocity_body.iter().chain([&cmd.yaw_rate]).find(|v| !v.is_finite()) {
+        if let Some(&bad) = cmd
+            .velocity_body
+            .iter()
+            .chain([&cmd.yaw_rate])
+            .find(|v| !v.is_finite())
+        {
             return Err(SimError::InvalidArgument {
                 field: "command",
                 value: bad,
@@ -317,11 +326,16 @@ impl SwarmWorld {
                     }
                     let body = UnitQuaternion::from_euler_angles(0.0, 0.0, v.yaw).inverse() * want;
                     v.cmd_velocity = body;
-                    v.cmd_yaw_rate = (1.0 * wrap_angle(self.formation_heading - v.yaw)).clamp(-0.3, 0.3);
+                    v.cmd_yaw_rate =
+                        (1.0 * wrap_angle(self.formation_heading - v.yaw)).clamp(-0.3, 0.3);
                 }
                 Mode::Random => {
                     if t >= v.next_manoeuvre_s {
-                        v.cmd_velocity = Vector3::new(self.rng.gen_range(0.1..0.5), 0.0, self.rng.gen_range(-0.02..0.02));
+                        v.cmd_velocity = Vector3::new(
+                            self.rng.gen_range(0.1..0.5),
+                            0.0,
+                            self.rng.gen_range(-0.02..0.02),
+                        );
                         v.cmd_yaw_rate = self.rng.gen_range(-0.1..0.1);
                         v.next_manoeuvre_s = t + self.rng.gen_range(5.0..15.0);
                     }
@@ -331,7 +345,8 @@ impl SwarmWorld {
             v.velocity_body += (v.cmd_velocity - v.velocity_body) * a_v;
             v.yaw_rate += (v.cmd_yaw_rate - v.yaw_rate) * a_y;
             v.yaw = wrap_angle(v.yaw + v.yaw_rate * dt);
-            let world_v = UnitQuaternion::from_euler_angles(0.0, 0.0, v.yaw) * v.velocity_body + self.current;
+            let world_v =
+                UnitQuaternion::from_euler_angles(0.0, 0.0, v.yaw) * v.velocity_body + self.current;
             v.position += world_v * dt;
         }
     }
@@ -364,7 +379,10 @@ impl SwarmWorld {
 
     /// A vehicle's current mode.
     pub fn mode(&self, vehicle: VehicleId) -> Option<Mode> {
-        self.vehicles.iter().find(|v| v.id == vehicle).map(|v| v.mode)
+        self.vehicles
+            .iter()
+            .find(|v| v.id == vehicle)
+            .map(|v| v.mode)
     }
 }
 
@@ -383,7 +401,10 @@ mod tests {
         let fleet = paper_fleet();
         let w = SwarmWorld::new(&fleet, Formation::Line, 1.5, 1);
         let truth = w.truth();
-        let east: Vec<f64> = truth.iter().map(|t| t.world_from_body.translation.y).collect();
+        let east: Vec<f64> = truth
+            .iter()
+            .map(|t| t.world_from_body.translation.y)
+            .collect();
         assert!((east[1] - east[0] - 1.5).abs() < 1e-12 && (east[2] - east[1] - 1.5).abs() < 1e-12);
         for t in &truth {
             let fwd = t.world_from_body.rotation * Vector3::x();
@@ -431,8 +452,14 @@ mod tests {
         w.step(20.0);
         assert!((w.truth()[0].velocity_body[0] - 0.5).abs() < 1e-3);
         let bad = VehicleCommand { vehicle: 99, ..cmd };
-        assert!(matches!(w.apply_command(&bad), Err(SimError::UnknownVehicle { .. })));
-        let nan = VehicleCommand { yaw_rate: f64::NAN, ..cmd };
+        assert!(matches!(
+            w.apply_command(&bad),
+            Err(SimError::UnknownVehicle { .. })
+        ));
+        let nan = VehicleCommand {
+            yaw_rate: f64::NAN,
+            ..cmd
+        };
         assert!(w.apply_command(&nan).is_err());
     }
 
@@ -465,11 +492,16 @@ mod tests {
         let after = w.truth();
         // The formation moved north ~12 m together; pairwise distances kept within 0.6 m.
         for i in 0..3 {
-            let moved = after[i].world_from_body.translation.x - before[i].world_from_body.translation.x;
+            let moved =
+                after[i].world_from_body.translation.x - before[i].world_from_body.translation.x;
             assert!((moved - 12.0).abs() < 1.5, "{moved}");
             for j in i + 1..3 {
-                let d0 = (before[i].world_from_body.translation.vector - before[j].world_from_body.translation.vector).norm();
-                let d1 = (after[i].world_from_body.translation.vector - after[j].world_from_body.translation.vector).norm();
+                let d0 = (before[i].world_from_body.translation.vector
+                    - before[j].world_from_body.translation.vector)
+                    .norm();
+                let d1 = (after[i].world_from_body.translation.vector
+                    - after[j].world_from_body.translation.vector)
+                    .norm();
                 assert!((d0 - d1).abs() < 0.6, "{d0} vs {d1}");
             }
         }

@@ -7,7 +7,8 @@ use shoal_sim_bridge::world::{Formation, SwarmWorld};
 use std::path::Path;
 
 fn paper_fleet() -> Fleet {
-    Fleet::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/fleets/paper.toml")).unwrap()
+    Fleet::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/fleets/paper.toml"))
+        .unwrap()
 }
 
 /// For each vehicle: (camera name, marker ID) pairs seen with all corners in frame.
@@ -41,7 +42,10 @@ fn line_abreast_every_vehicle_sees_a_neighbours_whole_marker() {
         let mut world = SwarmWorld::new(&fleet, Formation::Line, spacing, 11);
         for step in 0..steps {
             let views = whole_views(&fleet, &world);
-            println!("spacing {spacing} m, t = {:.0} s: {views:?}", world.time_s());
+            println!(
+                "spacing {spacing} m, t = {:.0} s: {views:?}",
+                world.time_s()
+            );
             for (vehicle, seen) in &views {
                 assert!(
                     seen.iter().any(|(_, _, frac)| *frac > 0.99),
@@ -62,8 +66,18 @@ fn own_markers_are_not_seen_by_own_cameras() {
     for t in &truth {
         let v = fleet.vehicle(t.vehicle).unwrap();
         for cam in &v.cameras {
-            let vis = visible_in_view(&cam.model, &(t.world_from_body * cam.body_from_camera), &scene).unwrap();
-            assert!(vis.iter().all(|m| m.target_vehicle != v.id), "{} {}: {vis:?}", v.id, cam.name);
+            let vis = visible_in_view(
+                &cam.model,
+                &(t.world_from_body * cam.body_from_camera),
+                &scene,
+            )
+            .unwrap();
+            assert!(
+                vis.iter().all(|m| m.target_vehicle != v.id),
+                "{} {}: {vis:?}",
+                v.id,
+                cam.name
+            );
         }
     }
 }

@@ -1,3 +1,4 @@
 //! One module per subcommand: argument types and a `run` that calls the libraries.
 
 pub mod config;
+pub mod demo;

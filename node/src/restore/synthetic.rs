@@ -2,14 +2,13 @@
 //! must not depend on the simulator: an enhanced-marker-like pattern (black
 //! frame, white ring, black code border, 4x4 data bits, white quiet zone) on
 //! a background, degraded as in the paper's Eq. (7):
-//! `I = (J * h_psf)·t + B∞·(1 − t) + n`.
+//! `I = (f_d·J + (1 − f_d)·J * h_psf)·t + B∞·(1 − t) + n`.
 //!
 //! The degradation for a water of attenuation `c` ([`Degradation::for_c`])
-//! is a made-up but monotone mapping (transmission `e^{−c·0.1 m}`, PSF from
-//! HOIRM's own `p(c)`, noise growing with `c`); the simulator
+//! imitates the simulator's model at a short range; the simulator
 //! (`shoal_sim_bridge::render`) is the physically based reference.
 
-use super::psf::GgPsf;
+use super::psf::{gamma, GgPsf};
 use super::RestoreError;
 use opencv::core::{self, Mat, Point, Rect, Scalar, BORDER_REFLECT_101, CV_8UC1};
 use opencv::imgproc;
@@ -18,28 +17,43 @@ use opencv::prelude::*;
 /// How a clean frame is degraded.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Degradation {
-    /// Transmission `t` of the path to the marker.
+    /// Transmission `t` of the path to the marker (direct plus forward-scattered light).
     pub transmission: f64,
     /// Veiling light at infinity `B∞`, grey levels.
     pub backscatter_inf: f64,
-    /// Forward-scatter PSF.
+    /// Forward-scatter PSF of the scattered part.
     pub psf: GgPsf,
+    /// Part of the transmitted light that is not scattered (stays sharp).
+    pub direct_fraction: f64,
     /// Additive Gaussian noise σ, grey levels.
     pub noise_sigma: f64,
 }
 
 impl Degradation {
-    /// A monotone stand-in for water of attenuation `c_per_m` (see the module docs).
+    /// A stand-in for water of attenuation `c_per_m` seen at 0.35 m, shaped
+    /// like the simulator's model (`docs/water-model.md`): 30 % of `c` is
+    /// forward scatter, so `t = e^{−0.7·c·r}` of which `e^{−0.3·c·r}` is
+    /// unscattered; the scattered part is spread by a generalized Gaussian of
+    /// width `f·0.004 rad·√(c·r)` (f = 1250 px) and shape `p = 1.8 − 0.055·c`.
     pub fn for_c(c_per_m: f64) -> Self {
-        let p = 2.0 / (1.0 + c_per_m / 6.0);
+        let r = 0.35;
+        let c = c_per_m.max(0.0);
+        let p = (1.8 - 0.055 * c).clamp(1.0, 2.0);
+        let width_px = 1250.0 * 0.004 * (c * r).sqrt();
+        // The simulator's scale is width·√A(p) (its reading of Eq. (14));
+        // GgPsf's is σ·√(Γ(1/p)/Γ(3/p)).
+        let ratio = (gamma(1.0 / p) / gamma(3.0 / p)).sqrt();
+        let a_paper = ratio / (2.0 * p.sqrt());
+        let scale_px = (width_px * a_paper.sqrt()).max(0.3);
         Self {
-            transmission: (-c_per_m * 0.1).exp(),
+            transmission: (-0.7 * c * r).exp(),
             backscatter_inf: 170.0,
             psf: GgPsf {
                 p,
-                sigma_px: 2.5 / (2.0 * p.sqrt()),
+                sigma_px: scale_px / ratio,
             },
-            noise_sigma: 1.5 + 0.25 * c_per_m,
+            direct_fraction: (-0.3 * c * r).exp(),
+            noise_sigma: 1.5 + 0.25 * c,
         }
     }
 }
@@ -173,9 +187,11 @@ pub fn marker_frame(
     let mut degraded = Mat::new_rows_cols_with_default(height, width, CV_8UC1, Scalar::all(0.0))?;
     for y in 0..height {
         let b = blurred.at_row::<f32>(y)?;
+        let cl = clean.at_row::<u8>(y)?;
         let o = degraded.at_row_mut::<u8>(y)?;
         for x in 0..width as usize {
-            let v = b[x] as f64 * t + veil + deg.noise_sigma * rng.normal();
+            let j = deg.direct_fraction * cl[x] as f64 + (1.0 - deg.direct_fraction) * b[x] as f64;
+            let v = j * t + veil + deg.noise_sigma * rng.normal();
             o[x] = v.round().clamp(0.0, 255.0) as u8;
         }
     }

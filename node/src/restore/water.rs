@@ -12,18 +12,30 @@
 //! - **noise** σ: Immerkær's Laplacian-difference estimator with a median
 //!   (robust to edges) on every 4th row of the full-resolution frame.
 //!
-//! With a single-scattering model (paper Eq. 6) a black object at range `d`
-//! reads `B∞(1 − t)` and a white one `ρE·t + B∞(1 − t)`; taking the white
-//! signal as the scale, `t ≈ 1 − v` and `c ≈ −ln(1 − v) / d_ref`, with
-//! `d_ref` the reference range ([`super::RestoreParams::reference_range_m`],
-//! the paper's 600 mm). This is an index of the water rather than a
-//! measurement (range and reflectances are unknown); it only drives the
-//! parameters below, and its agreement with the simulator's `c` is reported
-//! in `docs/restoration.md`.
+//! - **local contrast** `ΔI`: the 99.9th percentile of the 3x3 morphological
+//!   gradient of the coarse level (less 3 coarse noise σ): the black/white
+//!   step of the most contrasted object, normally the marker.
+//!
+//! With the single-scattering model (paper Eq. 6) an object at range `d`
+//! shows its reflectance contrast times `t = e^{−c·d}` while the veil is
+//! `B∞(1 − t) ≈ B`; with a white-to-veil radiance ratio `W/B∞` (parameter
+//! `white_over_veil` = `B∞/W`, 0.5 by default, the simulator's value)
+//! `t ≈ (B∞/W)·ΔI/B`. The part `s` of `c` that is small-angle forward
+//! scatter still reaches the camera (blurred), so `t = e^{−(1−s)·c·d}` and
+//! `c ≈ −ln t / ((1−s)·d_ref)` (`forward_scatter_fraction` s = 0.3), `d_ref` the reference range
+//! ([`super::RestoreParams::reference_range_m`], the paper's 600 mm). This
+//! is an index of the water rather than a measurement (range and
+//! reflectances are unknown, and with no object in view it reads "very
+//! turbid"); it only drives the parameters below, and its agreement with the
+//! simulator's `c` is reported in `docs/restoration.md`.
 
 use super::{RestoreError, RestoreParams};
-use opencv::core::Mat;
+use opencv::core::{self, Mat, Point, Size};
+use opencv::imgproc;
 use opencv::prelude::*;
+
+/// The coarse level averages 8x8 pixels: noise σ divided by 8.
+const COARSE_FACTOR_FOR_NOISE: f64 = 8.0;
 
 /// What the image says about the water.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -40,6 +52,8 @@ pub struct WaterEstimate {
     pub contrast: f64,
     /// Full-resolution noise standard deviation, grey levels.
     pub noise_sigma: f64,
+    /// Strongest local (3x3 coarse) contrast above the noise floor, grey levels.
+    pub local_contrast: f64,
     /// Attenuation coefficient inferred at the reference range, 1/m.
     pub c_per_m: f64,
 }
@@ -61,8 +75,31 @@ impl WaterEstimate {
         let veil_fraction = (backscatter / bright).clamp(0.0, 1.0);
         let contrast = (bright - backscatter) / (bright + backscatter).max(1.0);
         let noise_sigma = noise_sigma(full, 4)?;
-        let t = (1.0 - veil_fraction).max(1e-6);
-        let c_per_m = (-t.ln() / params.reference_range_m).clamp(0.0, C_MAX_PER_M);
+        // Strongest local contrast: 99.9th percentile of the 3x3
+        // morphological gradient of the coarse level, less its noise floor.
+        let kernel = imgproc::get_structuring_element(
+            imgproc::MORPH_RECT,
+            Size::new(3, 3),
+            Point::new(-1, -1),
+        )?;
+        let mut grad = Mat::default();
+        imgproc::morphology_ex(
+            coarse,
+            &mut grad,
+            imgproc::MORPH_GRADIENT,
+            &kernel,
+            Point::new(-1, -1),
+            1,
+            core::BORDER_REPLICATE,
+            imgproc::morphology_default_border_value()?,
+        )?;
+        let noise_coarse = noise_sigma / COARSE_FACTOR_FOR_NOISE;
+        let local_contrast =
+            (percentile(&histogram(&grad)?, 0.999) - 3.0 * noise_coarse).max(0.0);
+        let t = (params.white_over_veil * local_contrast / backscatter.max(1.0)).clamp(1e-4, 1.0);
+        let c_per_m = (-t.ln()
+            / ((1.0 - params.forward_scatter_fraction) * params.reference_range_m))
+            .clamp(0.0, C_MAX_PER_M);
         Ok(WaterEstimate {
             backscatter,
             bright,
@@ -70,6 +107,7 @@ impl WaterEstimate {
             veil_fraction,
             contrast,
             noise_sigma,
+            local_contrast,
             c_per_m,
         })
     }

@@ -23,7 +23,9 @@ use nalgebra::{Point3, Vector3};
 use optics::{blur_add, quantize_with_noise, Ambient, LampIntegral, Psf, Rect};
 use shoal_proto::config::Fleet;
 use shoal_proto::geometry::pose_is_finite;
-use shoal_proto::{CameraModel, CodeSet, GrayImage, MarkerId, Pose, VehicleId, VehicleTruth, VisibleMarker};
+use shoal_proto::{
+    CameraModel, CodeSet, GrayImage, MarkerId, Pose, VehicleId, VehicleTruth, VisibleMarker,
+};
 use std::path::Path;
 use trace::{Hit, Hull, Objects, Plate};
 
@@ -70,7 +72,12 @@ impl Scene {
     /// One marker in front of a camera placed at the world origin (render
     /// with `world_from_camera = Pose::identity()`); the camera's image-up
     /// is the world's up. Used by the evaluation at 600 mm.
-    pub fn single_marker(codes: CodeSet, id: MarkerId, side_m: f64, camera_from_marker: Pose) -> Scene {
+    pub fn single_marker(
+        codes: CodeSet,
+        id: MarkerId,
+        side_m: f64,
+        camera_from_marker: Pose,
+    ) -> Scene {
         Scene {
             markers: vec![SceneMarker {
                 codes,
@@ -112,7 +119,9 @@ impl Scene {
 
     /// Check poses, sizes and marker IDs.
     pub fn validate(&self) -> Result<(), SimError> {
-        if !(self.up_world.iter().all(|v| v.is_finite()) && (self.up_world.norm() - 1.0).abs() < 1e-6) {
+        if !(self.up_world.iter().all(|v| v.is_finite())
+            && (self.up_world.norm() - 1.0).abs() < 1e-6)
+        {
             return Err(SimError::InvalidArgument {
                 field: "scene.up_world",
                 value: self.up_world.norm(),
@@ -140,7 +149,11 @@ impl Scene {
                     what: format!("hull of vehicle {}", h.vehicle),
                 });
             }
-            if !(h.diameter_m > 0.0 && h.length_m > 0.0 && h.diameter_m.is_finite() && h.length_m.is_finite()) {
+            if !(h.diameter_m > 0.0
+                && h.length_m > 0.0
+                && h.diameter_m.is_finite()
+                && h.length_m.is_finite())
+            {
                 return Err(SimError::Hull {
                     vehicle: h.vehicle,
                     diameter_m: h.diameter_m,
@@ -150,6 +163,15 @@ impl Scene {
         }
         Ok(())
     }
+}
+
+/// `camera_from_marker` for a marker facing the camera upright (its face
+/// towards the camera, its y axis image-up) and then rotated by
+/// `rpy` (rad, `R = Rz·Ry·Rx` about the camera's axes: pitch turns it about
+/// the image vertical like the paper's rotation platform), centred at `xyz_m`.
+pub fn facing_camera(xyz_m: [f64; 3], rpy: [f64; 3]) -> Pose {
+    shoal_proto::geometry::pose_from_xyz_rpy(xyz_m, rpy)
+        * shoal_proto::geometry::pose_from_xyz_rpy([0.0; 3], [std::f64::consts::PI, 0.0, 0.0])
 }
 
 /// One rendered frame: the underwater image, its clean twin (same view, no
@@ -223,7 +245,10 @@ fn sample_offsets(n: usize) -> Vec<(f64, f64)> {
     let mut v = Vec::with_capacity(n * n);
     for j in 0..n {
         for i in 0..n {
-            v.push((((i * n + j) as f64 + 0.5) / nn - 0.5, ((j * n + i) as f64 + 0.5) / nn - 0.5));
+            v.push((
+                ((i * n + j) as f64 + 0.5) / nn - 0.5,
+                ((j * n + i) as f64 + 0.5) / nn - 0.5,
+            ));
         }
     }
     v
@@ -326,7 +351,12 @@ impl Renderer {
             lamp: LampIntegral::new(water.c_per_m),
         };
 
-        for buf in [&mut self.clean, &mut self.direct, &mut self.scatter, &mut self.scattered] {
+        for buf in [
+            &mut self.clean,
+            &mut self.direct,
+            &mut self.scatter,
+            &mut self.scattered,
+        ] {
             buf.clear();
             buf.resize(n, 0.0);
         }
@@ -349,7 +379,14 @@ impl Renderer {
             let psf = Psf::for_range(water, 0.5 * (cam.fx + cam.fy), range);
             let margin = psf.radius_px().ceil() as usize + 1;
             let region = rect.dilated(margin, w, h);
-            blur_add(&self.scatter, w, region, &psf, &mut self.scattered, &mut self.scratch);
+            blur_add(
+                &self.scatter,
+                w,
+                region,
+                &psf,
+                &mut self.scattered,
+                &mut self.scratch,
+            );
         }
 
         // Compose: veil, vignetting, exposure (docs/water-model.md, Eq. (W1)).
@@ -378,8 +415,19 @@ impl Renderer {
         })
     }
 
+    /// The last rendered frame before noise and quantization, in DN (row-major floats).
+    pub fn last_frame_dn(&self) -> &[f32] {
+        &self.dn
+    }
+
     /// Ray-cast every pixel inside some ROI.
-    fn cast(&mut self, cam: &CameraModel, objects: &Objects, rois: &[Option<Roi>], medium: &Medium) {
+    fn cast(
+        &mut self,
+        cam: &CameraModel,
+        objects: &Objects,
+        rois: &[Option<Roi>],
+        medium: &Medium,
+    ) {
         let w = cam.width as usize;
         let h = cam.height as usize;
         let mut spans: Vec<(usize, usize, bool)> = Vec::new();
@@ -390,6 +438,7 @@ impl Renderer {
             }
         }
         let nsamples = self.offsets.len() as f64;
+        let mut prev: Vec<(usize, usize, Vec<LatticePoint>)> = Vec::new();
         for y in 0..h {
             spans.clear();
             for r in rois.iter().flatten() {
@@ -398,6 +447,7 @@ impl Renderer {
                 }
             }
             if spans.is_empty() {
+                prev.clear();
                 continue;
             }
             spans.sort_unstable_by_key(|s| s.0);
@@ -409,17 +459,23 @@ impl Renderer {
                 }
             }
             let v = y as f64;
+            let mut next_prev = Vec::with_capacity(merged.len());
             for &(x0, x1) in &merged {
-                let mut guess = cam.ray(x0 as f64, v);
+                // Pixel-corner lattice rows above and below this row (shared by
+                // neighbouring pixels; the upper one reused from the row above).
+                let top = match prev.iter().position(|(a, b, _)| *a == x0 && *b == x1) {
+                    Some(k) => prev.swap_remove(k).2,
+                    None => lattice_row(cam, objects, x0, x1, v - 0.5),
+                };
+                let bottom = lattice_row(cam, objects, x0, x1, v + 0.5);
+                let mut guess = top[0].0;
                 for x in x0..=x1 {
+                    let k = x - x0;
                     let u = x as f64;
                     let centre = trace::ray_from(cam, u, v, guess);
                     guess = centre;
                     let hit_c = objects.trace(centre.0, centre.1);
-                    let corners = [(-0.5, -0.5), (0.5, -0.5), (0.5, 0.5), (-0.5, 0.5)].map(|(du, dv)| {
-                        let r = trace::ray_from(cam, u + du, v + dv, centre);
-                        objects.trace(r.0, r.1)
-                    });
+                    let corners = [top[k].1, top[k + 1].1, bottom[k + 1].1, bottom[k].1];
                     let uniform = pixel_is_uniform(objects, &hit_c, &corners, &fine_objects);
                     let s = if uniform {
                         medium.sample(hit_c, centre.0, centre.1)
@@ -449,12 +505,21 @@ impl Renderer {
                     self.veil[i] = s.veil as f32;
                     self.lamp[i] = s.lamp as f32;
                 }
+                next_prev.push((x0, x1, bottom));
             }
+            prev = next_prev;
         }
     }
 
     /// Final radiance to DN: `exposure · V(x) · [D + h∗F + B(x)·β + lamp veil]`.
-    fn compose(&mut self, cam: &CameraModel, water: &WaterParams, ambient: &Ambient, medium: &Medium, up: &Vector3<f64>) {
+    fn compose(
+        &mut self,
+        cam: &CameraModel,
+        water: &WaterParams,
+        ambient: &Ambient,
+        medium: &Medium,
+        up: &Vector3<f64>,
+    ) {
         let (w, h) = (cam.width as usize, cam.height as usize);
         // The veil and vignetting are smooth: evaluate them on a coarse grid.
         let step = 8usize;
@@ -471,8 +536,11 @@ impl Renderer {
                 let cos_zenith = d.dot(up) / norm;
                 let dir_gain = (1.0 + water.backscatter_up_gain * cos_zenith).max(0.1);
                 let spatial = ambient.spatial(u / w as f64, v / h as f64);
-                veil_grid[gy * gw + gx] =
-                    (water.backscatter_inf * dir_gain * spatial * ambient.temporal * water.illumination) as f32;
+                veil_grid[gy * gw + gx] = (water.backscatter_inf
+                    * dir_gain
+                    * spatial
+                    * ambient.temporal
+                    * water.illumination) as f32;
                 let cos_t = 1.0 / norm;
                 vig_grid[gy * gw + gx] = (1.0 - water.vignetting * (1.0 - cos_t.powi(4))) as f32;
             }
@@ -482,33 +550,63 @@ impl Renderer {
         self.dn.clear();
         self.dn.resize(w * h, 0.0);
         let inv = 1.0 / step as f32;
+        let mut veil_row = vec![0.0f32; gw];
+        let mut vig_row = vec![0.0f32; gw];
         for y in 0..h {
             let fy = y as f32 * inv;
             let gy = (fy as usize).min(gh - 2);
             let ty = fy - gy as f32;
-            for x in 0..w {
-                let fx = x as f32 * inv;
-                let gx = (fx as usize).min(gw - 2);
-                let tx = fx - gx as f32;
-                let bil = |g: &[f32]| {
-                    let a = g[gy * gw + gx] * (1.0 - tx) + g[gy * gw + gx + 1] * tx;
-                    let b = g[(gy + 1) * gw + gx] * (1.0 - tx) + g[(gy + 1) * gw + gx + 1] * tx;
-                    a * (1.0 - ty) + b * ty
-                };
-                let i = y * w + x;
-                let radiance =
-                    self.direct[i] + self.scattered[i] + bil(&veil_grid) * self.veil[i] + lamp_veil * self.lamp[i];
-                self.dn[i] = gain * bil(&vig_grid) * radiance;
+            for gx in 0..gw {
+                veil_row[gx] =
+                    veil_grid[gy * gw + gx] * (1.0 - ty) + veil_grid[(gy + 1) * gw + gx] * ty;
+                vig_row[gx] =
+                    vig_grid[gy * gw + gx] * (1.0 - ty) + vig_grid[(gy + 1) * gw + gx] * ty;
+            }
+            let row = y * w;
+            let (direct, scattered) = (&self.direct[row..row + w], &self.scattered[row..row + w]);
+            let (veil, lamp) = (&self.veil[row..row + w], &self.lamp[row..row + w]);
+            for (x, out) in self.dn[row..row + w].iter_mut().enumerate() {
+                let gx = x / step;
+                let tx = (x % step) as f32 * inv;
+                let b = veil_row[gx] * (1.0 - tx) + veil_row[gx + 1] * tx;
+                let vg = vig_row[gx] * (1.0 - tx) + vig_row[gx + 1] * tx;
+                *out = gain * vg * (direct[x] + scattered[x] + b * veil[x] + lamp_veil * lamp[x]);
             }
         }
     }
+}
+
+/// A pixel corner's ray and what it hits.
+type LatticePoint = ((f64, f64), Option<Hit>);
+
+/// The pixel-corner points `u = x0 − ½ … x1 + ½` at image row `v`.
+fn lattice_row(
+    cam: &CameraModel,
+    objects: &Objects,
+    x0: usize,
+    x1: usize,
+    v: f64,
+) -> Vec<LatticePoint> {
+    let mut guess = cam.ray(x0 as f64 - 0.5, v);
+    (x0..=x1 + 1)
+        .map(|x| {
+            let r = trace::ray_from(cam, x as f64 - 0.5, v, guess);
+            guess = r;
+            (r, objects.trace(r.0, r.1))
+        })
+        .collect()
 }
 
 /// Whether a pixel is one uniform patch, from the hits at its centre and
 /// corners: same object, and for a plate all modules between the corners'
 /// modules of one colour (the pixel's footprint on a plane is convex, so a
 /// module edge crossing it separates its corners).
-fn pixel_is_uniform(objects: &Objects, centre: &Option<Hit>, corners: &[Option<Hit>; 4], fine: &[bool]) -> bool {
+fn pixel_is_uniform(
+    objects: &Objects,
+    centre: &Option<Hit>,
+    corners: &[Option<Hit>; 4],
+    fine: &[bool],
+) -> bool {
     let obj = |h: &Option<Hit>| h.map(|h| h.object);
     let o = obj(centre);
     if corners.iter().any(|c| obj(c) != o) {
@@ -523,7 +621,12 @@ fn pixel_is_uniform(objects: &Objects, centre: &Option<Hit>, corners: &[Option<H
     let Some(plate) = objects.plates.get(o as usize) else {
         return true; // a hull: smooth shading
     };
-    let patches: Vec<u32> = corners.iter().chain([centre]).flatten().map(|h| h.patch).collect();
+    let patches: Vec<u32> = corners
+        .iter()
+        .chain([centre])
+        .flatten()
+        .map(|h| h.patch)
+        .collect();
     let back = (plate.modules as u32 + 2).pow(2);
     if patches.iter().all(|&p| p == back) {
         return true;
@@ -548,20 +651,44 @@ const ROI_NEAR_M: f64 = 1e-3;
 /// Pixel bounds of a set of camera-frame points, with the segments given
 /// as index pairs clipped at the near plane (a clipped point projects far
 /// out, extending the ROI to the image border on its side).
-fn roi_of(cam: &CameraModel, pts: &[Point3<f64>], segments: &[(usize, usize)], margin_frac: f64) -> Option<Rect> {
+fn roi_of(
+    cam: &CameraModel,
+    pts: &[Point3<f64>],
+    segments: &[(usize, usize)],
+    margin_frac: f64,
+) -> Option<Rect> {
     let (w, h) = (cam.width as f64, cam.height as f64);
-    let (mut u0, mut v0, mut u1, mut v1) = (f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY);
+    let (mut u0, mut v0, mut u1, mut v1) = (
+        f64::INFINITY,
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+        f64::NEG_INFINITY,
+    );
     let mut add = |p: &Point3<f64>| {
         // Outside the lens model's sane range, clamp the direction to far off-screen.
         let (xn, yn) = (p.x / p.z, p.y / p.z);
         let lim = 4.0;
         let (u, v) = if xn.abs() > lim || yn.abs() > lim {
             (
-                if xn > 0.0 { 1e9 } else if xn < 0.0 { -1e9 } else { cam.cx },
-                if yn > 0.0 { 1e9 } else if yn < 0.0 { -1e9 } else { cam.cy },
+                if xn > 0.0 {
+                    1e9
+                } else if xn < 0.0 {
+                    -1e9
+                } else {
+                    cam.cx
+                },
+                if yn > 0.0 {
+                    1e9
+                } else if yn < 0.0 {
+                    -1e9
+                } else {
+                    cam.cy
+                },
             )
         } else {
-            let q = cam.project(p).unwrap_or(Point3::new(cam.cx, cam.cy, 1.0).xy());
+            let q = cam
+                .project(p)
+                .unwrap_or(Point3::new(cam.cx, cam.cy, 1.0).xy());
             (q.x, q.y)
         };
         u0 = u0.min(u);
@@ -627,7 +754,11 @@ fn plate_roi(cam: &CameraModel, p: &Plate) -> Option<Roi> {
 /// Rings of points along the hull (48 around, 17 along) and its mesh segments.
 fn hull_roi(cam: &CameraModel, hl: &Hull) -> Option<Roi> {
     let (na, nl) = (48usize, 16usize);
-    let e1 = hl.axis.cross(&Vector3::x()).try_normalize(1e-9).unwrap_or_else(|| hl.axis.cross(&Vector3::y()).normalize());
+    let e1 = hl
+        .axis
+        .cross(&Vector3::x())
+        .try_normalize(1e-9)
+        .unwrap_or_else(|| hl.axis.cross(&Vector3::y()).normalize());
     let e2 = hl.axis.cross(&e1);
     let mut pts = Vec::with_capacity((na + 1) * (nl + 1));
     let mut segs = Vec::new();
@@ -680,7 +811,11 @@ fn psf_groups(cam: &CameraModel, water: &WaterParams, rois: &[Option<Roi>]) -> V
             for j in i + 1..groups.len() {
                 if groups[i].0.overlaps(&groups[j].0) {
                     let g = groups.swap_remove(j);
-                    groups[i] = (groups[i].0.union(&g.0), groups[i].1 + g.1, groups[i].2 + g.2);
+                    groups[i] = (
+                        groups[i].0.union(&g.0),
+                        groups[i].1 + g.1,
+                        groups[i].2 + g.2,
+                    );
                     merged = true;
                     break 'outer;
                 }
@@ -690,7 +825,10 @@ fn psf_groups(cam: &CameraModel, water: &WaterParams, rois: &[Option<Roi>]) -> V
             break;
         }
     }
-    groups.into_iter().map(|(r, ar, a)| (r, ar / a.max(1e-12))).collect()
+    groups
+        .into_iter()
+        .map(|(r, ar, a)| (r, ar / a.max(1e-12)))
+        .collect()
 }
 
 /// The module grid of a marker (see `CodeSet::module_grid`).
@@ -727,7 +865,11 @@ fn grid_of(codes: CodeSet, id: MarkerId) -> Result<Vec<bool>, SimError> {
 
 /// The scene's plates and hulls in the camera frame; without `grids` every
 /// module is white (enough for visibility, no code tables needed).
-fn build_objects(scene: &Scene, camera_from_world: &Pose, grids: bool) -> Result<Objects, SimError> {
+fn build_objects(
+    scene: &Scene,
+    camera_from_world: &Pose,
+    grids: bool,
+) -> Result<Objects, SimError> {
     let up = camera_from_world.rotation * scene.up_world;
     let mut objects = Objects {
         plates: Vec::with_capacity(scene.markers.len()),
@@ -749,9 +891,11 @@ fn build_objects(scene: &Scene, camera_from_world: &Pose, grids: bool) -> Result
         ));
     }
     for hl in &scene.hulls {
-        objects
-            .hulls
-            .push(Hull::new(&(camera_from_world * hl.world_from_body), hl.diameter_m, hl.length_m));
+        objects.hulls.push(Hull::new(
+            &(camera_from_world * hl.world_from_body),
+            hl.diameter_m,
+            hl.length_m,
+        ));
     }
     Ok(objects)
 }
@@ -759,7 +903,11 @@ fn build_objects(scene: &Scene, camera_from_world: &Pose, grids: bool) -> Result
 /// Which markers `cam` at `world_from_camera` sees and where their corners
 /// project, without rendering (the same computation as
 /// [`RenderOutput::visible`]; `observer`, `camera`, `frame_seq` are 0).
-pub fn visible_in_view(cam: &CameraModel, world_from_camera: &Pose, scene: &Scene) -> Result<Vec<VisibleMarker>, SimError> {
+pub fn visible_in_view(
+    cam: &CameraModel,
+    world_from_camera: &Pose,
+    scene: &Scene,
+) -> Result<Vec<VisibleMarker>, SimError> {
     if let Some(p) = cam.problem() {
         return Err(SimError::Camera(p));
     }
@@ -786,8 +934,15 @@ fn visible_markers(cam: &CameraModel, scene: &Scene, objects: &Objects) -> Vec<V
     let mut out = Vec::new();
     let k = 12usize;
     for (m, plate) in scene.markers.iter().zip(&objects.plates) {
-        let camera_from_marker = |p: &Point3<f64>| Point3::from(plate.origin + plate.ex * p.x + plate.ey * p.y + plate.normal * p.z);
-        let corners: Vec<Point3<f64>> = m.codes.corners_3d(m.side_m).iter().map(camera_from_marker).collect();
+        let camera_from_marker = |p: &Point3<f64>| {
+            Point3::from(plate.origin + plate.ex * p.x + plate.ey * p.y + plate.normal * p.z)
+        };
+        let corners: Vec<Point3<f64>> = m
+            .codes
+            .corners_3d(m.side_m)
+            .iter()
+            .map(camera_from_marker)
+            .collect();
         if corners.iter().any(|c| c.z <= ROI_NEAR_M) {
             continue;
         }
@@ -801,7 +956,10 @@ fn visible_markers(cam: &CameraModel, scene: &Scene, objects: &Objects) -> Vec<V
                 let b = m.side_m * ((j as f64 + 0.5) / k as f64 - 0.5);
                 let p = Point3::from(plate.origin + plate.ex * a + plate.ey * b);
                 let in_frame = cam.project(&p).is_some_and(|q| {
-                    q.x >= -0.5 && q.y >= -0.5 && q.x <= cam.width as f64 - 0.5 && q.y <= cam.height as f64 - 0.5
+                    q.x >= -0.5
+                        && q.y >= -0.5
+                        && q.x <= cam.width as f64 - 0.5
+                        && q.y <= cam.height as f64 - 0.5
                 });
                 if in_frame && objects.sees(&p) {
                     seen += 1;
@@ -835,7 +993,10 @@ fn visible_markers(cam: &CameraModel, scene: &Scene, objects: &Objects) -> Vec<V
 pub fn all_corners_in_frame(cam: &CameraModel, v: &VisibleMarker) -> bool {
     v.corners_px.len() == v.codes.corner_count()
         && v.corners_px.iter().all(|c| {
-            c[0] >= -0.5 && c[1] >= -0.5 && c[0] <= cam.width as f64 - 0.5 && c[1] <= cam.height as f64 - 0.5
+            c[0] >= -0.5
+                && c[1] >= -0.5
+                && c[0] <= cam.width as f64 - 0.5
+                && c[1] <= cam.height as f64 - 0.5
         })
 }
 
@@ -858,15 +1019,21 @@ pub fn render_fleet_view(
         vehicle,
         context: "fleet",
     })?;
-    let cam = v.cameras.get(camera_index as usize).ok_or(SimError::UnknownCamera {
-        vehicle,
-        camera: camera_index,
-        count: v.cameras.len(),
-    })?;
-    let me = truth.iter().find(|t| t.vehicle == vehicle).ok_or(SimError::UnknownVehicle {
-        vehicle,
-        context: "ground truth",
-    })?;
+    let cam = v
+        .cameras
+        .get(camera_index as usize)
+        .ok_or(SimError::UnknownCamera {
+            vehicle,
+            camera: camera_index,
+            count: v.cameras.len(),
+        })?;
+    let me = truth
+        .iter()
+        .find(|t| t.vehicle == vehicle)
+        .ok_or(SimError::UnknownVehicle {
+            vehicle,
+            context: "ground truth",
+        })?;
     let scene = Scene::from_fleet(fleet, truth);
     let world_from_camera = me.world_from_body * cam.body_from_camera;
     let mut out = renderer.render(&cam.model, &world_from_camera, &scene, water, time_s, seed)?;
@@ -878,12 +1045,37 @@ pub fn render_fleet_view(
     Ok(out)
 }
 
+/// Where [`write_frame_pair`] puts the clean twin of `path`: `frame.png` → `frame_clean.png`.
+pub fn clean_twin_path(path: &Path) -> std::path::PathBuf {
+    let stem = path
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "frame".into());
+    let ext = path
+        .extension()
+        .map(|e| e.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "png".into());
+    path.with_file_name(format!("{stem}_clean.{ext}"))
+}
+
+/// Write a frame to `path` and its clean twin next to it
+/// ([`clean_twin_path`]); returns the twin's path. What `shoal sim render` does.
+pub fn write_frame_pair(out: &RenderOutput, path: &Path) -> Result<std::path::PathBuf, SimError> {
+    write_png(&out.image, path)?;
+    let twin = clean_twin_path(path);
+    write_png(&out.clean, &twin)?;
+    Ok(twin)
+}
+
 /// Write an 8-bit grey image as PNG.
 pub fn write_png(img: &GrayImage, path: &Path) -> Result<(), SimError> {
-    let buf = image::GrayImage::from_raw(img.width, img.height, img.data.clone()).ok_or_else(|| SimError::ImageWrite {
-        path: path.to_path_buf(),
-        message: format!("{} bytes for {}x{}", img.data.len(), img.width, img.height),
-    })?;
+    let buf =
+        image::GrayImage::from_raw(img.width, img.height, img.data.clone()).ok_or_else(|| {
+            SimError::ImageWrite {
+                path: path.to_path_buf(),
+                message: format!("{} bytes for {}x{}", img.data.len(), img.width, img.height),
+            }
+        })?;
     buf.save(path).map_err(|e| SimError::ImageWrite {
         path: path.to_path_buf(),
         message: e.to_string(),

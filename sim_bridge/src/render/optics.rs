@@ -113,7 +113,14 @@ impl Rect {
 /// on a grid of `d`x`d` cells (box-averaged, then bilinearly upsampled), so
 /// the cost stays ~`(2·8+1)²` per cell whatever the width; the PSF's mass is
 /// conserved.
-pub fn blur_add(src: &[f32], w: usize, rect: Rect, psf: &Psf, dst: &mut [f32], scratch: &mut Vec<f32>) {
+pub fn blur_add(
+    src: &[f32],
+    w: usize,
+    rect: Rect,
+    psf: &Psf,
+    dst: &mut [f32],
+    scratch: &mut Vec<f32>,
+) {
     if !(psf.scale_px > 0.05) {
         for y in rect.y0..=rect.y1 {
             let row = y * w;
@@ -282,14 +289,20 @@ impl Ambient {
         let mut rng = ChaCha8Rng::seed_from_u64(water.ambient_seed);
         let phase0: f64 = rng.gen_range(0.0..std::f64::consts::TAU);
         let period = water.ambient_period_s.max(1e-3);
-        let temporal = 1.0 + water.ambient_temporal * (std::f64::consts::TAU * time_s / period + phase0).sin();
+        let temporal =
+            1.0 + water.ambient_temporal * (std::f64::consts::TAU * time_s / period + phase0).sin();
         let mut waves = [(0.0, 0.0, 0.0, 0.0); 3];
         for w in waves.iter_mut() {
             let fx: f64 = rng.gen_range(0.3..1.2) * if rng.gen_bool(0.5) { 1.0 } else { -1.0 };
             let fy: f64 = rng.gen_range(0.3..1.2) * if rng.gen_bool(0.5) { 1.0 } else { -1.0 };
             let speed: f64 = rng.gen_range(0.5..1.5);
             let ph: f64 = rng.gen_range(0.0..std::f64::consts::TAU);
-            *w = (fx, fy, ph + std::f64::consts::TAU * speed * time_s / period, 0.0);
+            *w = (
+                fx,
+                fy,
+                ph + std::f64::consts::TAU * speed * time_s / period,
+                0.0,
+            );
         }
         Ambient {
             temporal,
@@ -328,23 +341,22 @@ pub fn quantize_with_noise(dn: &[f32], w: usize, water: &WaterParams, seed: u64,
         rng.set_stream(y as u64);
         for (o, &v) in row_out.iter_mut().zip(row_in) {
             let mean = v.max(0.0) as f64;
-            let shot = if gain.is_finite() {
-                let lambda = mean * gain;
-                if lambda < 30.0 {
-                    if lambda > 0.0 {
-                        Poisson::new(lambda).map(|p| p.sample(&mut rng)).unwrap_or(lambda) / gain
-                    } else {
-                        0.0
-                    }
-                } else {
-                    let z: f64 = StandardNormal.sample(&mut rng);
-                    mean + z * (mean / gain).sqrt()
-                }
+            let lambda = mean * gain;
+            let value = if lambda < 30.0 && lambda > 0.0 {
+                // Few photo-electrons: exact Poisson, plus read noise.
+                let shot = Poisson::new(lambda)
+                    .map(|p| p.sample(&mut rng))
+                    .unwrap_or(lambda)
+                    / gain;
+                let z: f64 = StandardNormal.sample(&mut rng);
+                shot + read * z
             } else {
-                mean
+                // Poisson ≈ Gaussian: one draw with the summed variance.
+                let var = if gain.is_finite() { mean / gain } else { 0.0 } + read * read;
+                let z: f64 = StandardNormal.sample(&mut rng);
+                mean + z * var.sqrt()
             };
-            let z: f64 = StandardNormal.sample(&mut rng);
-            *o = (shot + read * z).round().clamp(0.0, 255.0) as u8;
+            *o = value.round().clamp(0.0, 255.0) as u8;
         }
     }
 }
@@ -376,11 +388,20 @@ mod tests {
             for p in [1.0, 2.0] {
                 let psf = Psf { p, scale_px: scale };
                 let r = psf.radius_px().ceil() as usize;
-                let rect = Rect { x0: 90, y0: 70, x1: 109, y1: 89 }.dilated(r, w, h);
+                let rect = Rect {
+                    x0: 90,
+                    y0: 70,
+                    x1: 109,
+                    y1: 89,
+                }
+                .dilated(r, w, h);
                 let mut dst = vec![0.0f32; w * h];
                 blur_add(&src, w, rect, &psf, &mut dst, &mut Vec::new());
                 let got: f32 = dst.iter().sum();
-                assert!((got - total).abs() < 1e-3 * total, "scale {scale} p {p}: {got} vs {total}");
+                assert!(
+                    (got - total).abs() < 1e-3 * total,
+                    "scale {scale} p {p}: {got} vs {total}"
+                );
                 // Wider PSFs spread further.
                 if scale > 1.0 {
                     assert!(dst[80 * w + 90 - 2] > 0.0);

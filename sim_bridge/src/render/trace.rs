@@ -43,7 +43,7 @@ pub fn ray_from(cam: &CameraModel, u: f64, v: f64, guess: (f64, f64)) -> (f64, f
     for _ in 0..8 {
         let (xd, yd, j) = distort_with_jacobian(&cam.distortion, x, y);
         let (ex, ey) = (tx - xd, ty - yd);
-        if ex.abs() + ey.abs() < 1e-14 {
+        if ex.abs() + ey.abs() < 1e-13 {
             break;
         }
         let det = j[0] * j[3] - j[1] * j[2];
@@ -197,11 +197,21 @@ impl Plate {
         if front {
             let white = self.white_at(col, row).unwrap_or(true);
             let albedo = if white { ALBEDO_WHITE } else { ALBEDO_BLACK };
-            Some((t, (row * w + col) as u32, albedo * self.shade, albedo * cos_i))
+            Some((
+                t,
+                (row * w + col) as u32,
+                albedo * self.shade,
+                albedo * cos_i,
+            ))
         } else {
             // The back of the plate: one uniform patch id past the grid.
             let back_shade = 0.75 - (self.shade - 0.75);
-            Some((t, (w * w) as u32, ALBEDO_PLATE_BACK * back_shade, ALBEDO_PLATE_BACK * cos_i))
+            Some((
+                t,
+                (w * w) as u32,
+                ALBEDO_PLATE_BACK * back_shade,
+                ALBEDO_PLATE_BACK * cos_i,
+            ))
         }
     }
 }
@@ -323,7 +333,10 @@ mod tests {
             let guess = cam.ray(719.5, 539.5);
             let (x, y) = ray_from(&cam, u, v, guess);
             let p = cam.project(&Point3::new(x, y, 1.0)).unwrap();
-            assert!((p.x - u).abs() < 1e-9 && (p.y - v).abs() < 1e-9, "{u},{v} -> {p}");
+            assert!(
+                (p.x - u).abs() < 1e-9 && (p.y - v).abs() < 1e-9,
+                "{u},{v} -> {p}"
+            );
         }
     }
 
@@ -345,7 +358,11 @@ mod tests {
             hulls: vec![Hull::new(
                 &Isometry3::from_parts(
                     nalgebra::Translation3::new(0.0, 0.0, 3.0),
-                    nalgebra::UnitQuaternion::from_euler_angles(0.0, -std::f64::consts::FRAC_PI_2, 0.0),
+                    nalgebra::UnitQuaternion::from_euler_angles(
+                        0.0,
+                        -std::f64::consts::FRAC_PI_2,
+                        0.0,
+                    ),
                 ),
                 0.2,
                 1.0,

@@ -1,0 +1,303 @@
+//! One camera's processing chain (paper Fig. 8): restoration → marker
+//! detection → PnP → `observer_from_target` observations between vehicle
+//! bodies, plus the tracker's predictions across short occlusions.
+//!
+//! No Zenoh here: the service (`service.rs`), the evaluation and offline
+//! re-runs from logs all drive this same type.
+
+use crate::detect::{DetectError, DetectParams, Detection, ShoalDetector};
+use crate::pose::{estimate_pose, Hypothesis, PoseError};
+use crate::restore::{restorer, Method, RestoreError, RestoreParams, Restorer};
+use crate::track::{Track, TrackParams};
+use opencv::core::Mat;
+use shoal_proto::config::{Camera, Fleet, MarkerOwner};
+use shoal_proto::geometry::{Cov6, Pose, PoseWithCovariance};
+use shoal_proto::marker::{CodeSet, MarkerId};
+use shoal_proto::messages::{ImageQuality, Observation, PoseHypothesis, VehicleId};
+use std::collections::BTreeMap;
+use std::sync::Arc;
+use std::time::Instant;
+
+/// Everything tunable in a camera pipeline.
+#[derive(Debug, Clone)]
+pub struct PipelineParams {
+    pub restore: Method,
+    pub restore_params: RestoreParams,
+    /// The code set the fleet's markers use.
+    pub codes: CodeSet,
+    pub detect: DetectParams,
+    /// Corner noise for the PnP covariance; `None` estimates it from the residuals.
+    pub corner_sigma_px: Option<f64>,
+    pub track: TrackParams,
+}
+
+impl Default for PipelineParams {
+    fn default() -> Self {
+        Self {
+            restore: Method::Hoirm,
+            restore_params: RestoreParams::default(),
+            codes: CodeSet::Shoal,
+            detect: DetectParams::default(),
+            corner_sigma_px: None,
+            track: TrackParams::default(),
+        }
+    }
+}
+
+/// Errors that stop a frame from being processed at all.
+#[derive(Debug, thiserror::Error)]
+pub enum PipelineError {
+    #[error("vehicle {0} is not in the fleet")]
+    UnknownVehicle(VehicleId),
+    #[error("vehicle {vehicle} has no camera {camera}")]
+    UnknownCamera { vehicle: VehicleId, camera: u8 },
+    #[error("restoration: {0}")]
+    Restore(#[from] RestoreError),
+    #[error("detection: {0}")]
+    Detect(#[from] DetectError),
+}
+
+/// What one frame produced.
+#[derive(Debug, Default)]
+pub struct FrameOutput {
+    /// Measured observations, then predicted ones (flagged) for occluded tracks.
+    pub observations: Vec<Observation>,
+    /// Markers decoded in the frame.
+    pub detections: usize,
+    /// Detections dropped: PnP failed, or the marker size is unknown.
+    pub pose_failures: Vec<String>,
+    pub restore_ms: f64,
+    pub detect_ms: f64,
+    pub pose_ms: f64,
+}
+
+/// The chain for one camera of one vehicle; holds per-camera state
+/// (HOIRM's ambient estimate, the trackers).
+pub struct CameraPipeline {
+    fleet: Arc<Fleet>,
+    observer: VehicleId,
+    camera: Camera,
+    params: PipelineParams,
+    restorer: Box<dyn Restorer>,
+    detector: ShoalDetector,
+    tracks: BTreeMap<MarkerId, Track>,
+}
+
+impl std::fmt::Debug for CameraPipeline {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("CameraPipeline")
+            .field("observer", &self.observer)
+            .field("camera", &self.camera.name)
+            .finish()
+    }
+}
+
+impl CameraPipeline {
+    pub fn new(
+        fleet: Arc<Fleet>,
+        observer: VehicleId,
+        camera_index: u8,
+        params: PipelineParams,
+    ) -> Result<CameraPipeline, PipelineError> {
+        let vehicle = fleet
+            .vehicle(observer)
+            .ok_or(PipelineError::UnknownVehicle(observer))?;
+        let camera = vehicle
+            .cameras
+            .get(camera_index as usize)
+            .cloned()
+            .ok_or(PipelineError::UnknownCamera {
+                vehicle: observer,
+                camera: camera_index,
+            })?;
+        if let Some(e) = params.restore_params.problem() {
+            return Err(e.into());
+        }
+        Ok(CameraPipeline {
+            restorer: restorer(params.restore, &params.restore_params),
+            detector: ShoalDetector::new(params.codes, params.detect.clone()),
+            fleet,
+            observer,
+            camera,
+            params,
+            tracks: BTreeMap::new(),
+        })
+    }
+
+    pub fn camera(&self) -> &Camera {
+        &self.camera
+    }
+
+    /// Process one 8-bit grey frame captured at `stamp_ns`.
+    pub fn process(
+        &mut self,
+        gray: &Mat,
+        stamp_ns: u64,
+        frame_seq: u64,
+    ) -> Result<FrameOutput, PipelineError> {
+        let mut out = FrameOutput::default();
+        let t0 = Instant::now();
+        let restored = self.restorer.restore(gray, stamp_ns)?;
+        let t1 = Instant::now();
+        let detections = self.detector.detect_in(&restored.image)?;
+        let t2 = Instant::now();
+        out.detections = detections.len();
+        let quality = ImageQuality {
+            marker_contrast: 0.0,
+            cnr: 0.0,
+            backscatter: (restored.backscatter / 255.0) as f32,
+            estimated_c_per_m: restored.estimated_c_per_m as f32,
+        };
+        let mut seen = Vec::new();
+        for det in &detections {
+            match self.observation(det, stamp_ns, frame_seq, quality) {
+                Ok(obs) => {
+                    seen.push(det.id);
+                    self.track(&obs);
+                    out.observations.push(obs);
+                }
+                Err(reason) => out.pose_failures.push(reason),
+            }
+        }
+        self.bridge_occlusions(&seen, stamp_ns, frame_seq, quality, &mut out.observations);
+        let t3 = Instant::now();
+        out.restore_ms = (t1 - t0).as_secs_f64() * 1e3;
+        out.detect_ms = (t2 - t1).as_secs_f64() * 1e3;
+        out.pose_ms = (t3 - t2).as_secs_f64() * 1e3;
+        Ok(out)
+    }
+
+    /// Marker side and mounting: from the fleet when a vehicle carries the
+    /// marker, else the side of any marker of the same code set (so an
+    /// unknown ID is still reported, in the marker's own frame).
+    fn marker_geometry(&self, det: &Detection) -> Option<(f64, Option<(VehicleId, Pose)>)> {
+        match self.fleet.marker_owner(det.codes, det.id) {
+            MarkerOwner::Vehicle(v) => {
+                let m = self.fleet.marker(v, det.codes, det.id)?;
+                Some((m.side_m, Some((v, m.body_from_marker))))
+            }
+            MarkerOwner::Unknown | MarkerOwner::Ambiguous => self
+                .fleet
+                .vehicles
+                .iter()
+                .flat_map(|v| v.markers.iter())
+                .find(|m| m.codes == det.codes)
+                .map(|m| (m.side_m, None)),
+        }
+    }
+
+    fn observation(
+        &self,
+        det: &Detection,
+        stamp_ns: u64,
+        frame_seq: u64,
+        quality: ImageQuality,
+    ) -> Result<Observation, String> {
+        let (side_m, owner) = self
+            .marker_geometry(det)
+            .ok_or_else(|| format!("{}#{}: no marker of this code set in the fleet, size unknown", det.codes, det.id))?;
+        let solution = estimate_pose(
+            &self.camera.model,
+            &det.object_points(side_m),
+            &det.corners_px,
+            self.params.corner_sigma_px,
+        )
+        .map_err(|e: PoseError| format!("{}#{}: {e}", det.codes, det.id))?;
+        let to_body = |h: &Hypothesis| -> PoseWithCovariance {
+            let fixed = |p: Pose| PoseWithCovariance::new(p, Cov6::zeros());
+            let camera_from_marker = PoseWithCovariance::new(h.camera_from_marker, h.covariance);
+            let marker_from_target = owner
+                .map(|(_, body_from_marker)| body_from_marker.inverse())
+                .unwrap_or_else(Pose::identity);
+            fixed(self.camera.body_from_camera)
+                .compose(&camera_from_marker)
+                .compose(&fixed(marker_from_target))
+        };
+        let best = to_body(&solution.best);
+        Ok(Observation {
+            observer: self.observer,
+            camera: self.camera.index,
+            codes: det.codes,
+            target_marker: det.id,
+            target_vehicle: owner.map(|(v, _)| v),
+            stamp_ns,
+            frame_seq,
+            observer_from_target: best.pose,
+            covariance: symmetric(best.covariance),
+            reprojection_rms_px: solution.best.rms_px,
+            alternative: solution.alternative.map(|h| {
+                let alt = to_body(&h);
+                PoseHypothesis {
+                    observer_from_target: alt.pose,
+                    covariance: symmetric(alt.covariance),
+                    reprojection_rms_px: h.rms_px,
+                }
+            }),
+            corner_count: det.corners_px.len() as u8,
+            corners_px: det.corners_px.iter().map(|c| [c[0] as f32, c[1] as f32]).collect(),
+            quality,
+            predicted: false,
+        })
+    }
+
+    fn track(&mut self, obs: &Observation) {
+        if obs.target_vehicle.is_none() {
+            return;
+        }
+        let params = self.params.track;
+        match self.tracks.get_mut(&obs.target_marker) {
+            Some(t) if t.bridges(obs.stamp_ns, &params) => {
+                t.update(&obs.observer_from_target, &obs.covariance, obs.stamp_ns, &params);
+            }
+            _ => {
+                self.tracks.insert(
+                    obs.target_marker,
+                    Track::new(obs.observer_from_target, obs.covariance, obs.stamp_ns),
+                );
+            }
+        }
+    }
+
+    /// Predicted observations for tracked markers not seen in this frame.
+    fn bridge_occlusions(
+        &mut self,
+        seen: &[MarkerId],
+        stamp_ns: u64,
+        frame_seq: u64,
+        quality: ImageQuality,
+        out: &mut Vec<Observation>,
+    ) {
+        let params = self.params.track;
+        self.tracks.retain(|_, t| t.bridges(stamp_ns, &params) || t.last_measured_ns() >= stamp_ns);
+        for (&id, track) in &self.tracks {
+            if seen.contains(&id) || !track.bridges(stamp_ns, &params) {
+                continue;
+            }
+            let MarkerOwner::Vehicle(target) = self.fleet.marker_owner(self.params.codes, id) else {
+                continue;
+            };
+            let (pose, cov) = track.predict(stamp_ns, &params);
+            out.push(Observation {
+                observer: self.observer,
+                camera: self.camera.index,
+                codes: self.params.codes,
+                target_marker: id,
+                target_vehicle: Some(target),
+                stamp_ns,
+                frame_seq,
+                observer_from_target: pose,
+                covariance: symmetric(cov),
+                reprojection_rms_px: 0.0,
+                alternative: None,
+                corner_count: 0,
+                corners_px: Vec::new(),
+                quality,
+                predicted: true,
+            });
+        }
+    }
+}
+
+fn symmetric(c: Cov6) -> Cov6 {
+    (c + c.transpose()) * 0.5
+}

@@ -1,0 +1,149 @@
+//! Frame sources other than Zenoh: a folder of images, a video file, a live
+//! camera (OpenCV `VideoCapture`). Each runs on its own named thread and
+//! feeds one camera's drop-oldest queue.
+
+use crate::mat::mat_to_gray;
+use crate::service::{NodeError, Source};
+use opencv::core::Mat;
+use opencv::prelude::*;
+use opencv::{imgcodecs, imgproc, videoio};
+use shoal_bus::DropOldestQueue;
+use shoal_proto::messages::{CameraFrame, CameraInfo, PixelFormat, VehicleId};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+/// Image files in `dir`, sorted by name.
+pub fn image_files(dir: &Path) -> Result<Vec<PathBuf>, NodeError> {
+    let rd = std::fs::read_dir(dir).map_err(|e| NodeError::Source(dir.display().to_string(), e.to_string()))?;
+    let mut files: Vec<PathBuf> = rd
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            matches!(
+                p.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref(),
+                Some("png" | "jpg" | "jpeg" | "bmp" | "tif" | "tiff" | "pgm")
+            )
+        })
+        .collect();
+    files.sort();
+    if files.is_empty() {
+        return Err(NodeError::Source(dir.display().to_string(), "no image files".into()));
+    }
+    Ok(files)
+}
+
+fn to_gray(mat: &Mat) -> opencv::Result<Mat> {
+    if mat.channels() == 1 {
+        return mat.try_clone();
+    }
+    let mut g = Mat::default();
+    let code = if mat.channels() == 4 { imgproc::COLOR_BGRA2GRAY } else { imgproc::COLOR_BGR2GRAY };
+    imgproc::cvt_color(mat, &mut g, code, 0)?;
+    Ok(g)
+}
+
+/// Start the reader thread of a non-Zenoh source.
+pub fn spawn_reader(
+    source: Source,
+    vehicle: VehicleId,
+    info: CameraInfo,
+    queue: DropOldestQueue<CameraFrame>,
+    stop: Arc<AtomicBool>,
+) -> Result<JoinHandle<()>, NodeError> {
+    let name = format!("source-{vehicle}");
+    let camera = match &source {
+        Source::Images { camera, .. } | Source::Video { camera, .. } | Source::Live { camera, .. } => *camera,
+        Source::Zenoh => return Err(NodeError::Source("zenoh".into(), "not a local source".into())),
+    };
+    // Open up front so a bad path is an error of `spawn`, not a log line.
+    enum Opened {
+        Files(Vec<PathBuf>, f64),
+        Capture(videoio::VideoCapture, bool),
+    }
+    let opened = match &source {
+        Source::Images { dir, rate_hz, .. } => Opened::Files(image_files(dir)?, *rate_hz),
+        Source::Video { path, .. } => {
+            let cap = videoio::VideoCapture::from_file(&path.to_string_lossy(), videoio::CAP_ANY)
+                .map_err(|e| NodeError::Source(path.display().to_string(), e.to_string()))?;
+            if !cap.is_opened().unwrap_or(false) {
+                return Err(NodeError::Source(path.display().to_string(), "cannot open video".into()));
+            }
+            Opened::Capture(cap, false)
+        }
+        Source::Live { device, .. } => {
+            let cap = videoio::VideoCapture::new(*device, videoio::CAP_ANY)
+                .map_err(|e| NodeError::Source(format!("camera {device}"), e.to_string()))?;
+            if !cap.is_opened().unwrap_or(false) {
+                return Err(NodeError::Source(format!("camera {device}"), "cannot open camera".into()));
+            }
+            Opened::Capture(cap, true)
+        }
+        Source::Zenoh => unreachable!("checked above"),
+    };
+    let make_frame = move |gray: &Mat, seq: u64, stamp_ns: u64| -> Option<CameraFrame> {
+        let g = mat_to_gray(gray).ok()?;
+        let mut info = info;
+        info.model.width = g.width;
+        info.model.height = g.height;
+        Some(CameraFrame {
+            vehicle,
+            camera,
+            seq,
+            stamp_ns,
+            info,
+            format: PixelFormat::Mono8,
+            data: g.data,
+        })
+    };
+    Ok(std::thread::Builder::new().name(name).spawn(move || {
+        let started = Instant::now();
+        match opened {
+            Opened::Files(files, rate_hz) => {
+                let period = Duration::from_secs_f64(1.0 / rate_hz.max(1e-3));
+                for (seq, path) in files.iter().enumerate() {
+                    if stop.load(Ordering::Relaxed) {
+                        break;
+                    }
+                    let img = imgcodecs::imread(&path.to_string_lossy(), imgcodecs::IMREAD_GRAYSCALE);
+                    match img {
+                        Ok(m) if !m.empty() => {
+                            let stamp = (seq as f64 * period.as_secs_f64() * 1e9) as u64;
+                            if let Some(f) = make_frame(&m, seq as u64, stamp) {
+                                queue.push(f);
+                            }
+                        }
+                        _ => tracing::warn!("{}: unreadable image, skipped", path.display()),
+                    }
+                    std::thread::sleep(period);
+                }
+            }
+            Opened::Capture(mut cap, live) => {
+                let fps = cap.get(videoio::CAP_PROP_FPS).unwrap_or(0.0);
+                let period = Duration::from_secs_f64(if fps > 0.0 { 1.0 / fps } else { 0.1 });
+                let mut seq = 0u64;
+                let mut frame = Mat::default();
+                while !stop.load(Ordering::Relaxed) {
+                    match cap.read(&mut frame) {
+                        Ok(true) if !frame.empty() => {}
+                        _ => break,
+                    }
+                    let stamp = if live {
+                        started.elapsed().as_nanos() as u64
+                    } else {
+                        (cap.get(videoio::CAP_PROP_POS_MSEC).unwrap_or(0.0) * 1e6) as u64
+                    };
+                    if let Some(f) = to_gray(&frame).ok().and_then(|g| make_frame(&g, seq, stamp)) {
+                        queue.push(f);
+                    }
+                    seq += 1;
+                    if !live {
+                        std::thread::sleep(period);
+                    }
+                }
+            }
+        }
+        tracing::info!("source of vehicle {vehicle} camera {camera} finished");
+    })?)
+}
