@@ -27,6 +27,19 @@ struct Cli {
 enum Command {
     /// Run the simulated three-vehicle swarm of the paper's §6.3 end to end (no setup needed).
     Demo(cmd::demo::DemoArgs),
+    /// Run one vehicle's node: cameras → restoration → detection → pose → observations on Zenoh.
+    Node(cmd::services::NodeArgs),
+    /// Run swarm fusion: observations of all vehicles → one fleet map on Zenoh.
+    Fusion(cmd::services::FusionArgs),
+    /// Run the simulator on Zenoh (frames, ground truth, commands), or render one frame (`sim render`).
+    Sim(cmd::services::SimArgs),
+    /// Printable markers.
+    #[command(subcommand)]
+    Marker(cmd::tools::MarkerCmd),
+    /// Find markers in images or videos; one JSON line per detection (with pose given --camera and --size-mm).
+    Detect(cmd::tools::DetectArgs),
+    /// Restore an underwater image (HOIRM or a baseline).
+    Restore(cmd::tools::RestoreArgs),
     /// Validate configuration files.
     #[command(subcommand)]
     Config(cmd::config::ConfigCmd),
@@ -43,6 +56,12 @@ fn main() -> std::process::ExitCode {
     let result = match cli.command {
         Command::Config(c) => cmd::config::run(c),
         Command::Demo(a) => cmd::demo::run_demo(a),
+        Command::Node(a) => cmd::services::run_node(a),
+        Command::Fusion(a) => cmd::services::run_fusion(a),
+        Command::Sim(a) => cmd::services::run_sim(a),
+        Command::Marker(c) => cmd::tools::run_marker(c),
+        Command::Detect(a) => cmd::tools::run_detect(a),
+        Command::Restore(a) => cmd::tools::run_restore(a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

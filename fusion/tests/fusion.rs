@@ -38,7 +38,7 @@ fn three_vehicles_clean_relative_poses_within_millimetres() {
     let (t_err, r_err, live) = map_error(&map, &want);
     assert_eq!(live, 3, "{:?}", map.vehicles);
     assert!(t_err < 0.004, "translation error {t_err} m");
-    assert!(r_err < 0.1f64.to_radians(), "rotation error {r_err} rad");
+    assert!(r_err < 0.2f64.to_radians(), "rotation error {r_err} rad");
     // And the error is what the reported covariance says (each axis within 4σ).
     for v in &map.vehicles {
         let e = difference(&v.reference_from_vehicle, &want[&v.vehicle]);

@@ -486,6 +486,13 @@ impl ShoalDetector {
                 continue;
             };
             let rough_module = mean_side(&code) / m;
+            // Already found from another contour of the same square: skip the refinement.
+            if found
+                .iter()
+                .any(|f| f.0 == id && f.1 <= hamming && dist(f.2[0], code[0]) < 0.5 * rough_module)
+            {
+                continue;
+            }
             let fine = self.refine(gray, &view, &code, rough_module, Polarity::DarkInside);
             let module_px = mean_side(&fine) / m;
             match found

@@ -265,7 +265,7 @@ impl WaterParams {
         if !(self.psf_shape_p.is_finite() && self.psf_shape_p >= 0.5 && self.psf_shape_p <= 4.0) {
             return bad("psf_shape_p", self.psf_shape_p, "must be in 0.5..=4");
         }
-        if !(self.gain_e_per_dn > 0.0) || self.gain_e_per_dn.is_nan() {
+        if self.gain_e_per_dn.is_nan() || self.gain_e_per_dn <= 0.0 {
             return bad(
                 "gain_e_per_dn",
                 self.gain_e_per_dn,

@@ -11,8 +11,11 @@ fn paper_fleet() -> Fleet {
         .unwrap()
 }
 
+/// Per vehicle: (camera name, marker ID, visible fraction) of markers seen with all corners in frame.
+type Views = Vec<(u32, Vec<(String, u32, f32)>)>;
+
 /// For each vehicle: (camera name, marker ID) pairs seen with all corners in frame.
-fn whole_views(fleet: &Fleet, world: &SwarmWorld) -> Vec<(u32, Vec<(String, u32, f32)>)> {
+fn whole_views(fleet: &Fleet, world: &SwarmWorld) -> Views {
     let truth = world.truth();
     let scene = Scene::from_fleet(fleet, &truth);
     truth

@@ -2,3 +2,6 @@
 
 pub mod config;
 pub mod demo;
+pub mod net;
+pub mod services;
+pub mod tools;

@@ -58,14 +58,14 @@ fn edge_on_profile(view: &GrayView<'_>, base: Px, n: Px, half: f64, sign: f64) -
 
 /// Fit a line to the edge along the side `a → b` (outward normal to the left of
 /// travel in a y-down image, i.e. the quad is clockwise on screen).
-fn fit_side(view: &GrayView<'_>, a: Px, b: Px, half: f64, sign: f64) -> Option<Line> {
+fn fit_side(view: &GrayView<'_>, a: Px, b: Px, half: f64, sign: f64, spacing_px: f64) -> Option<Line> {
     let len = dist(a, b);
     if len < 4.0 {
         return None;
     }
     let d = [(b[0] - a[0]) / len, (b[1] - a[1]) / len];
     let n = [d[1], -d[0]];
-    let count = (len as usize).clamp(8, 200);
+    let count = ((len / spacing_px) as usize).clamp(8, 160);
     let mut pts: Vec<(Px, f64)> = Vec::with_capacity(count);
     for i in 0..count {
         // Skip the corners, where the neighbouring side's edge would pull the profile.
@@ -108,11 +108,16 @@ pub fn refine_by_edge_lines(view: &GrayView<'_>, quad: &[Px; 4], module_px: f64,
     };
     let mut cur = *quad;
     // Pass 1 searches ±0.45 module around the contour estimate, pass 2 ±0.3 module around pass 1.
-    for &frac in &[0.45, 0.3] {
-        let half = (frac * module_px).clamp(1.5, 60.0);
+    // The contour corners are within a few pixels (half-resolution contours,
+    // polygon approximation), so the first search is capped at 6 px; the second
+    // only needs to cover the first fit's error.
+    // Pass 1 samples every 3rd pixel along the side (it only has to get close);
+    // pass 2 uses every pixel, which is where the precision comes from.
+    for &(frac, cap, spacing) in &[(0.45, 6.0, 3.0), (0.3, 2.5, 1.0)] {
+        let half = (frac * module_px).min(cap).max(1.5);
         let mut lines = [None; 4];
         for i in 0..4 {
-            lines[i] = fit_side(view, cur[i], cur[(i + 1) % 4], half, sign);
+            lines[i] = fit_side(view, cur[i], cur[(i + 1) % 4], half, sign, spacing);
         }
         let mut next = cur;
         for i in 0..4 {

@@ -148,7 +148,7 @@ fn measure_corners(
     camera_from_marker: &Pose,
     codes: CodeSet,
     side_m: f64,
-) -> Vec<((f64, f64), (f64, f64))> {
+) -> Vec<CornerPair> {
     let corners: Vec<Point3<f64>> = codes
         .corners_3d(side_m)
         .iter()
@@ -182,7 +182,10 @@ fn measure_corners(
     out
 }
 
-fn mean_error(pairs: &[((f64, f64), (f64, f64))]) -> (f64, f64) {
+/// (measured, projected) corner positions in pixels.
+type CornerPair = ((f64, f64), (f64, f64));
+
+fn mean_error(pairs: &[CornerPair]) -> (f64, f64) {
     let errs: Vec<f64> = pairs
         .iter()
         .map(|(m, t)| ((m.0 - t.0).powi(2) + (m.1 - t.1).powi(2)).sqrt())

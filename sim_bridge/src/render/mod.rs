@@ -917,7 +917,11 @@ pub fn visible_in_view(
         });
     }
     for m in &scene.markers {
-        if !pose_is_finite(&m.world_from_marker) || !(m.side_m > 0.0 && m.side_m.is_finite()) {
+        if !pose_is_finite(&m.world_from_marker)
+            || m.side_m.is_nan()
+            || m.side_m <= 0.0
+            || m.side_m.is_infinite()
+        {
             return Err(SimError::NonFinitePose {
                 what: format!("marker {}#{}", m.codes, m.id),
             });

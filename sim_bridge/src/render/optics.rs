@@ -121,7 +121,8 @@ pub fn blur_add(
     dst: &mut [f32],
     scratch: &mut Vec<f32>,
 ) {
-    if !(psf.scale_px > 0.05) {
+    // Also catches a NaN width.
+    if psf.scale_px.is_nan() || psf.scale_px <= 0.05 {
         for y in rect.y0..=rect.y1 {
             let row = y * w;
             for x in rect.x0..=rect.x1 {

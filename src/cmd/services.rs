@@ -1,0 +1,274 @@
+//! `shoal node`, `shoal fusion`, `shoal sim`: the services as standalone processes.
+
+use super::net::{wait_for_ctrl_c, NetArgs};
+use anyhow::{bail, Context};
+use clap::{Args, Subcommand};
+use shoal_bus::{Clock, ManualClock, WallClock};
+use shoal_fusion::service::{FusionConfig, Placement};
+use shoal_fusion::FusionParams;
+use shoal_node::pipeline::PipelineParams;
+use shoal_node::restore::Method;
+use shoal_node::service::{NodeConfig, Source};
+use shoal_proto::config::Fleet;
+use shoal_proto::messages::SimTruth;
+use shoal_sim_bridge::bridge::SimConfig;
+use shoal_sim_bridge::render::{render_fleet_view, write_frame_pair, Renderer};
+use shoal_sim_bridge::water::WaterPresets;
+use shoal_sim_bridge::world::{Formation, SwarmWorld};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Duration;
+
+fn fleet(path: &Path) -> anyhow::Result<Arc<Fleet>> {
+    Ok(Arc::new(Fleet::load(path)?))
+}
+
+#[derive(Debug, Args)]
+pub struct NodeArgs {
+    /// Fleet file.
+    #[arg(long, default_value = "configs/fleets/paper.toml")]
+    fleet: PathBuf,
+    /// This vehicle's ID in the fleet file.
+    #[arg(long)]
+    vehicle: u32,
+    /// Frames from: `zenoh` (simulator or camera drivers), `images:DIR`, `video:FILE`, `camera:DEVICE`.
+    #[arg(long, default_value = "zenoh")]
+    source: String,
+    /// Which of the vehicle's cameras a non-Zenoh source is (index in the fleet file).
+    #[arg(long, default_value_t = 0)]
+    camera_index: u8,
+    /// Frame rate for `images:DIR`.
+    #[arg(long, default_value_t = 10.0)]
+    image_rate: f64,
+    /// Restoration: none, clahe, dcp, udcp, hoirm.
+    #[arg(long, default_value = "hoirm")]
+    restore: String,
+    /// Water attenuation coefficient (1/m) for restoration; default: estimated from the images.
+    #[arg(long)]
+    water: Option<f64>,
+    #[command(flatten)]
+    net: NetArgs,
+}
+
+pub fn run_node(a: NodeArgs) -> anyhow::Result<()> {
+    let fleet = fleet(&a.fleet)?;
+    let source = match a.source.split_once(':') {
+        None if a.source == "zenoh" => Source::Zenoh,
+        Some(("images", dir)) => Source::Images { dir: dir.into(), camera: a.camera_index, rate_hz: a.image_rate },
+        Some(("video", path)) => Source::Video { path: path.into(), camera: a.camera_index },
+        Some(("camera", dev)) => Source::Live {
+            device: dev.parse().with_context(|| format!("camera device {dev:?} is not a number"))?,
+            camera: a.camera_index,
+        },
+        _ => bail!("--source {:?}: expected zenoh, images:DIR, video:FILE or camera:DEVICE", a.source),
+    };
+    let method: Method = a.restore.parse()?;
+    let mut params = PipelineParams { restore: method, ..Default::default() };
+    params.restore_params.c_per_m = a.water;
+    let bus = a.net.open()?;
+    let node = shoal_node::service::spawn(
+        &bus,
+        NodeConfig {
+            fleet,
+            vehicle: a.vehicle,
+            params,
+            source,
+            queue_capacity: 2,
+            status_period: Duration::from_secs(1),
+        },
+    )?;
+    tracing::info!("node {} running; Ctrl-C to stop", a.vehicle);
+    wait_for_ctrl_c(|| false);
+    node.stop();
+    Ok(())
+}
+
+#[derive(Debug, Args)]
+pub struct FusionArgs {
+    #[arg(long, default_value = "configs/fleets/paper.toml")]
+    fleet: PathBuf,
+    /// Run decentralized on this vehicle (publishes on shoal/<fleet>/map/<vehicle>); default: central.
+    #[arg(long)]
+    on_vehicle: Option<u32>,
+    /// Maps per second.
+    #[arg(long, default_value_t = 5.0)]
+    rate: f64,
+    /// Time line: `wall` (live vehicles) or `sim` (follow the simulator's ground-truth clock).
+    #[arg(long, default_value = "wall")]
+    clock: String,
+    #[command(flatten)]
+    net: NetArgs,
+}
+
+pub fn run_fusion(a: FusionArgs) -> anyhow::Result<()> {
+    let fleet = fleet(&a.fleet)?;
+    let bus = a.net.open()?;
+    let (clock, _follow): (Arc<dyn Clock>, _) = match a.clock.as_str() {
+        "wall" => (Arc::new(WallClock), None),
+        "sim" => {
+            let clock = Arc::new(ManualClock::new(0));
+            let sub = bus.subscribe::<SimTruth>(&fleet.keys().truth(), 16)?;
+            let c = clock.clone();
+            let t = std::thread::Builder::new().name("sim-clock".into()).spawn(move || loop {
+                if let Some(r) = sub.recv_timeout(Duration::from_millis(200)) {
+                    c.advance_to(r.msg.stamp_ns);
+                }
+            })?;
+            (clock, Some(t))
+        }
+        other => bail!("--clock {other:?}: expected wall or sim"),
+    };
+    let handle = shoal_fusion::service::spawn(
+        &bus,
+        FusionConfig {
+            fleet,
+            params: FusionParams::default(),
+            placement: a.on_vehicle.map_or(Placement::Central, Placement::OnVehicle),
+            rate_hz: a.rate,
+            queue_capacity: 4096,
+        },
+        clock,
+    )?;
+    tracing::info!("fusion running; Ctrl-C to stop");
+    wait_for_ctrl_c(|| false);
+    handle.stop();
+    Ok(())
+}
+
+#[derive(Debug, Args)]
+pub struct SimArgs {
+    #[command(subcommand)]
+    cmd: Option<SimCmd>,
+    #[command(flatten)]
+    run: SimRunArgs,
+}
+
+#[derive(Debug, Args)]
+pub struct SimRunArgs {
+    #[arg(long, default_value = "configs/fleets/paper.toml")]
+    fleet: PathBuf,
+    /// Water attenuation coefficient, per metre (a preset of configs/water.toml).
+    #[arg(long, default_value_t = 0.5)]
+    water: f64,
+    /// Water presets file (default: the built-in copy of configs/water.toml).
+    #[arg(long)]
+    water_presets: Option<PathBuf>,
+    /// Formation: line, column, v, circle.
+    #[arg(long, default_value = "line")]
+    formation: String,
+    #[arg(long, default_value_t = 1.75)]
+    spacing: f64,
+    /// Camera frames per second.
+    #[arg(long, default_value_t = 2.0)]
+    rate: f64,
+    /// Simulated seconds (default: until Ctrl-C).
+    #[arg(long)]
+    duration: Option<f64>,
+    #[arg(long, default_value_t = 7)]
+    seed: u64,
+    #[command(flatten)]
+    net: NetArgs,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum SimCmd {
+    /// Render one camera frame (and its clean twin) to PNG for a person to look at.
+    Render {
+        #[arg(long, default_value = "configs/fleets/paper.toml")]
+        fleet: PathBuf,
+        #[arg(long, default_value_t = 0.5)]
+        water: f64,
+        /// Observer vehicle (default: the fleet's reference vehicle).
+        #[arg(long)]
+        vehicle: Option<u32>,
+        /// Camera name (forward, up, down, port, starboard) or index.
+        #[arg(long, default_value = "starboard")]
+        camera: String,
+        #[arg(long, default_value = "line")]
+        formation: String,
+        #[arg(long, default_value_t = 1.75)]
+        spacing: f64,
+        #[arg(long, default_value_t = 7)]
+        seed: u64,
+        /// Output PNG; the clean twin is written beside it.
+        #[arg(long)]
+        out: PathBuf,
+    },
+}
+
+fn formation(name: &str) -> anyhow::Result<Formation> {
+    Ok(match name {
+        "line" => Formation::Line,
+        "column" => Formation::Column,
+        "v" => Formation::V,
+        "circle" => Formation::Circle,
+        other => bail!("formation {other:?}: expected line, column, v or circle"),
+    })
+}
+
+fn presets(path: &Option<PathBuf>) -> anyhow::Result<WaterPresets> {
+    Ok(match path {
+        Some(p) => WaterPresets::load(p)?,
+        None => WaterPresets::builtin(),
+    })
+}
+
+pub fn run_sim(a: SimArgs) -> anyhow::Result<()> {
+    if let Some(SimCmd::Render { fleet: fp, water, vehicle, camera, formation: f, spacing, seed, out }) = a.cmd {
+        let fleet = fleet(&fp)?;
+        let vehicle = vehicle.unwrap_or(fleet.reference_vehicle);
+        let v = fleet.vehicle(vehicle).with_context(|| format!("vehicle {vehicle} is not in the fleet"))?;
+        let cam = match camera.parse::<u8>() {
+            Ok(i) => i,
+            Err(_) => v
+                .cameras
+                .iter()
+                .find(|c| c.name == camera)
+                .map(|c| c.index)
+                .with_context(|| format!("vehicle {vehicle} has no camera {camera:?}"))?,
+        };
+        let water = WaterPresets::builtin().get(water)?;
+        let world = SwarmWorld::new(&fleet, formation(&f)?, spacing, seed);
+        let out_frame = render_fleet_view(&mut Renderer::new(), &fleet, &world.truth(), vehicle, cam, &water, 0.0, 0, seed)?;
+        if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+        }
+        let clean = write_frame_pair(&out_frame, &out)?;
+        println!("wrote {} and {}", out.display(), clean.display());
+        for m in &out_frame.visible {
+            println!(
+                "  sees {}#{} on vehicle {} at {:.2} m, {:.0}% visible",
+                m.codes,
+                m.marker,
+                m.target_vehicle,
+                m.range_m,
+                m.visible_fraction * 100.0
+            );
+        }
+        return Ok(());
+    }
+    let a = a.run;
+    let fleet = fleet(&a.fleet)?;
+    let water = presets(&a.water_presets)?.get(a.water)?;
+    let bus = a.net.open()?;
+    let clock = Arc::new(ManualClock::new(0));
+    let sim = shoal_sim_bridge::bridge::spawn(
+        &bus,
+        SimConfig {
+            fleet,
+            water,
+            formation: formation(&a.formation)?,
+            spacing_m: a.spacing,
+            seed: a.seed,
+            frame_rate_hz: a.rate,
+            cameras: None,
+            time_scale: 1.0,
+            duration_s: a.duration,
+            commanded: vec![],
+        },
+        clock,
+    )?;
+    tracing::info!("simulator running; Ctrl-C to stop");
+    wait_for_ctrl_c(|| sim.finished());
+    sim.stop().map_err(|e| anyhow::anyhow!(e))
+}
