@@ -20,6 +20,7 @@ use shoal_sim_bridge::water::WaterPresets;
 use shoal_sim_bridge::world::Formation;
 use std::collections::{BTreeMap, VecDeque};
 use std::path::PathBuf;
+use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -40,10 +41,17 @@ pub struct DemoConfig {
     pub cameras: Option<Vec<String>>,
     pub spacing_m: f64,
     pub seed: u64,
+    /// Simulated seconds per wall-clock second. Below 1 gives rendering (15
+    /// frames per tick on two cores) time to keep up without skipping ticks.
+    pub time_scale: f64,
     /// Show a progress bar.
     pub progress: bool,
     /// Steer the followers with the formation controller.
     pub closed_loop: bool,
+    /// MCAP log of the run (wire messages + Foxglove channels); `None`: no log.
+    pub log: Option<PathBuf>,
+    /// Include camera frames in the log (they dominate its size).
+    pub log_frames: bool,
 }
 
 impl Default for DemoConfig {
@@ -51,13 +59,16 @@ impl Default for DemoConfig {
         Self {
             fleet: None,
             water_c_per_m: 0.5,
-            duration_s: 30.0,
-            frame_rate_hz: 2.0,
+            duration_s: 20.0,
+            frame_rate_hz: 1.0,
             cameras: None,
             spacing_m: 1.75,
             seed: 7,
+            time_scale: 0.5,
             progress: true,
             closed_loop: true,
+            log: Some(PathBuf::from("out/demo.mcap")),
+            log_frames: false,
         }
     }
 }
@@ -80,6 +91,9 @@ pub struct DemoSummary {
     pub frames_processed: u64,
     pub frames_dropped: u64,
     pub mean_latency_ms: f64,
+    /// Mean time from a tick's frames being published (its ground truth follows
+    /// them) to the first fleet map that includes an observation of that tick, ms.
+    pub mean_end_to_end_latency_ms: f64,
     pub maps_received: usize,
     pub observations_sent: u64,
     pub edges_accepted: usize,
@@ -87,6 +101,16 @@ pub struct DemoSummary {
     pub sim_ticks: u64,
     pub sim_ticks_skipped: u64,
     pub wall_time_s: f64,
+    /// The MCAP log written, with its message count and messages dropped.
+    pub log: Option<LogSummary>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct LogSummary {
+    pub path: PathBuf,
+    pub messages: u64,
+    pub dropped: u64,
+    pub file_bytes: u64,
 }
 
 fn load_fleet(cfg: &DemoConfig) -> anyhow::Result<Fleet> {
@@ -96,85 +120,196 @@ fn load_fleet(cfg: &DemoConfig) -> anyhow::Result<Fleet> {
     })
 }
 
-/// Run the demo; `on_progress(sim_s, total_s)` is called as simulated time advances.
-pub fn run(cfg: &DemoConfig, mut on_progress: impl FnMut(f64, f64, &str)) -> anyhow::Result<DemoSummary> {
-    let started = Instant::now();
-    let fleet = Arc::new(load_fleet(cfg)?);
-    let water = WaterPresets::builtin()
-        .get(cfg.water_c_per_m)
-        .with_context(|| format!("water {} /m", cfg.water_c_per_m))?;
-    let port = free_port().context("no free loopback port")?;
-    let _router = Bus::open(&Connect::Router { port })?;
-    let session = || Bus::open(&client_of(port));
-    let clock = Arc::new(ManualClock::new(0));
+/// A running simulated swarm: an in-process Zenoh router, fusion, one node
+/// per vehicle and the simulator, each on its own session over loopback TCP.
+pub struct SimulatedSwarm {
+    pub fleet: Arc<Fleet>,
+    pub clock: Arc<ManualClock>,
+    port: u16,
+    _router: Bus,
+    fusion: Option<shoal_fusion::service::FusionHandle>,
+    nodes: BTreeMap<VehicleId, NodeHandle>,
+    sim: Option<shoal_sim_bridge::bridge::SimHandle>,
+}
 
-    // Fusion first, so it hears everything.
-    let fusion = shoal_fusion::service::spawn(
-        &session()?,
-        FusionConfig {
+impl std::fmt::Debug for SimulatedSwarm {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SimulatedSwarm").field("port", &self.port).finish()
+    }
+}
+
+impl SimulatedSwarm {
+    /// Start everything but the simulator's clock; `commanded` vehicles follow commands.
+    pub fn start(cfg: &DemoConfig, commanded: Vec<VehicleId>) -> anyhow::Result<SimulatedSwarm> {
+        Self::start_with(cfg, commanded, |_| Ok(()))
+    }
+
+    /// As [`SimulatedSwarm::start`], calling `before_sim` (e.g. to start a
+    /// recorder) once everything but the simulator is up.
+    pub fn start_with(
+        cfg: &DemoConfig,
+        commanded: Vec<VehicleId>,
+        before_sim: impl FnOnce(&SimulatedSwarm) -> anyhow::Result<()>,
+    ) -> anyhow::Result<SimulatedSwarm> {
+        let fleet = Arc::new(load_fleet(cfg)?);
+        let water = WaterPresets::builtin()
+            .get(cfg.water_c_per_m)
+            .with_context(|| format!("water {} /m", cfg.water_c_per_m))?;
+        let port = free_port().context("no free loopback port")?;
+        let router = Bus::open(&Connect::Router { port })?;
+        let clock = Arc::new(ManualClock::new(0));
+        let mut swarm = SimulatedSwarm {
             fleet: fleet.clone(),
-            params: FusionParams::default(),
-            placement: Placement::Central,
-            rate_hz: 5.0,
-            queue_capacity: 4096,
-        },
-        clock.clone(),
-    )?;
-    let mut nodes: Vec<NodeHandle> = Vec::new();
-    for v in &fleet.vehicles {
-        nodes.push(shoal_node::service::spawn(
-            &session()?,
-            NodeConfig {
+            clock: clock.clone(),
+            port,
+            _router: router,
+            fusion: None,
+            nodes: BTreeMap::new(),
+            sim: None,
+        };
+        // Fusion first, so it hears everything.
+        swarm.fusion = Some(shoal_fusion::service::spawn(
+            &swarm.session()?,
+            FusionConfig {
                 fleet: fleet.clone(),
-                vehicle: v.id,
+                params: FusionParams::default(),
+                placement: Placement::Central,
+                rate_hz: 5.0,
+                queue_capacity: 4096,
+            },
+            clock.clone(),
+        )?);
+        for v in fleet.vehicles.iter().map(|v| v.id).collect::<Vec<_>>() {
+            swarm.start_node(v)?;
+        }
+        before_sim(&swarm)?;
+        // Let subscriptions propagate before the first frame.
+        std::thread::sleep(Duration::from_millis(300));
+        swarm.sim = Some(shoal_sim_bridge::bridge::spawn(
+            &swarm.session()?,
+            SimConfig {
+                fleet: fleet.clone(),
+                water,
+                formation: Formation::Line,
+                spacing_m: cfg.spacing_m,
+                seed: cfg.seed,
+                frame_rate_hz: cfg.frame_rate_hz,
+                cameras: cfg.cameras.clone(),
+                time_scale: cfg.time_scale,
+                duration_s: Some(cfg.duration_s),
+                commanded,
+            },
+            clock,
+        )?);
+        Ok(swarm)
+    }
+
+    /// A new Zenoh session on the swarm's router.
+    pub fn session(&self) -> anyhow::Result<Bus> {
+        Ok(Bus::open(&client_of(self.port))?)
+    }
+
+    /// Start (or restart) vehicle `v`'s node.
+    pub fn start_node(&mut self, v: VehicleId) -> anyhow::Result<()> {
+        let node = shoal_node::service::spawn(
+            &self.session()?,
+            NodeConfig {
+                fleet: self.fleet.clone(),
+                vehicle: v,
                 params: PipelineParams::default(),
                 source: Source::Zenoh,
                 queue_capacity: 2,
                 status_period: Duration::from_secs(1),
             },
-        )?);
+        )?;
+        if let Some(old) = self.nodes.insert(v, node) {
+            old.stop();
+        }
+        Ok(())
     }
-    let observer_bus = session()?;
-    let truth_sub: Subscription<SimTruth> = observer_bus.subscribe(&fleet.keys().truth(), 256)?;
-    let map_sub: Subscription<FleetMap> = observer_bus.subscribe(&fleet.keys().map(), 256)?;
-    let controller_bus = session()?;
-    let mut map_client = MapClient::connect(&controller_bus, &fleet)?;
+
+    /// Stop vehicle `v`'s node (its liveliness token disappears).
+    pub fn kill_node(&mut self, v: VehicleId) -> bool {
+        self.nodes.remove(&v).map(|n| n.stop()).is_some()
+    }
+
+    pub fn nodes(&self) -> impl Iterator<Item = &NodeHandle> {
+        self.nodes.values()
+    }
+
+    pub fn sim_finished(&self) -> bool {
+        self.sim.as_ref().is_none_or(|s| s.finished())
+    }
+
+    /// Stop the simulator, then the nodes and fusion; returns the simulator's
+    /// (ticks, ticks skipped because rendering fell behind).
+    pub fn shutdown(mut self) -> anyhow::Result<(u64, u64)> {
+        let mut counts = (0, 0);
+        if let Some(sim) = self.sim.take() {
+            let s = sim.stats();
+            counts = (s.ticks.load(Ordering::Relaxed), s.ticks_skipped.load(Ordering::Relaxed));
+            sim.stop().map_err(|e| anyhow!(e))?;
+        }
+        for (_, n) in std::mem::take(&mut self.nodes) {
+            n.stop();
+        }
+        if let Some(f) = self.fusion.take() {
+            f.stop();
+        }
+        Ok(counts)
+    }
+}
+
+/// Run the demo; `on_progress(sim_s, total_s, status)` is called as simulated time advances.
+pub fn run(cfg: &DemoConfig, mut on_progress: impl FnMut(f64, f64, &str)) -> anyhow::Result<DemoSummary> {
+    let started = Instant::now();
+    let fleet = Arc::new(load_fleet(cfg)?);
     let followers: Vec<VehicleId> = fleet
         .vehicles
         .iter()
         .map(|v| v.id)
         .filter(|&v| v != fleet.reference_vehicle)
         .collect();
+    let mut recorder = None;
+    let swarm = SimulatedSwarm::start_with(cfg, if cfg.closed_loop { followers.clone() } else { vec![] }, |sw| {
+        if let Some(path) = &cfg.log {
+            if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+                std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+            }
+            let opts = shoal_record::RecordOptions {
+                frames: cfg.log_frames,
+                water_c_per_m: Some(cfg.water_c_per_m),
+                fleet_toml: Some(match &cfg.fleet {
+                    Some(p) => std::fs::read_to_string(p).with_context(|| format!("cannot read {}", p.display()))?,
+                    None => PAPER_FLEET.to_string(),
+                }),
+                ..Default::default()
+            };
+            recorder = Some(shoal_record::Recorder::spawn(&sw.session()?, sw.fleet.clone(), path, opts)?);
+        }
+        Ok(())
+    })?;
+    let clock = swarm.clock.clone();
+    let observer_bus = swarm.session()?;
+    let truth_sub: Subscription<SimTruth> = observer_bus.subscribe(&fleet.keys().truth(), 256)?;
+    let map_sub: Subscription<FleetMap> = observer_bus.subscribe(&fleet.keys().map(), 256)?;
+    let controller_bus = swarm.session()?;
+    let mut map_client = MapClient::connect(&controller_bus, &fleet)?;
     let mut cmd_pubs = BTreeMap::new();
     for &v in &followers {
         cmd_pubs.insert(v, controller_bus.publisher::<VehicleCommand>(fleet.keys().command(v))?);
     }
-    // Let subscriptions propagate before the first frame.
-    std::thread::sleep(Duration::from_millis(300));
-    let sim = shoal_sim_bridge::bridge::spawn(
-        &session()?,
-        SimConfig {
-            fleet: fleet.clone(),
-            water,
-            formation: Formation::Line,
-            spacing_m: cfg.spacing_m,
-            seed: cfg.seed,
-            frame_rate_hz: cfg.frame_rate_hz,
-            cameras: cfg.cameras.clone(),
-            time_scale: 1.0,
-            duration_s: Some(cfg.duration_s),
-            commanded: if cfg.closed_loop { followers.clone() } else { vec![] },
-        },
-        clock.clone(),
-    )?;
 
     let mut truths: VecDeque<SimTruth> = VecDeque::new();
+    let mut tick_published: BTreeMap<u64, Instant> = BTreeMap::new();
+    let mut e2e = (0.0f64, 0usize);
     let mut maps: Vec<FleetMap> = Vec::new();
     let mut controller: Option<FormationController> = None;
     let mut last_cmd = Instant::now();
-    while !sim.finished() {
+    while !swarm.sim_finished() {
         std::thread::sleep(Duration::from_millis(50));
         for t in truth_sub.drain() {
+            tick_published.entry(t.msg.stamp_ns).or_insert(t.received_at);
             if controller.is_none() && cfg.closed_loop {
                 controller = Some(formation_from_truth(&fleet, &t.msg));
             }
@@ -183,7 +318,17 @@ pub fn run(cfg: &DemoConfig, mut on_progress: impl FnMut(f64, f64, &str)) -> any
                 truths.pop_front();
             }
         }
-        maps.extend(map_sub.drain().into_iter().map(|r| r.msg));
+        for r in map_sub.drain() {
+            let stamps: std::collections::BTreeSet<u64> =
+                r.msg.edges.iter().filter(|e| e.rejected.is_none()).map(|e| e.stamp_ns).collect();
+            for st in stamps {
+                if let Some(t0) = tick_published.remove(&st) {
+                    e2e.0 += r.received_at.saturating_duration_since(t0).as_secs_f64() * 1e3;
+                    e2e.1 += 1;
+                }
+            }
+            maps.push(r.msg);
+        }
         if let (Some(c), Some(view)) = (&controller, map_client.latest()) {
             if last_cmd.elapsed() >= Duration::from_millis(200) {
                 last_cmd = Instant::now();
@@ -202,7 +347,7 @@ pub fn run(cfg: &DemoConfig, mut on_progress: impl FnMut(f64, f64, &str)) -> any
             cfg.duration_s,
             &format!("{} maps, {live}/{} vehicles localized", maps.len(), fleet.vehicles.len()),
         );
-        if started.elapsed() > Duration::from_secs_f64(cfg.duration_s * 4.0 + 60.0) {
+        if started.elapsed() > Duration::from_secs_f64(cfg.duration_s / cfg.time_scale.max(0.05) * 4.0 + 60.0) {
             return Err(anyhow!("demo did not finish in time: simulator stalled"));
         }
     }
@@ -210,17 +355,26 @@ pub fn run(cfg: &DemoConfig, mut on_progress: impl FnMut(f64, f64, &str)) -> any
     std::thread::sleep(Duration::from_millis(500));
     maps.extend(map_sub.drain().into_iter().map(|r| r.msg));
     truths.extend(truth_sub.drain().into_iter().map(|r| r.msg));
-    let sim_stats = sim.stats().clone();
-    sim.stop().map_err(|e| anyhow!(e))?;
-
-    let frames_processed = nodes.iter().map(|n| n.stats().frames_processed()).sum();
-    let frames_dropped = nodes.iter().map(|n| n.stats().frames_dropped()).sum();
-    let observations_sent = nodes.iter().map(|n| n.stats().observations_sent.load(std::sync::atomic::Ordering::Relaxed)).sum();
-    let latencies: Vec<f64> = nodes.iter().filter_map(|n| n.stats().mean_latency_ms()).collect();
-    for n in nodes {
-        n.stop();
-    }
-    fusion.stop();
+    let frames_processed = swarm.nodes().map(|n| n.stats().frames_processed()).sum();
+    let frames_dropped = swarm.nodes().map(|n| n.stats().frames_dropped()).sum();
+    let observations_sent = swarm
+        .nodes()
+        .map(|n| n.stats().observations_sent.load(Ordering::Relaxed))
+        .sum();
+    let latencies: Vec<f64> = swarm.nodes().filter_map(|n| n.stats().mean_latency_ms()).collect();
+    let (sim_ticks, sim_ticks_skipped) = swarm.shutdown()?;
+    let log = match recorder {
+        Some(r) => {
+            let sum = r.stop()?;
+            Some(LogSummary {
+                path: sum.path.clone(),
+                messages: sum.wire_messages,
+                dropped: sum.dropped,
+                file_bytes: sum.file_bytes,
+            })
+        }
+        None => None,
+    };
 
     let half = maps.len() / 2;
     let evaluated = &maps[half..];
@@ -234,13 +388,15 @@ pub fn run(cfg: &DemoConfig, mut on_progress: impl FnMut(f64, f64, &str)) -> any
         frames_processed,
         frames_dropped,
         mean_latency_ms: if latencies.is_empty() { f64::NAN } else { latencies.iter().sum::<f64>() / latencies.len() as f64 },
+        mean_end_to_end_latency_ms: if e2e.1 > 0 { e2e.0 / e2e.1 as f64 } else { f64::NAN },
         maps_received: maps.len(),
         observations_sent,
         edges_accepted: acc,
         edges_rejected: rej,
-        sim_ticks: sim_stats.ticks.load(std::sync::atomic::Ordering::Relaxed),
-        sim_ticks_skipped: sim_stats.ticks_skipped.load(std::sync::atomic::Ordering::Relaxed),
+        sim_ticks,
+        sim_ticks_skipped,
         wall_time_s: started.elapsed().as_secs_f64(),
+        log,
     })
 }
 
@@ -258,7 +414,9 @@ fn formation_from_truth(fleet: &Fleet, truth: &SimTruth) -> FormationController 
     c
 }
 
-/// Mean error of every pair over `maps`, each map against the truth of its stamp.
+/// Mean error of every pair over `maps`. A map is the fused estimate as of its
+/// newest accepted observation (the window's freshest information), so each
+/// map is scored against the ground truth of that observation's capture time.
 pub fn pair_errors(fleet: &Fleet, maps: &[FleetMap], truths: &VecDeque<SimTruth>) -> Vec<PairError> {
     let ids: Vec<VehicleId> = fleet.vehicles.iter().map(|v| v.id).collect();
     let mut out = Vec::new();
@@ -266,7 +424,14 @@ pub fn pair_errors(fleet: &Fleet, maps: &[FleetMap], truths: &VecDeque<SimTruth>
         for &b in &ids[i + 1..] {
             let (mut pos, mut ang, mut n) = (0.0, 0.0, 0usize);
             for map in maps {
-                let Some(truth) = truths.iter().min_by_key(|t| t.stamp_ns.abs_diff(map.stamp_ns)) else {
+                let valid_at = map
+                    .edges
+                    .iter()
+                    .filter(|e| e.rejected.is_none())
+                    .map(|e| e.stamp_ns)
+                    .max()
+                    .unwrap_or(map.stamp_ns);
+                let Some(truth) = truths.iter().min_by_key(|t| t.stamp_ns.abs_diff(valid_at)) else {
                     continue;
                 };
                 let view = shoal_fusion::MapView::new(map.clone());

@@ -2,3 +2,4 @@
 //! the command-line tool and the end-to-end tests share (the demo).
 
 pub mod demo;
+pub mod eval;

@@ -40,6 +40,17 @@ enum Command {
     Detect(cmd::tools::DetectArgs),
     /// Restore an underwater image (HOIRM or a baseline).
     Restore(cmd::tools::RestoreArgs),
+    /// Measure shoal against the paper and the baselines: CSV, plots and summary.json per experiment.
+    Eval(cmd::eval::EvalArgs),
+    /// Record the fleet's Zenoh traffic into an MCAP log (wire bytes unchanged + Foxglove channels).
+    Record(cmd::log::RecordArgs),
+    /// Republish an MCAP log's messages on Zenoh with their original timing.
+    Replay(cmd::log::ReplayArgs),
+    /// Re-run fusion offline over an MCAP log (deterministic) and write the new map track.
+    Fuse(cmd::log::FuseArgs),
+    /// Inspect or repair MCAP logs.
+    #[command(subcommand)]
+    Log(cmd::log::LogCmd),
     /// Validate configuration files.
     #[command(subcommand)]
     Config(cmd::config::ConfigCmd),
@@ -62,6 +73,11 @@ fn main() -> std::process::ExitCode {
         Command::Marker(c) => cmd::tools::run_marker(c),
         Command::Detect(a) => cmd::tools::run_detect(a),
         Command::Restore(a) => cmd::tools::run_restore(a),
+        Command::Record(a) => cmd::log::run_record(a),
+        Command::Replay(a) => cmd::log::run_replay(a),
+        Command::Fuse(a) => cmd::log::run_fuse(a),
+        Command::Log(c) => cmd::log::run_log(c),
+        Command::Eval(a) => cmd::eval::run_eval(a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -167,6 +167,9 @@ impl SubscriptionStats {
     }
 }
 
+/// Raw envelopes with the key each arrived on.
+pub type RawQueue = DropOldestQueue<(String, Vec<u8>)>;
+
 /// A decoded message with the key it arrived on.
 #[derive(Debug, Clone)]
 pub struct Received<M> {
@@ -174,6 +177,8 @@ pub struct Received<M> {
     pub msg: M,
     /// The envelope bytes exactly as received (for recording).
     pub bytes: Arc<[u8]>,
+    /// When the message arrived (monotonic), for latency measurements.
+    pub received_at: std::time::Instant,
 }
 
 /// A typed subscription feeding a drop-oldest queue.
@@ -325,7 +330,12 @@ impl Bus {
                 match codec::decode::<M>(&bytes) {
                     Ok(msg) => {
                         st.received.fetch_add(1, Ordering::Relaxed);
-                        q.push(Received { key, msg, bytes });
+                        q.push(Received {
+                            key,
+                            msg,
+                            bytes,
+                            received_at: std::time::Instant::now(),
+                        });
                     }
                     Err(e) => note_rejection(&st, &key, &e),
                 }
@@ -344,7 +354,7 @@ impl Bus {
         &self,
         key_expr: &str,
         capacity: usize,
-    ) -> Result<(DropOldestQueue<(String, Vec<u8>)>, Declaration), BusError> {
+    ) -> Result<(RawQueue, Declaration), BusError> {
         let queue = DropOldestQueue::new(capacity);
         let q = queue.clone();
         let sub = self

@@ -14,7 +14,9 @@ use shoal_fusion::solver::{self, Constraint, SolverParams};
 use shoal_fusion::FusionParams;
 use shoal_proto::geometry::{perturb, Cov6};
 use shoal_proto::CodeSet;
-use shoal_sim_bridge::obs_synth::{grid_formation, line_abreast, synthetic_fleet, FormationJitter, ObsSynthParams, OutlierModel};
+use shoal_sim_bridge::obs_synth::{
+    grid_formation, line_abreast, synthetic_fleet, FormationJitter, ObsSynthParams, OutlierModel,
+};
 use std::collections::BTreeMap;
 
 fn scenario(n: usize) -> (shoal_proto::config::Fleet, Vec<shoal_proto::VehicleTruth>) {
@@ -23,7 +25,10 @@ fn scenario(n: usize) -> (shoal_proto::config::Fleet, Vec<shoal_proto::VehicleTr
     } else {
         let ids: Vec<u32> = (1..=n as u32).collect();
         let cols = if n <= 10 { 5 } else { 10 };
-        (synthetic_fleet(n, CodeSet::Aruco4x4_1000).unwrap(), grid_formation(&ids, cols, 1.5, FormationJitter::default(), 1))
+        (
+            synthetic_fleet(n, CodeSet::Aruco4x4_1000).unwrap(),
+            grid_formation(&ids, cols, 1.5, FormationJitter::default(), 1),
+        )
     }
 }
 
@@ -43,28 +48,59 @@ fn bench_fusion(c: &mut Criterion) {
         let (fusion, obs, now) = run_frames(&fleet, &truth, synth, FusionParams::default(), 1, 20);
         eprintln!("{n} vehicles: {} observations in the window", obs.len());
         group.bench_with_input(BenchmarkId::from_parameter(n), &n, |b, _| {
-            b.iter_batched(|| fusion.clone(), |mut f| f.solve(now), criterion::BatchSize::LargeInput)
+            b.iter_batched(
+                || fusion.clone(),
+                |mut f| f.solve(now),
+                criterion::BatchSize::LargeInput,
+            )
         });
     }
     group.finish();
 
     // The LM solve alone: 100 vehicles, one fused constraint per neighbouring pair, noisy start.
     let (_, truth) = scenario(100);
-    let poses: BTreeMap<u32, shoal_proto::Pose> = truth.iter().map(|t| (t.vehicle, truth[0].world_from_body.inverse() * t.world_from_body)).collect();
+    let poses: BTreeMap<u32, shoal_proto::Pose> = truth
+        .iter()
+        .map(|t| {
+            (
+                t.vehicle,
+                truth[0].world_from_body.inverse() * t.world_from_body,
+            )
+        })
+        .collect();
     let mut constraints = Vec::new();
     for (a, pa) in &poses {
         for (b, pb) in &poses {
             if a < b && (pa.translation.vector - pb.translation.vector).norm() < 3.2 {
-                constraints.push(Constraint { a: *a, b: *b, a_from_b: pa.inverse() * pb, covariance: Cov6::identity() * 1e-4 });
+                constraints.push(Constraint {
+                    a: *a,
+                    b: *b,
+                    a_from_b: pa.inverse() * pb,
+                    covariance: Cov6::identity() * 1e-4,
+                });
             }
         }
     }
     let init: BTreeMap<u32, shoal_proto::Pose> = poses
         .iter()
-        .map(|(v, p)| (*v, if *v == 1 { *p } else { perturb(p, &nalgebra::Vector6::new(0.05, -0.03, 0.02, 0.01, 0.02, -0.01)) }))
+        .map(|(v, p)| {
+            (
+                *v,
+                if *v == 1 {
+                    *p
+                } else {
+                    perturb(
+                        p,
+                        &nalgebra::Vector6::new(0.05, -0.03, 0.02, 0.01, 0.02, -0.01),
+                    )
+                },
+            )
+        })
         .collect();
     eprintln!("lm_only: 100 vehicles, {} constraints", constraints.len());
-    c.bench_function("lm_only_100_vehicles", |b| b.iter(|| solver::solve(1, &init, &constraints, &SolverParams::default()).unwrap()));
+    c.bench_function("lm_only_100_vehicles", |b| {
+        b.iter(|| solver::solve(1, &init, &constraints, &SolverParams::default()).unwrap())
+    });
 }
 
 criterion_group!(benches, bench_fusion);

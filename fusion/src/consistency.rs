@@ -49,6 +49,15 @@ pub struct ConsistencyParams {
     pub exact_clique_limit: usize,
     /// Clusters kept per pair (the rest of the candidates are `Inconsistent`).
     pub max_clusters_per_pair: usize,
+    /// Fuse each track's time-consistent frames (same observer, camera,
+    /// marker and hypothesis) into one candidate before the checks (default
+    /// true; false: one candidate per frame, the slow reference behaviour).
+    #[serde(default = "default_fuse_tracks")]
+    pub fuse_tracks: bool,
+}
+
+fn default_fuse_tracks() -> bool {
+    true
 }
 
 impl Default for ConsistencyParams {
@@ -57,8 +66,9 @@ impl Default for ConsistencyParams {
             // χ²₆ at 99.99%: gross outliers (flips, wrong IDs) are far beyond
             // it, and a clique of n true candidates has n² chances to break at 99.9%.
             gate_chi2: 27.86,
-            exact_clique_limit: 32,
+            exact_clique_limit: 16,
             max_clusters_per_pair: 4,
+            fuse_tracks: true,
         }
     }
 }
@@ -74,11 +84,19 @@ pub struct Candidate {
     pub covariance: Cov6,
     /// `covariance⁻¹`.
     pub information: Cov6,
+    /// Frames this candidate stands for (a track's frames fused into one
+    /// measurement count as many); 1 for a single observation.
+    pub weight: usize,
 }
 
 impl Candidate {
     /// A candidate; `None` when the covariance is not invertible.
-    pub fn new(observation: usize, hypothesis: u8, a_from_b: Pose, covariance: Cov6) -> Option<Self> {
+    pub fn new(
+        observation: usize,
+        hypothesis: u8,
+        a_from_b: Pose,
+        covariance: Cov6,
+    ) -> Option<Self> {
         let covariance = (covariance + covariance.transpose()) * 0.5;
         let information = covariance.cholesky()?.inverse();
         Some(Self {
@@ -87,7 +105,16 @@ impl Candidate {
             a_from_b,
             covariance,
             information,
+            weight: 1,
         })
+    }
+
+    /// The same candidate standing for `weight` frames (at least 1).
+    pub fn with_weight(self, weight: usize) -> Self {
+        Self {
+            weight: weight.max(1),
+            ..self
+        }
     }
 }
 
@@ -98,18 +125,21 @@ pub struct Cluster {
     pub members: Vec<usize>,
     pub a_from_b: Pose,
     pub covariance: Cov6,
-    /// Primary hypotheses among the members (ranking tie-break: the PnP's own choice).
+    /// Frames of primary hypotheses among the members (ranking tie-break: the PnP's own choice).
     pub primaries: usize,
+    /// Frames the members stand for (sum of their weights).
+    pub frames: usize,
     /// Triangles in which this cluster closes a consistent cycle.
     pub votes: usize,
 }
 
 impl Cluster {
+    /// Frames supporting the cluster.
     pub fn support(&self) -> usize {
-        self.members.len()
+        self.frames
     }
     fn score(&self) -> (usize, usize, usize) {
-        (self.votes, self.members.len(), self.primaries)
+        (self.votes, self.frames, self.primaries)
     }
 }
 
@@ -143,6 +173,21 @@ pub fn mahalanobis2(x: &Pose, cov_x: &Cov6, y: &Pose, cov_y: &Cov6) -> f64 {
     }
 }
 
+/// Upper bound of the largest eigenvalue of the covariance of `x·y`
+/// (independent covariances): the trace of the propagated covariance, bounded
+/// without forming it. Used to skip the exact test of hopeless combinations:
+/// `rᵀS⁻¹r ≥ |r|²/λ_max(S)`.
+fn compose_variance_bound(cov_x: &Cov6, y: &Pose, cov_y: &Cov6) -> f64 {
+    let tr = |c: &Cov6, o: usize| c[(o, o)] + c[(o + 1, o + 1)] + c[(o + 2, o + 2)];
+    let u = y.translation.vector.norm();
+    let (tt, rr) = (tr(cov_x, 0), tr(cov_x, 3));
+    (tt.sqrt() + u * rr.sqrt()).powi(2) + rr + tr(cov_y, 0) + tr(cov_y, 3)
+}
+
+fn trace6(c: &Cov6) -> f64 {
+    (0..6).map(|i| c[(i, i)]).sum()
+}
+
 /// Information-weighted mean of poses given with their information matrices,
 /// in the tangent space (Gauss–Newton passes around the first one), and the
 /// covariance of that mean. Treats the items as independent: frames of one
@@ -162,12 +207,13 @@ pub fn fuse(items: &[(Pose, Cov6)]) -> Option<(Pose, Cov6)> {
     Some((mean, (cov + cov.transpose()) * 0.5))
 }
 
-/// Maximum-weight clique: weight `size·(m+1) + primaries`, so size first, then
-/// primary hypotheses. Exact branch-and-bound; `None` when `budget` nodes are exceeded.
-fn exact_clique(adj: &[Vec<bool>], primary: &[bool], budget: usize) -> Option<Vec<usize>> {
+/// Maximum-weight clique: weight `frames·(W+1) + primary frames` (`W` the
+/// total weight), so supporting frames first, then primary hypotheses. Exact
+/// branch-and-bound; `None` when `budget` nodes are exceeded.
+fn exact_clique(adj: &[Vec<bool>], weight: &[(usize, usize)], budget: usize) -> Option<Vec<usize>> {
     struct Search<'a> {
         adj: &'a [Vec<bool>],
-        primary: &'a [bool],
+        weight: &'a [(usize, usize)],
         scale: usize,
         best: Vec<usize>,
         best_score: usize,
@@ -176,7 +222,9 @@ fn exact_clique(adj: &[Vec<bool>], primary: &[bool], budget: usize) -> Option<Ve
     }
     impl Search<'_> {
         fn score(&self, set: &[usize]) -> usize {
-            set.len() * self.scale + set.iter().filter(|&&i| self.primary[i]).count()
+            set.iter()
+                .map(|&i| self.weight[i].0 * self.scale + self.weight[i].1)
+                .sum()
         }
         fn expand(&mut self, r: &mut Vec<usize>, p: &[usize]) -> bool {
             self.nodes += 1;
@@ -193,7 +241,11 @@ fn exact_clique(adj: &[Vec<bool>], primary: &[bool], budget: usize) -> Option<Ve
                 if rs + self.score(rest) <= self.best_score {
                     return true;
                 }
-                let next: Vec<usize> = p[k + 1..].iter().copied().filter(|&u| self.adj[v][u]).collect();
+                let next: Vec<usize> = p[k + 1..]
+                    .iter()
+                    .copied()
+                    .filter(|&u| self.adj[v][u])
+                    .collect();
                 r.push(v);
                 let ok = self.expand(r, &next);
                 r.pop();
@@ -207,8 +259,8 @@ fn exact_clique(adj: &[Vec<bool>], primary: &[bool], budget: usize) -> Option<Ve
     let m = adj.len();
     let mut s = Search {
         adj,
-        primary,
-        scale: m + 1,
+        weight,
+        scale: weight.iter().map(|w| w.0).sum::<usize>() + 1,
         best: Vec::new(),
         best_score: 0,
         nodes: 0,
@@ -222,9 +274,11 @@ fn exact_clique(adj: &[Vec<bool>], primary: &[bool], budget: usize) -> Option<Ve
 }
 
 /// Greedy clique from every start vertex, best weight kept.
-fn greedy_clique(adj: &[Vec<bool>], primary: &[bool]) -> Vec<usize> {
+fn greedy_clique(adj: &[Vec<bool>], weight: &[(usize, usize)]) -> Vec<usize> {
     let m = adj.len();
-    let score = |set: &[usize]| set.len() * (m + 1) + set.iter().filter(|&&i| primary[i]).count();
+    let scale = weight.iter().map(|w| w.0).sum::<usize>() + 1;
+    let score =
+        |set: &[usize]| -> usize { set.iter().map(|&i| weight[i].0 * scale + weight[i].1).sum() };
     let mut order: Vec<usize> = (0..m).collect();
     order.sort_by_key(|&i| (Reverse(adj[i].iter().filter(|&&x| x).count()), i));
     let mut best: Vec<usize> = Vec::new();
@@ -242,11 +296,13 @@ fn greedy_clique(adj: &[Vec<bool>], primary: &[bool]) -> Vec<usize> {
     best
 }
 
-/// Squared Mahalanobis distance of `c` to a pose whose covariance is about
-/// `c`'s divided by `n` (a fused cluster of `n` similar members): `rᵀΛr / (1 + 1/n)`.
-fn distance_to_cluster(c: &Candidate, pose: &Pose, n: usize) -> f64 {
+/// Whether candidate `c` is consistent with `pose` (covariance `cov`):
+/// `rᵀ(Σ_c + Σ)⁻¹r` under the gate. `rᵀΣ_c⁻¹r` bounds it from above and
+/// needs no factorization, so it settles the common case first.
+fn consistent_with(c: &Candidate, pose: &Pose, cov: &Cov6, gate_chi2: f64) -> bool {
     let r = difference(&c.a_from_b, pose);
-    (r.transpose() * c.information * r)[0] / (1.0 + 1.0 / n.max(1) as f64)
+    (r.transpose() * c.information * r)[0] <= gate_chi2
+        || mahalanobis2(&c.a_from_b, &c.covariance, pose, cov) <= gate_chi2
 }
 
 /// Step 1 for large candidate sets (many frames of a pair in the window): a
@@ -258,24 +314,37 @@ fn cluster_pair_large(candidates: &[Candidate], params: &ConsistencyParams) -> V
     let mut leaders: Vec<(usize, Vec<usize>)> = Vec::new();
     for (i, c) in candidates.iter().enumerate() {
         let home = leaders.iter_mut().find(|(l, members)| {
-            members.iter().all(|&m| candidates[m].observation != c.observation)
-                && distance_to_cluster(c, &candidates[*l].a_from_b, 1) <= params.gate_chi2
+            members
+                .iter()
+                .all(|&m| candidates[m].observation != c.observation)
+                && consistent_with(
+                    c,
+                    &candidates[*l].a_from_b,
+                    &candidates[*l].covariance,
+                    params.gate_chi2,
+                )
         });
         match home {
             Some((_, members)) => members.push(i),
             None => leaders.push((i, vec![i])),
         }
     }
-    leaders.sort_by_key(|(l, members)| (Reverse(members.len()), *l));
+    leaders.sort_by_key(|(l, members)| {
+        let frames: usize = members.iter().map(|&m| candidates[m].weight).sum();
+        (Reverse(frames), *l)
+    });
     leaders.truncate(params.max_clusters_per_pair);
-    let fused: Vec<(Pose, usize)> = leaders
+    let fused: Vec<(Pose, Cov6)> = leaders
         .iter()
-        .filter_map(|(_, members)| fuse_members(candidates, members).map(|(p, _)| (p, members.len())))
+        .filter_map(|(_, members)| fuse_members(candidates, members))
         .collect();
     let mut assigned: Vec<Vec<usize>> = vec![Vec::new(); fused.len()];
     let mut taken: Vec<BTreeSet<usize>> = vec![BTreeSet::new(); fused.len()];
     for (i, c) in candidates.iter().enumerate() {
-        if let Some(k) = (0..fused.len()).find(|&k| !taken[k].contains(&c.observation) && distance_to_cluster(c, &fused[k].0, fused[k].1) <= params.gate_chi2) {
+        if let Some(k) = (0..fused.len()).find(|&k| {
+            !taken[k].contains(&c.observation)
+                && consistent_with(c, &fused[k].0, &fused[k].1, params.gate_chi2)
+        }) {
             assigned[k].push(i);
             taken[k].insert(c.observation);
         }
@@ -286,7 +355,8 @@ fn cluster_pair_large(candidates: &[Candidate], params: &ConsistencyParams) -> V
         .filter_map(|members| {
             let (pose, cov) = fuse_members(candidates, &members)?;
             Some(Cluster {
-                primaries: members.iter().filter(|&&i| candidates[i].hypothesis == 0).count(),
+                primaries: primary_frames(candidates, &members),
+                frames: members.iter().map(|&i| candidates[i].weight).sum(),
                 members,
                 a_from_b: pose,
                 covariance: cov,
@@ -323,8 +393,15 @@ pub fn cluster_pair(candidates: &[Candidate], params: &ConsistencyParams) -> Vec
             .iter()
             .map(|&i| remaining.iter().map(|&j| adj[i][j]).collect())
             .collect();
-        let primary: Vec<bool> = remaining.iter().map(|&i| candidates[i].hypothesis == 0).collect();
-        let local = exact_clique(&sub_adj, &primary, 200_000).unwrap_or_else(|| greedy_clique(&sub_adj, &primary));
+        let weight: Vec<(usize, usize)> = remaining
+            .iter()
+            .map(|&i| {
+                let c = &candidates[i];
+                (c.weight, if c.hypothesis == 0 { c.weight } else { 0 })
+            })
+            .collect();
+        let local = exact_clique(&sub_adj, &weight, 20_000)
+            .unwrap_or_else(|| greedy_clique(&sub_adj, &weight));
         let mut members: Vec<usize> = local.iter().map(|&k| remaining[k]).collect();
         members.sort_unstable();
         let Some(mut fused) = fuse_members(candidates, &members) else {
@@ -357,7 +434,8 @@ pub fn cluster_pair(candidates: &[Candidate], params: &ConsistencyParams) -> Vec
         }
         remaining.retain(|i| !members.contains(i));
         clusters.push(Cluster {
-            primaries: members.iter().filter(|&&i| candidates[i].hypothesis == 0).count(),
+            primaries: primary_frames(candidates, &members),
+            frames: members.iter().map(|&i| candidates[i].weight).sum(),
             members,
             a_from_b: fused.0,
             covariance: fused.1,
@@ -365,6 +443,14 @@ pub fn cluster_pair(candidates: &[Candidate], params: &ConsistencyParams) -> Vec
         });
     }
     clusters
+}
+
+fn primary_frames(candidates: &[Candidate], members: &[usize]) -> usize {
+    members
+        .iter()
+        .filter(|&&i| candidates[i].hypothesis == 0)
+        .map(|&i| candidates[i].weight)
+        .sum()
 }
 
 fn fuse_members(candidates: &[Candidate], members: &[usize]) -> Option<(Pose, Cov6)> {
@@ -378,7 +464,11 @@ fn fuse_members(candidates: &[Candidate], members: &[usize]) -> Option<(Pose, Co
 /// Step 2: votes from consistent triangles (see the module docs). `pairs` must
 /// have `a < b` and be unique per pair.
 pub fn vote_triangles(pairs: &mut [PairCandidates], gate_chi2: f64) {
-    let index: BTreeMap<(VehicleId, VehicleId), usize> = pairs.iter().enumerate().map(|(i, p)| ((p.a, p.b), i)).collect();
+    let index: BTreeMap<(VehicleId, VehicleId), usize> = pairs
+        .iter()
+        .enumerate()
+        .map(|(i, p)| ((p.a, p.b), i))
+        .collect();
     let mut neighbours: BTreeMap<VehicleId, BTreeSet<VehicleId>> = BTreeMap::new();
     for p in pairs.iter() {
         neighbours.entry(p.a).or_default().insert(p.b);
@@ -396,10 +486,25 @@ pub fn vote_triangles(pairs: &mut [PairCandidates], gate_chi2: f64) {
             let mut hit_ak = vec![false; pairs[ak].clusters.len()];
             for (i, c_ab) in pairs[ab].clusters.iter().enumerate() {
                 for (j, c_bk) in pairs[bk].clusters.iter().enumerate() {
-                    let composed = PoseWithCovariance::new(c_ab.a_from_b, c_ab.covariance)
-                        .compose(&PoseWithCovariance::new(c_bk.a_from_b, c_bk.covariance));
+                    let pose = c_ab.a_from_b * c_bk.a_from_b;
+                    let bound =
+                        compose_variance_bound(&c_ab.covariance, &c_bk.a_from_b, &c_bk.covariance);
+                    let mut composed: Option<PoseWithCovariance> = None;
                     for (l, c_ak) in pairs[ak].clusters.iter().enumerate() {
-                        let d2 = mahalanobis2(&composed.pose, &composed.covariance, &c_ak.a_from_b, &c_ak.covariance);
+                        let r = difference(&pose, &c_ak.a_from_b);
+                        if r.norm_squared() > gate_chi2 * (bound + trace6(&c_ak.covariance)) {
+                            continue;
+                        }
+                        let composed = composed.get_or_insert_with(|| {
+                            PoseWithCovariance::new(c_ab.a_from_b, c_ab.covariance)
+                                .compose(&PoseWithCovariance::new(c_bk.a_from_b, c_bk.covariance))
+                        });
+                        let d2 = mahalanobis2(
+                            &composed.pose,
+                            &composed.covariance,
+                            &c_ak.a_from_b,
+                            &c_ak.covariance,
+                        );
                         if d2 <= gate_chi2 {
                             hit_ab[i] = true;
                             hit_bk[j] = true;
@@ -429,6 +534,8 @@ pub struct Tree {
     /// `(parent, parent_from_vehicle)` per non-root vehicle.
     parents: BTreeMap<VehicleId, (VehicleId, PoseWithCovariance)>,
     depth: BTreeMap<VehicleId, usize>,
+    /// `root_from_v` composed down the tree, covariance included.
+    root_from: BTreeMap<VehicleId, PoseWithCovariance>,
 }
 
 impl Tree {
@@ -437,6 +544,10 @@ impl Tree {
             root,
             parents: BTreeMap::new(),
             depth: BTreeMap::from([(root, 0)]),
+            root_from: BTreeMap::from([(
+                root,
+                PoseWithCovariance::new(Pose::identity(), Cov6::zeros()),
+            )]),
         }
     }
     pub fn contains(&self, v: VehicleId) -> bool {
@@ -448,7 +559,33 @@ impl Tree {
     fn add(&mut self, parent: VehicleId, v: VehicleId, parent_from_v: PoseWithCovariance) {
         let d = self.depth[&parent] + 1;
         self.depth.insert(v, d);
+        let root_from_v = self.root_from[&parent].compose(&parent_from_v);
+        self.root_from.insert(v, root_from_v);
         self.parents.insert(v, (parent, parent_from_v));
+    }
+    /// Whether `a_from_b` with covariance `cov` passes the gate against the
+    /// tree. A cheap bound on the independent-path prediction rejects
+    /// hopeless cases first; the exact test composes through the lowest
+    /// common ancestor.
+    pub fn consistent(
+        &self,
+        a: VehicleId,
+        b: VehicleId,
+        a_from_b: &Pose,
+        cov: &Cov6,
+        gate_chi2: f64,
+    ) -> bool {
+        let (ra, rb) = (&self.root_from[&a], &self.root_from[&b]);
+        let predicted = ra.pose.inverse() * rb.pose;
+        let r = difference(a_from_b, &predicted);
+        let a_from_root = ra.inverse();
+        let bound =
+            compose_variance_bound(&a_from_root.covariance, &rb.pose, &rb.covariance) + trace6(cov);
+        if r.norm_squared() > gate_chi2 * bound {
+            return false;
+        }
+        let exact = self.relative(a, b);
+        mahalanobis2(a_from_b, cov, &exact.pose, &exact.covariance) <= gate_chi2
     }
     /// `ancestor_from_v`, composed up the tree.
     fn up_to(&self, mut v: VehicleId, ancestor: VehicleId) -> PoseWithCovariance {
@@ -475,7 +612,7 @@ impl Tree {
     }
     /// `root_from_v` for every vehicle of the tree.
     pub fn poses(&self) -> BTreeMap<VehicleId, Pose> {
-        self.depth.keys().map(|&v| (v, self.up_to(v, self.root).pose)).collect()
+        self.root_from.iter().map(|(v, p)| (*v, p.pose)).collect()
     }
 }
 
@@ -512,25 +649,29 @@ pub fn select(pairs: &[PairCandidates], reference: VehicleId, gate_chi2: f64) ->
             for v in just_added.drain(..) {
                 for &pi in by_vehicle.get(&v).into_iter().flatten() {
                     let p = &pairs[pi];
-                    if decided[pi] || tree_of.get(&p.a) != Some(&t) || tree_of.get(&p.b) != Some(&t) {
+                    if decided[pi] || tree_of.get(&p.a) != Some(&t) || tree_of.get(&p.b) != Some(&t)
+                    {
                         continue;
                     }
                     decided[pi] = true;
-                    let predicted = trees[t].relative(p.a, p.b);
                     choice[pi] = ranked[pi].iter().copied().find(|&c| {
                         let cl = &p.clusters[c];
-                        mahalanobis2(&cl.a_from_b, &cl.covariance, &predicted.pose, &predicted.covariance) <= gate_chi2
+                        trees[t].consistent(p.a, p.b, &cl.a_from_b, &cl.covariance, gate_chi2)
                     });
                 }
             }
             // Extend by the most trustworthy frontier pair.
             let frontier = pairs.iter().enumerate().filter(|(i, p)| {
-                !decided[*i] && !ranked[*i].is_empty() && (tree_of.get(&p.a) == Some(&t)) != (tree_of.get(&p.b) == Some(&t))
+                !decided[*i]
+                    && !ranked[*i].is_empty()
+                    && (tree_of.get(&p.a) == Some(&t)) != (tree_of.get(&p.b) == Some(&t))
             });
             let best = frontier.max_by_key(|(i, p)| {
                 let r = &ranked[*i];
                 let top = &p.clusters[r[0]];
-                let (sv, ss) = r.get(1).map_or((0, 0), |&s| (p.clusters[s].votes, p.clusters[s].support()));
+                let (sv, ss) = r
+                    .get(1)
+                    .map_or((0, 0), |&s| (p.clusters[s].votes, p.clusters[s].support()));
                 (
                     top.votes,
                     top.votes as i64 - sv as i64,
@@ -587,12 +728,23 @@ mod tests {
 
     #[test]
     fn triangle_votes_pick_the_consistent_flip() {
-        let truth = |v: u32| pose_from_xyz_rpy([v as f64, 0.5 * v as f64, 0.0], [0.0, 0.0, 0.1 * v as f64]);
+        let truth =
+            |v: u32| pose_from_xyz_rpy([v as f64, 0.5 * v as f64, 0.0], [0.0, 0.0, 0.1 * v as f64]);
         let rel = |a: u32, b: u32| truth(a).inverse() * truth(b);
         let twin = pose_from_xyz_rpy([0.0, 0.0, 0.0], [0.6, 0.0, 0.0]);
         let mut pairs = vec![
-            PairCandidates { a: 1, b: 2, candidates: vec![cand(0, 0, rel(1, 2))], clusters: vec![] },
-            PairCandidates { a: 2, b: 3, candidates: vec![cand(1, 0, rel(2, 3))], clusters: vec![] },
+            PairCandidates {
+                a: 1,
+                b: 2,
+                candidates: vec![cand(0, 0, rel(1, 2))],
+                clusters: vec![],
+            },
+            PairCandidates {
+                a: 2,
+                b: 3,
+                candidates: vec![cand(1, 0, rel(2, 3))],
+                clusters: vec![],
+            },
             // Flipped primary, true alternative.
             PairCandidates {
                 a: 1,

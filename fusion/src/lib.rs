@@ -16,6 +16,21 @@
 //! 5. writes a [`FleetMap`]: every vehicle's `reference_from_vehicle` with its
 //!    marginal covariance and state, every observation's verdict.
 //!
+//! **Edge reports** are per *hypothesis*: an observation carrying a planar-flip
+//! `alternative` gets two [`EdgeReport`]s with the same key, the primary's
+//! first, then the alternative's. When the flip was the primary, the primary
+//! reads `FlippedHypothesis` and the alternative `None` (accepted). Rejections
+//! on arrival are reported once, in the next map. `chi2` is the squared
+//! Mahalanobis residual against the solution under the age-inflated
+//! covariance (NaN when either vehicle is not localized).
+//!
+//! **Vehicle states**: `Live` (localized from the window, liveliness token
+//! present); `Stale` (token gone, or no data in the window though seen before:
+//! the last fused pose is reported, its covariance grown by [`AgeInflation`]
+//! since); `Unobserved` (never seen, or data in the window but no accepted
+//! path to the reference: identity pose, covariance
+//! [`NO_INFORMATION_VARIANCE`]·I unless a last pose exists).
+//!
 //! Same inputs give a bit-identical map, whatever the order they arrived in
 //! (everything is kept in ordered maps keyed by capture time and identity), so
 //! a central instance and per-vehicle instances hearing the same observations
@@ -53,7 +68,9 @@ pub use window::AgeInflation;
 use consistency::{Candidate, PairCandidates};
 use proto::config::Fleet;
 use proto::geometry::{Cov6, Pose, PoseWithCovariance};
-use proto::{EdgeReport, FleetMap, Observation, RejectReason, VehicleEstimate, VehicleId, VehicleState};
+use proto::{
+    EdgeReport, FleetMap, Observation, RejectReason, VehicleEstimate, VehicleId, VehicleState,
+};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, BTreeSet};
 use window::{early_report, Admission, ObservationKey, Window};
@@ -153,6 +170,10 @@ pub struct SolveStats {
     pub gate_rounds: usize,
     /// The solver failed and the spanning-tree poses were reported instead.
     pub solver_failed: bool,
+    /// Wall time of the consistency checks and of the LM solves (incl. gate
+    /// rounds), µs; 0 unless [`FusionParams::record_solve_time`].
+    pub consistency_us: u64,
+    pub lm_us: u64,
 }
 
 /// Running counters of a [`Fusion`].
@@ -229,7 +250,12 @@ impl Fusion {
 
     /// Admit an observation that arrived on `arrived_on`'s key at `now_ns`.
     /// Rejections are also kept for the next map's edge reports.
-    pub fn ingest(&mut self, obs: Observation, arrived_on: VehicleId, now_ns: u64) -> Result<(), RejectReason> {
+    pub fn ingest(
+        &mut self,
+        obs: Observation,
+        arrived_on: VehicleId,
+        now_ns: u64,
+    ) -> Result<(), RejectReason> {
         self.stats.received += 1;
         let limits = self.admission();
         let target = match self.fleet.marker_owner(obs.codes, obs.target_marker) {
@@ -238,7 +264,10 @@ impl Fusion {
         };
         let report = early_report(&obs, target, RejectReason::Invalid);
         let (observer, stamp) = (obs.observer, obs.stamp_ns);
-        match self.window.admit(&self.fleet, obs, arrived_on, now_ns, &limits) {
+        match self
+            .window
+            .admit(&self.fleet, obs, arrived_on, now_ns, &limits)
+        {
             Ok(target) => {
                 self.stats.ingested += 1;
                 for v in [observer, target] {
@@ -289,57 +318,93 @@ impl Fusion {
             ..SolveStats::default()
         };
 
-        // Candidates per pair (a < b), every hypothesis as a_from_b with its age-inflated covariance.
+        // Every hypothesis of every observation as measured (`observer_from_target`,
+        // not inverted: that is done once per fused group) with its
+        // age-inflated covariance.
+        let _tt = std::time::Instant::now(); eprintln!("TIMING T0 {:?}", _tt);//TMP
         let entries: Vec<(&ObservationKey, &window::Stored)> = self.window.entries.iter().collect();
+        let frames: Vec<Frame> = entries
+            .iter()
+            .enumerate()
+            .map(|(i, (_, s))| {
+                let o = &s.obs;
+                let age_s = now_ns.saturating_sub(o.stamp_ns) as f64 * 1e-9;
+                let inflate = |c: &Cov6| self.params.age_inflation.inflate(c, age_s);
+                Frame {
+                    observer: o.observer,
+                    target: s.target,
+                    hyps: [
+                        Candidate::new(i, 0, o.observer_from_target, inflate(&o.covariance)),
+                        o.alternative.as_ref().and_then(|alt| {
+                            Candidate::new(i, 1, alt.observer_from_target, inflate(&alt.covariance))
+                        }),
+                    ],
+                }
+            })
+            .collect();
+        let _tt = std::time::Instant::now(); eprintln!("TIMING T1 {:?}", _tt);//TMP
+        // Tracks (observer, camera, marker) cut into time-consistent groups,
+        // each group's frames fused per hypothesis into one candidate.
+        let groups = group_tracks(
+            &entries,
+            &frames,
+            self.params.consistency.gate_chi2,
+            self.params.consistency.fuse_tracks,
+        );
+        let _tt = std::time::Instant::now(); eprintln!("TIMING T2 {:?}", _tt);//TMP
         let mut by_pair: BTreeMap<(VehicleId, VehicleId), Vec<Candidate>> = BTreeMap::new();
-        for (i, (_, s)) in entries.iter().enumerate() {
-            let o = &s.obs;
-            let age_s = now_ns.saturating_sub(o.stamp_ns) as f64 * 1e-9;
-            let mut hyps = vec![(o.observer_from_target, o.covariance)];
-            if let Some(alt) = &o.alternative {
-                hyps.push((alt.observer_from_target, alt.covariance));
-            }
-            for (h, (pose, cov)) in hyps.into_iter().enumerate() {
-                let pwc = PoseWithCovariance::new(pose, self.params.age_inflation.inflate(&cov, age_s));
-                let (a, b, a_from_b) = if o.observer < s.target {
-                    (o.observer, s.target, pwc)
-                } else {
-                    (s.target, o.observer, pwc.inverse())
-                };
-                if let Some(c) = Candidate::new(i, h as u8, a_from_b.pose, a_from_b.covariance) {
-                    by_pair.entry((a, b)).or_default().push(c);
+        for (g, members) in groups.iter().enumerate() {
+            let f = &frames[members[0]];
+            for h in 0..2u8 {
+                if let Some(c) = fuse_group(&frames, members, g, h, &[]) {
+                    by_pair.entry(f.pair()).or_default().push(c);
                 }
             }
         }
+        let _tt = std::time::Instant::now(); eprintln!("TIMING T3 {:?}", _tt);//TMP
         let mut pairs: Vec<PairCandidates> = by_pair
             .into_iter()
             .map(|((a, b), candidates)| {
                 let clusters = consistency::cluster_pair(&candidates, &self.params.consistency);
-                PairCandidates { a, b, candidates, clusters }
+                PairCandidates {
+                    a,
+                    b,
+                    candidates,
+                    clusters,
+                }
             })
             .collect();
-        // Where each hypothesis went: (pair, candidate) per (observation, hypothesis).
-        let mut cand_index: Vec<[Option<(usize, usize)>; 2]> = vec![[None; 2]; entries.len()];
-        for (pi, p) in pairs.iter().enumerate() {
-            for (ci, c) in p.candidates.iter().enumerate() {
-                cand_index[c.observation][usize::from(c.hypothesis)] = Some((pi, ci));
-            }
-        }
+        let _tt = std::time::Instant::now(); eprintln!("TIMING T4 {:?}", _tt);//TMP
         consistency::vote_triangles(&mut pairs, self.params.consistency.gate_chi2);
+        let _tt = std::time::Instant::now(); eprintln!("TIMING T5 {:?}", _tt);//TMP
         let selection = consistency::select(&pairs, reference, self.params.consistency.gate_chi2);
+        let _tt = std::time::Instant::now(); eprintln!("TIMING T6 {:?}", _tt);//TMP
         solve_stats.pairs = pairs.len();
         solve_stats.clusters = pairs.iter().map(|p| p.clusters.len()).sum();
 
-        // Accepted hypotheses: (observation, hypothesis) → pair index.
+        // Accepted hypotheses: (observation, hypothesis) → pair index; an
+        // observation inherits the verdict of its group's candidate.
         let mut accepted: BTreeMap<(usize, u8), usize> = BTreeMap::new();
+        // Per pair, the accepted group candidates: (group, hypothesis, candidate index).
+        let mut accepted_groups: Vec<Vec<(usize, u8, usize)>> = vec![Vec::new(); pairs.len()];
         for (pi, p) in pairs.iter().enumerate() {
             if let Some(c) = selection.choice[pi] {
                 for &m in &p.clusters[c].members {
                     let cand = &p.candidates[m];
-                    accepted.insert((cand.observation, cand.hypothesis), pi);
+                    let h = cand.hypothesis;
+                    accepted_groups[pi].push((cand.observation, h, m));
+                    for &i in &groups[cand.observation] {
+                        if frames[i].hyps[usize::from(h)].is_some() {
+                            accepted.insert((i, h), pi);
+                        }
+                    }
                 }
             }
         }
+        let elapsed_us =
+            |t: Option<std::time::Instant>| t.map_or(0, |t| t.elapsed().as_micros() as u64);
+        solve_stats.consistency_us = elapsed_us(started);
+        let lm_started = self.params.record_solve_time.then(std::time::Instant::now);
         let tree = &selection.trees[0];
         let initial = tree.poses();
         let mut gated: BTreeSet<(usize, u8)> = BTreeSet::new();
@@ -349,15 +414,28 @@ impl Fusion {
             // One fused constraint per chosen pair in the reference tree, without the gated members.
             let mut constraints = Vec::new();
             for (pi, p) in pairs.iter().enumerate() {
-                let Some(c) = selection.choice[pi] else { continue };
+                if selection.choice[pi].is_none() {
+                    continue;
+                }
                 if !tree.contains(p.a) || !tree.contains(p.b) {
                     continue;
                 }
-                let items: Vec<(Pose, Cov6)> = p.clusters[c]
-                    .members
+                // The accepted groups of the pair, each without its gated frames.
+                let items: Vec<(Pose, Cov6)> = accepted_groups[pi]
                     .iter()
-                    .map(|&m| &p.candidates[m])
-                    .filter(|cand| !gated.contains(&(cand.observation, cand.hypothesis)))
+                    .filter_map(|&(g, h, m)| {
+                        let members = &groups[g];
+                        let out: Vec<usize> = members
+                            .iter()
+                            .copied()
+                            .filter(|&i| gated.contains(&(i, h)))
+                            .collect();
+                        if out.is_empty() {
+                            Some(p.candidates[m])
+                        } else {
+                            fuse_group(&frames, members, g, h, &out)
+                        }
+                    })
                     .map(|cand| (cand.a_from_b, cand.information))
                     .collect();
                 if let Some((pose, cov)) = consistency::fuse(&items) {
@@ -371,7 +449,11 @@ impl Fusion {
             }
             let connected = connected_to(reference, &constraints);
             constraints.retain(|c| connected.contains(&c.a));
-            let init: BTreeMap<VehicleId, Pose> = initial.iter().filter(|(v, _)| connected.contains(v)).map(|(v, p)| (*v, *p)).collect();
+            let init: BTreeMap<VehicleId, Pose> = initial
+                .iter()
+                .filter(|(v, _)| connected.contains(v))
+                .map(|(v, p)| (*v, *p))
+                .collect();
             let sp = solver::SolverParams {
                 robust: self.params.robust,
                 max_iterations: self.params.max_iterations,
@@ -381,25 +463,36 @@ impl Fusion {
                 Ok(s) => {
                     solve_stats.lm_iterations += s.iterations;
                     solve_stats.solver_failed = false;
-                    s.poses.iter().map(|(v, p)| (*v, (*p, s.covariances.get(v).copied().unwrap_or(Cov6::zeros())))).collect()
+                    s.poses
+                        .iter()
+                        .map(|(v, p)| {
+                            (
+                                *v,
+                                (*p, s.covariances.get(v).copied().unwrap_or(Cov6::zeros())),
+                            )
+                        })
+                        .collect()
                 }
                 Err(e) => {
-                    tracing::warn!("pose graph solve failed ({e}); reporting the spanning-tree poses");
+                    tracing::warn!(
+                        "pose graph solve failed ({e}); reporting the spanning-tree poses"
+                    );
                     solve_stats.solver_failed = true;
-                    init.keys().map(|&v| { let r = tree.relative(reference, v); (v, (r.pose, r.covariance)) }).collect()
+                    init.keys()
+                        .map(|&v| {
+                            let r = tree.relative(reference, v);
+                            (v, (r.pose, r.covariance))
+                        })
+                        .collect()
                 }
             };
-            // Chi-square gate on every accepted hypothesis.
+            // Chi-square gate on every accepted hypothesis (each observation on its own).
             let mut newly = 0;
-            for (&(oi, h), &pi) in &accepted {
+            for &(oi, h) in accepted.keys() {
                 if gated.contains(&(oi, h)) {
                     continue;
                 }
-                let p = &pairs[pi];
-                let (Some(xa), Some(xb)) = (solution.get(&p.a), solution.get(&p.b)) else { continue };
-                let Some((_, ci)) = cand_index[oi][usize::from(h)] else { continue };
-                let cand = &p.candidates[ci];
-                let chi2 = candidate_chi2(&xa.0, &xb.0, cand);
+                let chi2 = frames[oi].chi2(usize::from(h), &solution);
                 if chi2 > self.params.chi2_gate {
                     gated.insert((oi, h));
                     newly += 1;
@@ -410,13 +503,16 @@ impl Fusion {
             }
         }
 
+        solve_stats.lm_us = elapsed_us(lm_started);
+
         // Verdicts, one report per hypothesis (primary, then the alternative).
         let mut edges: Vec<EdgeReport> = Vec::new();
         let mut rejected = ReasonCounts::default();
         for (i, (_, s)) in entries.iter().enumerate() {
             let o = &s.obs;
             let n_hyp = if o.alternative.is_some() { 2 } else { 1 };
-            let any_accepted = (0..n_hyp).any(|h| accepted.contains_key(&(i, h)) && !gated.contains(&(i, h)));
+            let any_accepted =
+                (0..n_hyp).any(|h| accepted.contains_key(&(i, h)) && !gated.contains(&(i, h)));
             for h in 0..n_hyp {
                 let verdict = if gated.contains(&(i, h)) {
                     Some(RejectReason::ChiSquare)
@@ -427,13 +523,7 @@ impl Fusion {
                 } else {
                     Some(RejectReason::Inconsistent)
                 };
-                let chi2 = cand_index[i][usize::from(h)].map_or(f64::NAN, |(pi, ci)| {
-                    let p = &pairs[pi];
-                    match (solution.get(&p.a), solution.get(&p.b)) {
-                        (Some(xa), Some(xb)) => candidate_chi2(&xa.0, &xb.0, &p.candidates[ci]),
-                        _ => f64::NAN,
-                    }
-                });
+                let chi2 = frames[i].chi2(usize::from(h), &solution);
                 match &verdict {
                     Some(r) => rejected.add(r),
                     None => solve_stats.accepted += 1,
@@ -452,12 +542,23 @@ impl Fusion {
         }
         solve_stats.rejected = rejected;
         let mut pending = std::mem::take(&mut self.pending);
-        pending.sort_by(|x, y| report_order(x).cmp(&report_order(y)));
+        pending.sort_by_key(report_order);
         edges.extend(pending);
-        edges.sort_by(|x, y| (x.stamp_ns, x.observer, x.camera, x.frame_seq, x.target_marker).cmp(&(y.stamp_ns, y.observer, y.camera, y.frame_seq, y.target_marker)));
+        edges.sort_by_key(|e| {
+            (
+                e.stamp_ns,
+                e.observer,
+                e.camera,
+                e.frame_seq,
+                e.target_marker,
+            )
+        });
 
         // Vehicles.
-        let in_window: BTreeSet<VehicleId> = entries.iter().flat_map(|(_, s)| [s.obs.observer, s.target]).collect();
+        let in_window: BTreeSet<VehicleId> = entries
+            .iter()
+            .flat_map(|(_, s)| [s.obs.observer, s.target])
+            .collect();
         let mut vehicles = Vec::with_capacity(self.fleet.vehicles.len());
         let mut ids: Vec<VehicleId> = self.fleet.vehicles.iter().map(|v| v.id).collect();
         ids.sort_unstable();
@@ -465,10 +566,26 @@ impl Fusion {
             let alive = self.alive.get(&v).copied().unwrap_or(true);
             let last_seen_ns = self.last_seen.get(&v).copied().unwrap_or(0);
             let (state, pose, covariance) = if v == reference {
-                (if alive { VehicleState::Live } else { VehicleState::Stale }, Pose::identity(), Cov6::zeros())
+                (
+                    if alive {
+                        VehicleState::Live
+                    } else {
+                        VehicleState::Stale
+                    },
+                    Pose::identity(),
+                    Cov6::zeros(),
+                )
             } else if let Some((pose, cov)) = solution.get(&v) {
                 self.last_estimate.insert(v, (*pose, *cov, last_seen_ns));
-                (if alive { VehicleState::Live } else { VehicleState::Stale }, *pose, *cov)
+                (
+                    if alive {
+                        VehicleState::Live
+                    } else {
+                        VehicleState::Stale
+                    },
+                    *pose,
+                    *cov,
+                )
             } else {
                 let state = if !alive {
                     VehicleState::Stale
@@ -485,7 +602,11 @@ impl Fusion {
                         let age_s = now_ns.saturating_sub(*seen) as f64 * 1e-9;
                         (state, *pose, self.params.age_inflation.inflate(cov, age_s))
                     }
-                    None => (state, Pose::identity(), Cov6::identity() * NO_INFORMATION_VARIANCE),
+                    None => (
+                        state,
+                        Pose::identity(),
+                        Cov6::identity() * NO_INFORMATION_VARIANCE,
+                    ),
                 }
             };
             vehicles.push(VehicleEstimate {
@@ -527,8 +648,144 @@ fn report_order(r: &EdgeReport) -> (u64, VehicleId, u8, u64, u32, Option<usize>,
     )
 }
 
-fn candidate_chi2(ref_from_a: &Pose, ref_from_b: &Pose, c: &Candidate) -> f64 {
-    solver::edge_chi2(ref_from_a, ref_from_b, &c.a_from_b, &c.information)
+/// One observation's hypotheses as measured, `observer_from_target` (in the
+/// [`Candidate`]'s `a_from_b`), with age-inflated covariances (`None`: absent
+/// or with a covariance that cannot be inverted).
+struct Frame {
+    observer: VehicleId,
+    target: VehicleId,
+    hyps: [Option<Candidate>; 2],
+}
+
+impl Frame {
+    /// The vehicle pair, lower ID first.
+    fn pair(&self) -> (VehicleId, VehicleId) {
+        (
+            self.observer.min(self.target),
+            self.observer.max(self.target),
+        )
+    }
+    /// Squared Mahalanobis residual of hypothesis `h` against the solution
+    /// (NaN when either vehicle is not localized or the hypothesis is absent).
+    fn chi2(&self, h: usize, solution: &BTreeMap<VehicleId, (Pose, Cov6)>) -> f64 {
+        match (
+            self.hyps[h].as_ref(),
+            solution.get(&self.observer),
+            solution.get(&self.target),
+        ) {
+            (Some(c), Some(xo), Some(xt)) => {
+                solver::edge_chi2(&xo.0, &xt.0, &c.a_from_b, &c.information)
+            }
+            _ => f64::NAN,
+        }
+    }
+}
+
+/// Hypothesis `h` of group `g` (its frames `members`, those in `without`
+/// left out) fused into one candidate `a_from_b` of the pair (a < b): the
+/// information-weighted mean in the observer's frame, then inverted once if
+/// the observer is `b`. `None` when no frame has the hypothesis.
+fn fuse_group(
+    frames: &[Frame],
+    members: &[usize],
+    g: usize,
+    h: u8,
+    without: &[usize],
+) -> Option<Candidate> {
+    let hyp: Vec<&Candidate> = members
+        .iter()
+        .filter(|i| !without.contains(i))
+        .filter_map(|&i| frames[i].hyps[usize::from(h)].as_ref())
+        .collect();
+    let (pose, cov) = match hyp.as_slice() {
+        [] => return None,
+        [one] => (one.a_from_b, one.covariance),
+        many => {
+            let items: Vec<(Pose, Cov6)> =
+                many.iter().map(|c| (c.a_from_b, c.information)).collect();
+            consistency::fuse(&items)?
+        }
+    };
+    let f = &frames[members[0]];
+    let measured = PoseWithCovariance::new(pose, cov);
+    let a_from_b = if f.observer < f.target {
+        measured
+    } else {
+        measured.inverse()
+    };
+    Candidate::new(g, h, a_from_b.pose, a_from_b.covariance).map(|c| c.with_weight(hyp.len()))
+}
+
+/// Groups of observations (indices into `frames`, ascending) that are fused
+/// into one candidate per hypothesis before the consistency checks, so that
+/// PCM runs over a pair's tracks, not over every frame.
+///
+/// A track is one camera's view of one marker ID (same observer, camera,
+/// code set, marker). Within a track, in window order, a frame joins the first
+/// group whose leaders (its first frame with each hypothesis) it is consistent
+/// with, hypothesis by hypothesis (squared Mahalanobis distance under the
+/// summed covariances within `gate_chi2`), and starts a new group otherwise.
+/// A flipped frame (primary = the twin) thus never shares a group with
+/// unflipped ones, nor a misread ID with the true owner of the marker, and
+/// the two hypotheses of one group stay mutually exclusive exactly like those
+/// of one observation. `fuse = false` gives one group per observation.
+fn group_tracks(
+    entries: &[(&ObservationKey, &window::Stored)],
+    frames: &[Frame],
+    gate_chi2: f64,
+    fuse: bool,
+) -> Vec<Vec<usize>> {
+    let consistent = |c: &Candidate, leader: &Candidate| {
+        let r = proto::geometry::difference(&c.a_from_b, &leader.a_from_b);
+        (r.transpose() * c.information * r)[0] <= gate_chi2
+            || consistency::mahalanobis2(
+                &c.a_from_b,
+                &c.covariance,
+                &leader.a_from_b,
+                &leader.covariance,
+            ) <= gate_chi2
+    };
+    type Track = (VehicleId, u8, &'static str, u32);
+    // Per track: (group index, leader per hypothesis).
+    let mut open: BTreeMap<Track, Vec<(usize, [Option<usize>; 2])>> = BTreeMap::new();
+    let mut groups: Vec<Vec<usize>> = Vec::new();
+    for (i, (key, _)) in entries.iter().enumerate() {
+        let f = &frames[i];
+        if f.hyps[0].is_none() {
+            // Nothing to compare with: the observation stands alone.
+            groups.push(vec![i]);
+            continue;
+        }
+        let track = (key.observer, key.camera, key.codes, key.marker);
+        let list = open.entry(track).or_default();
+        let home = fuse
+            .then(|| {
+                list.iter_mut().find(|(_, leaders)| {
+                    (0..2).all(|h| match (&f.hyps[h], leaders[h]) {
+                        (Some(c), Some(l)) => {
+                            frames[l].hyps[h].as_ref().is_some_and(|l| consistent(c, l))
+                        }
+                        _ => true,
+                    })
+                })
+            })
+            .flatten();
+        match home {
+            Some((g, leaders)) => {
+                groups[*g].push(i);
+                for h in 0..2 {
+                    if leaders[h].is_none() && f.hyps[h].is_some() {
+                        leaders[h] = Some(i);
+                    }
+                }
+            }
+            None => {
+                list.push((groups.len(), [Some(i), f.hyps[1].as_ref().map(|_| i)]));
+                groups.push(vec![i]);
+            }
+        }
+    }
+    groups
 }
 
 /// Vehicles reachable from `root` through `constraints`.

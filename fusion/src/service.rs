@@ -7,7 +7,7 @@ use crate::{Fusion, FusionParams, FusionStats, MapView};
 use proto::config::Fleet;
 use proto::{FleetMap, KeyKind, Observation, VehicleId};
 use shoal_bus::{Bus, BusError, Clock, DropOldestQueue, Publisher, Subscription};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
@@ -38,6 +38,8 @@ pub struct FusionHandle {
     thread: Option<JoinHandle<()>>,
     latest: Arc<Mutex<Option<FleetMap>>>,
     stats: Arc<Mutex<FusionStats>>,
+    dropped: Arc<AtomicU64>,
+    maps: Arc<AtomicU64>,
 }
 
 impl std::fmt::Debug for FusionHandle {
@@ -53,6 +55,14 @@ impl FusionHandle {
     }
     pub fn stats(&self) -> FusionStats {
         self.stats.lock().map(|g| g.clone()).unwrap_or_default()
+    }
+    /// Observations dropped because fusion fell behind (its queue overflowed).
+    pub fn observations_dropped(&self) -> u64 {
+        self.dropped.load(Ordering::Relaxed)
+    }
+    /// Maps published so far.
+    pub fn maps_published(&self) -> u64 {
+        self.maps.load(Ordering::Relaxed)
     }
     pub fn stop(mut self) {
         self.shutdown();
@@ -92,6 +102,8 @@ pub fn spawn(bus: &Bus, cfg: FusionConfig, clock: Arc<dyn Clock>) -> Result<Fusi
     let stop = Arc::new(AtomicBool::new(false));
     let stats: Arc<Mutex<FusionStats>> = Arc::default();
     let (stop2, latest2, stats2) = (stop.clone(), latest.clone(), stats.clone());
+    let (dropped, maps) = (Arc::new(AtomicU64::new(0)), Arc::new(AtomicU64::new(0)));
+    let (dropped2, maps2) = (dropped.clone(), maps.clone());
     let mut fusion = Fusion::new(&cfg.fleet, cfg.params, &producer);
     let period = Duration::from_secs_f64(1.0 / cfg.rate_hz.max(0.1));
     let bus = bus.clone();
@@ -107,6 +119,7 @@ pub fn spawn(bus: &Bus, cfg: FusionConfig, clock: Arc<dyn Clock>) -> Result<Fusi
                         fusion.set_alive(vehicle, alive, now);
                     }
                 }
+                dropped2.store(observations.dropped(), Ordering::Relaxed);
                 for r in observations.drain() {
                     match keys.parse(&r.key) {
                         Ok(KeyKind::Observations { vehicle }) => {
@@ -122,8 +135,11 @@ pub fn spawn(bus: &Bus, cfg: FusionConfig, clock: Arc<dyn Clock>) -> Result<Fusi
                     let map = fusion.solve(now);
                     match proto::encode(&map) {
                         Ok(bytes) => {
-                            if let Err(e) = publisher.put_bytes(bytes.clone()) {
-                                tracing::warn!("publishing map: {e}");
+                            match publisher.put_bytes(bytes.clone()) {
+                                Ok(()) => {
+                                    maps2.fetch_add(1, Ordering::Relaxed);
+                                }
+                                Err(e) => tracing::warn!("publishing map: {e}"),
                             }
                             if let Ok(mut g) = latest_bytes.lock() {
                                 *g = Some(bytes);
@@ -151,6 +167,8 @@ pub fn spawn(bus: &Bus, cfg: FusionConfig, clock: Arc<dyn Clock>) -> Result<Fusi
         thread: Some(thread),
         latest,
         stats,
+        dropped,
+        maps,
     })
 }
 

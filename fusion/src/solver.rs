@@ -83,6 +83,8 @@ pub struct SolverParams {
     pub relative_tolerance: f64,
     /// Initial Marquardt damping, relative to the information diagonal.
     pub initial_lambda: f64,
+    /// Stop when the largest update component falls below this (m or rad).
+    pub min_step: f64,
 }
 
 impl Default for SolverParams {
@@ -91,8 +93,9 @@ impl Default for SolverParams {
             // √χ²₆(0.99) = 4.1: inliers keep weight 1, so the returned covariance is the plain GN one.
             robust: RobustKernel::Huber { k: 4.1 },
             max_iterations: 30,
-            relative_tolerance: 1e-10,
+            relative_tolerance: 1e-8,
             initial_lambda: 1e-4,
+            min_step: 1e-9,
         }
     }
 }
@@ -104,7 +107,9 @@ pub enum SolveError {
     UnknownVehicle { a: VehicleId, b: VehicleId },
     #[error("constraint {a}->{b} has a covariance that is not positive definite")]
     BadCovariance { a: VehicleId, b: VehicleId },
-    #[error("the information matrix is singular (a vehicle is not constrained in every direction)")]
+    #[error(
+        "the information matrix is singular (a vehicle is not constrained in every direction)"
+    )]
     Singular,
 }
 
@@ -144,12 +149,18 @@ pub fn residual_and_jacobians(
     let jinv = inverse_jacobian(ref_from_a);
     let mut d = Matrix6::identity();
     let phi = Vector3::new(r[3], r[4], r[5]);
-    d.fixed_view_mut::<3, 3>(3, 3).copy_from(&so3_left_jacobian_inverse(&phi));
+    d.fixed_view_mut::<3, 3>(3, 3)
+        .copy_from(&so3_left_jacobian_inverse(&phi));
     (r, d * j1 * jinv, d * j2)
 }
 
 /// Squared Mahalanobis distance of `measured_a_from_b` to the prediction from two poses.
-pub fn edge_chi2(ref_from_a: &Pose, ref_from_b: &Pose, measured_a_from_b: &Pose, information: &Cov6) -> f64 {
+pub fn edge_chi2(
+    ref_from_a: &Pose,
+    ref_from_b: &Pose,
+    measured_a_from_b: &Pose,
+    information: &Cov6,
+) -> f64 {
     let r = difference(&(ref_from_a.inverse() * ref_from_b), measured_a_from_b);
     (r.transpose() * information * r)[0]
 }
@@ -164,7 +175,11 @@ struct Profile {
 
 impl Profile {
     fn zeros(first: Vec<usize>) -> Self {
-        let rows = first.iter().enumerate().map(|(i, f)| vec![0.0; i + 1 - f]).collect();
+        let rows = first
+            .iter()
+            .enumerate()
+            .map(|(i, f)| vec![0.0; i + 1 - f])
+            .collect();
         Self { first, rows }
     }
     fn n(&self) -> usize {
@@ -188,22 +203,23 @@ impl Profile {
         let n = self.n();
         for i in 0..n {
             let fi = self.first[i];
-            for j in fi..=i {
+            let mut row = std::mem::take(&mut self.rows[i]);
+            for j in fi..i {
                 let fj = self.first[j];
                 let k0 = fi.max(fj);
-                let mut s = self.rows[i][j - fi];
-                for k in k0..j {
-                    s -= self.rows[i][k - fi] * self.rows[j][k - fj];
-                }
-                if j == i {
-                    if !(s > 0.0) || !s.is_finite() {
-                        return None;
-                    }
-                    self.rows[i][i - fi] = s.sqrt();
-                } else {
-                    self.rows[i][j - fi] = s / self.rows[j][j - fj];
-                }
+                let dot: f64 = row[k0 - fi..j - fi]
+                    .iter()
+                    .zip(&self.rows[j][k0 - fj..j - fj])
+                    .map(|(a, b)| a * b)
+                    .sum();
+                row[j - fi] = (row[j - fi] - dot) / self.rows[j][j - fj];
             }
+            let d = row[i - fi] - row[..i - fi].iter().map(|v| v * v).sum::<f64>();
+            if d.is_nan() || d <= 0.0 || !d.is_finite() {
+                return None;
+            }
+            row[i - fi] = d.sqrt();
+            self.rows[i] = row;
         }
         Some(self)
     }
@@ -230,38 +246,35 @@ impl Profile {
         }
         y
     }
-    /// Diagonal 6×6 block `p` of `(L·Lᵀ)⁻¹`: `Yᵀ·Y` with `Y = L⁻¹·E_p`.
+    /// Diagonal 6×6 block `p` of `(L·Lᵀ)⁻¹`: `Yᵀ·Y` with `Y = L⁻¹·E_p`
+    /// (forward substitution from row `6p` down; rows above are zero).
     fn inverse_diagonal_block(&self, p: usize) -> Cov6 {
         let n = self.n();
         let start = 6 * p;
-        let mut y = vec![[0.0f64; 6]; n - start];
+        // Column-major: y[c][i - start].
+        let mut y = vec![vec![0.0f64; n - start]; 6];
         for i in start..n {
-            let fi = self.first[i].max(start);
-            let lii = self.rows[i][i - self.first[i]];
-            let mut s = [0.0f64; 6];
-            if i < start + 6 {
-                s[i - start] = 1.0;
+            let f = self.first[i];
+            let k0 = f.max(start);
+            let row = &self.rows[i];
+            let lii = row[i - f];
+            let lrow = &row[k0 - f..i - f];
+            for (c, yc) in y.iter_mut().enumerate() {
+                let dot: f64 = lrow
+                    .iter()
+                    .zip(&yc[k0 - start..i - start])
+                    .map(|(a, b)| a * b)
+                    .sum();
+                let e = if i - start == c { 1.0 } else { 0.0 };
+                yc[i - start] = (e - dot) / lii;
             }
-            for k in fi..i {
-                let l = self.rows[i][k - self.first[i]];
-                if l != 0.0 {
-                    let yk = y[k - start];
-                    for c in 0..6 {
-                        s[c] -= l * yk[c];
-                    }
-                }
-            }
-            for c in 0..6 {
-                s[c] /= lii;
-            }
-            y[i - start] = s;
         }
         let mut cov = Cov6::zeros();
-        for row in &y {
-            for r in 0..6 {
-                for c in 0..6 {
-                    cov[(r, c)] += row[r] * row[c];
-                }
+        for r in 0..6 {
+            for c in r..6 {
+                let v: f64 = y[r].iter().zip(&y[c]).map(|(a, b)| a * b).sum();
+                cov[(r, c)] = v;
+                cov[(c, r)] = v;
             }
         }
         cov
@@ -271,7 +284,10 @@ impl Profile {
 /// Reverse Cuthill–McKee order of `vertices` (sorted) under `neighbours`,
 /// deterministic: each BFS starts at the lowest-degree unvisited vertex,
 /// neighbours are visited by (degree, ID).
-fn reverse_cuthill_mckee(vertices: &[VehicleId], neighbours: &BTreeMap<VehicleId, BTreeSet<VehicleId>>) -> Vec<VehicleId> {
+fn reverse_cuthill_mckee(
+    vertices: &[VehicleId],
+    neighbours: &BTreeMap<VehicleId, BTreeSet<VehicleId>>,
+) -> Vec<VehicleId> {
     let degree = |v: &VehicleId| neighbours.get(v).map_or(0, BTreeSet::len);
     let mut by_degree: Vec<VehicleId> = vertices.to_vec();
     by_degree.sort_by_key(|v| (degree(v), *v));
@@ -338,7 +354,8 @@ pub fn solve(
         .into_iter()
         .collect();
     let order = reverse_cuthill_mckee(&variables, &neighbours);
-    let position: BTreeMap<VehicleId, usize> = order.iter().enumerate().map(|(i, v)| (*v, i)).collect();
+    let position: BTreeMap<VehicleId, usize> =
+        order.iter().enumerate().map(|(i, v)| (*v, i)).collect();
     let n = 6 * order.len();
     // Profile: each block row starts at its lowest-positioned neighbour.
     let mut first = vec![0usize; n];
@@ -362,7 +379,11 @@ pub fn solve(
         constraints
             .iter()
             .zip(&informations)
-            .map(|(c, info)| params.robust.cost(edge_chi2(&poses[&c.a], &poses[&c.b], &c.a_from_b, info)))
+            .map(|(c, info)| {
+                params
+                    .robust
+                    .cost(edge_chi2(&poses[&c.a], &poses[&c.b], &c.a_from_b, info))
+            })
             .sum()
     };
     // Gauss–Newton system at `poses`, robust weights included.
@@ -374,7 +395,10 @@ pub fn solve(
             let s = (r.transpose() * info * r)[0];
             let w = params.robust.weight(s);
             let wi = info * w;
-            let blocks = [(position.get(&c.a).copied(), ja), (position.get(&c.b).copied(), jb)];
+            let blocks = [
+                (position.get(&c.a).copied(), ja),
+                (position.get(&c.b).copied(), jb),
+            ];
             for (pi, ji) in &blocks {
                 let Some(pi) = pi else { continue };
                 let jt_w = ji.transpose() * wi;
@@ -432,10 +456,13 @@ pub fn solve(
                 let trial_cost = cost_of(&trial);
                 if trial_cost.is_finite() && trial_cost <= cost {
                     let decrease = cost - trial_cost;
+                    let step = dx.iter().fold(0.0f64, |m, v| m.max(v.abs()));
                     poses = trial;
                     cost = trial_cost;
                     lambda = (lambda / 10.0).max(1e-12);
-                    improved = decrease > params.relative_tolerance * cost.max(1e-300);
+                    // Converged: negligible relative decrease, or a step below 1e-9 m / rad.
+                    improved =
+                        decrease > params.relative_tolerance * cost && step > params.min_step;
                     break;
                 }
                 lambda *= 10.0;
@@ -489,7 +516,10 @@ mod tests {
         let a = pose_from_xyz_rpy([1.0, -2.0, 0.5], [0.3, -0.2, 1.0]);
         let b = pose_from_xyz_rpy([-0.5, 1.5, 2.0], [-0.4, 0.6, -2.0]);
         // Measurement off by a sizeable rotation so J_l⁻¹ matters.
-        let z = perturb(&(a.inverse() * b), &Vector6::new(0.1, -0.05, 0.2, 0.3, -0.2, 0.25));
+        let z = perturb(
+            &(a.inverse() * b),
+            &Vector6::new(0.1, -0.05, 0.2, 0.3, -0.2, 0.25),
+        );
         let (_, ja, jb) = residual_and_jacobians(&a, &b, &z);
         let na = numeric(|d| difference(&(perturb(&a, d).inverse() * b), &z));
         let nb = numeric(|d| difference(&(a.inverse() * perturb(&b, d)), &z));

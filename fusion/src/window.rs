@@ -20,11 +20,13 @@ pub struct AgeInflation {
 
 impl Default for AgeInflation {
     fn default() -> Self {
-        // 5 cm and ~1° of standard deviation after one second: relative
-        // drift of slowly manoeuvring AUVs holding a formation (≲ 0.5 m/s).
+        // 2 cm and 0.5° of standard deviation after one second (6 mm and
+        // 0.16° after one 10 Hz frame): the relative drift of AUVs holding a
+        // formation. Manoeuvring swarms want more; the price is that older
+        // frames count for less.
         Self {
-            translation_m2_per_s: 0.05 * 0.05,
-            rotation_rad2_per_s: 1f64.to_radians().powi(2),
+            translation_m2_per_s: 0.02 * 0.02,
+            rotation_rad2_per_s: 0.5f64.to_radians().powi(2),
         }
     }
 }
@@ -65,7 +67,13 @@ impl ObservationKey {
     }
     /// What makes two observations the same detection.
     pub fn duplicate_key(&self) -> (VehicleId, u8, u64, &'static str, u32) {
-        (self.observer, self.camera, self.frame_seq, self.codes, self.marker)
+        (
+            self.observer,
+            self.camera,
+            self.frame_seq,
+            self.codes,
+            self.marker,
+        )
     }
 }
 
@@ -115,7 +123,9 @@ impl Window {
             return Err(RejectReason::Invalid);
         }
         if let Some(alt) = &obs.alternative {
-            if !pose_is_finite(&alt.observer_from_target) || covariance_problem(&alt.covariance, limits.max_std).is_some() {
+            if !pose_is_finite(&alt.observer_from_target)
+                || covariance_problem(&alt.covariance, limits.max_std).is_some()
+            {
                 return Err(RejectReason::Invalid);
             }
         }
@@ -158,7 +168,11 @@ impl Window {
 }
 
 /// The report of an observation rejected before the solve.
-pub(crate) fn early_report(obs: &Observation, target: Option<VehicleId>, reason: RejectReason) -> EdgeReport {
+pub(crate) fn early_report(
+    obs: &Observation,
+    target: Option<VehicleId>,
+    reason: RejectReason,
+) -> EdgeReport {
     EdgeReport {
         observer: obs.observer,
         camera: obs.camera,

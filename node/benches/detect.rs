@@ -30,7 +30,14 @@ fn frames() -> Vec<Mat> {
             );
             let scene = Scene::single_marker(CodeSet::Shoal, 17, SIDE_M, pose);
             let img = r
-                .render(&cam, &Pose::identity(), &scene, &WaterParams::preset(1.38), f64::from(k), k as u64)
+                .render(
+                    &cam,
+                    &Pose::identity(),
+                    &scene,
+                    &WaterParams::preset(1.38),
+                    f64::from(k),
+                    k as u64,
+                )
                 .expect("render")
                 .image;
             gray_as_mat(&img).expect("mat").clone_pointee()

@@ -33,9 +33,14 @@ fn bench(c: &mut Criterion) {
     let mut g = c.benchmark_group("restore_1440x1080_1core");
     g.sample_size(30).measurement_time(Duration::from_secs(4));
 
-    for (name, roi_only) in [("hoirm_roi", true), ("hoirm_full_frame", false)] {
+    for (name, roi_only, deconv_level) in [
+        ("hoirm_roi", true, 0),
+        ("hoirm_roi_deconv_half_level", true, 1),
+        ("hoirm_full_frame", false, 0),
+    ] {
         let params = RestoreParams {
             roi_only,
+            deconv_level,
             ..RestoreParams::default()
         };
         let mut h = Hoirm::new(params);
@@ -54,8 +59,15 @@ fn bench(c: &mut Criterion) {
     g.bench_function("stage_coarse_level_1_8", |b| {
         b.iter(|| {
             let mut out = Mat::default();
-            imgproc::resize(f, &mut out, Size::new(180, 135), 0.0, 0.0, imgproc::INTER_AREA)
-                .unwrap();
+            imgproc::resize(
+                f,
+                &mut out,
+                Size::new(180, 135),
+                0.0,
+                0.0,
+                imgproc::INTER_AREA,
+            )
+            .unwrap();
             black_box(out)
         })
     });

@@ -47,25 +47,62 @@ fn main() -> anyhow::Result<()> {
     let cam = CameraModel::vehicle_1440();
     let mut renderer = Renderer::new();
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
-    println!("| c [1/m] | detector | found | corners | median pos err [mm] | median angle err [deg] |");
+    println!(
+        "| c [1/m] | detector | found | corners | median pos err [mm] | median angle err [deg] |"
+    );
     println!("|---|---|---|---|---|---|");
     for &c in &presets {
-        let water = if c == 0.0 { WaterParams::clear() } else { WaterParams::preset(c) };
+        let water = if c == 0.0 {
+            WaterParams::clear()
+        } else {
+            WaterParams::preset(c)
+        };
         // (label, code set of the rendered marker, detector)
         let mut dets: Vec<(CodeSet, Box<dyn MarkerDetector>, String)> = vec![
-            (CodeSet::Shoal, Box::new(ShoalDetector::new(CodeSet::Shoal, DetectParams::default())), "shoal (12 corners, edge lines)".into()),
             (
                 CodeSet::Shoal,
-                Box::new(ShoalDetector::new(CodeSet::Shoal, DetectParams { refinement: Refinement::CornerSubPix, ..DetectParams::default() })),
+                Box::new(ShoalDetector::new(CodeSet::Shoal, DetectParams::default())),
+                "shoal (12 corners, edge lines)".into(),
+            ),
+            (
+                CodeSet::Shoal,
+                Box::new(ShoalDetector::new(
+                    CodeSet::Shoal,
+                    DetectParams {
+                        refinement: Refinement::CornerSubPix,
+                        ..DetectParams::default()
+                    },
+                )),
                 "shoal (12 corners, cornerSubPix)".into(),
             ),
-            (CodeSet::Aruco4x4_50, Box::new(ShoalDetector::new(CodeSet::Aruco4x4_50, DetectParams::default())), "shoal detector on ArUco 4x4_50 (4 corners)".into()),
-            (CodeSet::Aruco4x4_50, Box::new(OpenCvAruco::new(CodeSet::Aruco4x4_50)?), "OpenCV ArUco 4x4_50".into()),
-            (CodeSet::AprilTag36h11, Box::new(AprilTag::new(CodeSet::AprilTag36h11)?), "AprilTag 3 36h11".into()),
+            (
+                CodeSet::Aruco4x4_50,
+                Box::new(ShoalDetector::new(
+                    CodeSet::Aruco4x4_50,
+                    DetectParams::default(),
+                )),
+                "shoal detector on ArUco 4x4_50 (4 corners)".into(),
+            ),
+            (
+                CodeSet::Aruco4x4_50,
+                Box::new(OpenCvAruco::new(CodeSet::Aruco4x4_50)?),
+                "OpenCV ArUco 4x4_50".into(),
+            ),
+            (
+                CodeSet::AprilTag36h11,
+                Box::new(AprilTag::new(CodeSet::AprilTag36h11)?),
+                "AprilTag 3 36h11".into(),
+            ),
         ];
         let mut rows: Vec<Row> = dets
             .iter()
-            .map(|d| Row { name: d.2.clone(), pos_mm: vec![], ang_deg: vec![], corners: vec![], missed: 0 })
+            .map(|d| Row {
+                name: d.2.clone(),
+                pos_mm: vec![],
+                ang_deg: vec![],
+                corners: vec![],
+                missed: 0,
+            })
             .collect();
         for f in 0..frames {
             let jitter = [rng.gen_range(-0.02..0.02), rng.gen_range(-0.02..0.02)];
@@ -79,7 +116,16 @@ fn main() -> anyhow::Result<()> {
                 let id = 17;
                 if !cache.iter().any(|(cs, _)| cs == codes) {
                     let scene = Scene::single_marker(*codes, id, SIDE_M, truth);
-                    let img = renderer.render(&cam, &Pose::identity(), &scene, &water, f as f64 * 0.1, f as u64 + 1)?.image;
+                    let img = renderer
+                        .render(
+                            &cam,
+                            &Pose::identity(),
+                            &scene,
+                            &water,
+                            f as f64 * 0.1,
+                            f as u64 + 1,
+                        )?
+                        .image;
                     cache.push((*codes, img));
                 }
                 let img = &cache.iter().find(|(cs, _)| cs == codes).unwrap().1;
@@ -90,13 +136,20 @@ fn main() -> anyhow::Result<()> {
                     continue;
                 };
                 rows[k].corners.push(d.corners_px.len() as f64);
-                let Ok(sol) = estimate_pose(&cam, &d.object_points(SIDE_M), &d.corners_px, None) else {
+                let Ok(sol) = estimate_pose(&cam, &d.object_points(SIDE_M), &d.corners_px, None)
+                else {
                     rows[k].missed += 1;
                     continue;
                 };
                 let est = sol.best.camera_from_marker;
-                rows[k].pos_mm.push(1000.0 * (est.translation.vector - truth.translation.vector).norm());
-                rows[k].ang_deg.push((est.rotation * truth.rotation.inverse()).angle().to_degrees());
+                rows[k]
+                    .pos_mm
+                    .push(1000.0 * (est.translation.vector - truth.translation.vector).norm());
+                rows[k].ang_deg.push(
+                    (est.rotation * truth.rotation.inverse())
+                        .angle()
+                        .to_degrees(),
+                );
             }
         }
         for r in &mut rows {

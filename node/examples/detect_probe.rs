@@ -18,9 +18,17 @@ fn main() -> anyhow::Result<()> {
         UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI)
             * UnitQuaternion::from_axis_angle(&Vector3::y_axis(), yaw.to_radians()),
     );
-    let id = if codes == CodeSet::AprilTag16h5 { 7 } else { 17 };
+    let id = if codes == CodeSet::AprilTag16h5 {
+        7
+    } else {
+        17
+    };
     let scene = Scene::single_marker(codes, id, 0.1, pose);
-    let water = if c == 0.0 { WaterParams::clear() } else { WaterParams::preset(c) };
+    let water = if c == 0.0 {
+        WaterParams::clear()
+    } else {
+        WaterParams::preset(c)
+    };
     let t = std::time::Instant::now();
     let out = Renderer::new().render(&cam, &Pose::identity(), &scene, &water, 0.0, 1)?;
     eprintln!("render {:?}", t.elapsed());
@@ -37,13 +45,26 @@ fn main() -> anyhow::Result<()> {
     let t = std::time::Instant::now();
     for _ in 0..reps {
         for d in det.detect(&mat)? {
-            let _ = shoal_node::pose::estimate_pose(&cam, &d.object_points(0.1), &d.corners_px, None);
+            let _ =
+                shoal_node::pose::estimate_pose(&cam, &d.object_points(0.1), &d.corners_px, None);
         }
     }
     eprintln!("shoal detect+pose: {:?} per frame", t.elapsed() / reps);
     for (label, params) in [
-        ("one window 21", DetectParams { threshold_windows: vec![21], ..DetectParams::default() }),
-        ("no refinement", DetectParams { refinement: shoal_node::detect::Refinement::None, ..DetectParams::default() }),
+        (
+            "one window 21",
+            DetectParams {
+                threshold_windows: vec![21],
+                ..DetectParams::default()
+            },
+        ),
+        (
+            "no refinement",
+            DetectParams {
+                refinement: shoal_node::detect::Refinement::None,
+                ..DetectParams::default()
+            },
+        ),
     ] {
         let mut d2 = ShoalDetector::new(codes, params);
         let t = std::time::Instant::now();
@@ -67,7 +88,8 @@ fn main() -> anyhow::Result<()> {
     if let Some(d) = found.first() {
         let t = std::time::Instant::now();
         for _ in 0..reps {
-            let _ = shoal_node::pose::estimate_pose(&cam, &d.object_points(0.1), &d.corners_px, None);
+            let _ =
+                shoal_node::pose::estimate_pose(&cam, &d.object_points(0.1), &d.corners_px, None);
         }
         eprintln!("pose only: {:?}", t.elapsed() / reps);
     }
@@ -80,7 +102,10 @@ fn main() -> anyhow::Result<()> {
         })
         .collect();
     for f in &found {
-        println!("id {} hamming {} module {:.2} px, corners {:?}", f.id, f.hamming, f.module_px, f.corner_ids);
+        println!(
+            "id {} hamming {} module {:.2} px, corners {:?}",
+            f.id, f.hamming, f.module_px, f.corner_ids
+        );
         for (k, &cid) in f.corner_ids.iter().enumerate() {
             let t = truth[cid as usize];
             let e = [f.corners_px[k][0] - t[0], f.corners_px[k][1] - t[1]];

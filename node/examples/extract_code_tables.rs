@@ -16,7 +16,9 @@ fn pack(bits: impl Iterator<Item = bool>) -> u64 {
     bits.fold(0u64, |acc, b| (acc << 1) | u64::from(b))
 }
 
-fn aruco_table(dict_name: aruco::PREDEFINED_DICTIONARY_NAME) -> anyhow::Result<(usize, u32, Vec<u64>)> {
+fn aruco_table(
+    dict_name: aruco::PREDEFINED_DICTIONARY_NAME,
+) -> anyhow::Result<(usize, u32, Vec<u64>)> {
     let dict = aruco::get_predefined_dictionary(dict_name)?;
     let n = dict.marker_size() as usize;
     let count = dict.bytes_list().rows() as usize;
@@ -43,20 +45,34 @@ fn apriltag_table(family: Family) -> anyhow::Result<(usize, u32, Vec<u64>)> {
     let n = border - 2;
     let mut codes = Vec::with_capacity(fam.ncodes());
     for id in 0..fam.ncodes() {
-        let (w, px) = fam.render(id).ok_or_else(|| anyhow::anyhow!("render failed"))?;
+        let (w, px) = fam
+            .render(id)
+            .ok_or_else(|| anyhow::anyhow!("render failed"))?;
         // Classic families: black border of `width_at_border` modules centred in `total_width`.
         let off = (w - border) / 2 + 1;
-        let bits = (0..n).flat_map(|r| (0..n).map(move |c| (r, c))).map(|(r, c)| px[(off + r) * w + off + c] > 127);
+        let bits = (0..n)
+            .flat_map(|r| (0..n).map(move |c| (r, c)))
+            .map(|(r, c)| px[(off + r) * w + off + c] > 127);
         codes.push(pack(bits));
     }
     // libapriltag's detector default (apriltag_detector_add_family -> 2 bits).
     Ok((n, DEFAULT_BITS_CORRECTED, codes))
 }
 
-fn write_table(path: &PathBuf, source: &str, (n, k, codes): (usize, u32, Vec<u64>)) -> anyhow::Result<()> {
+fn write_table(
+    path: &PathBuf,
+    source: &str,
+    (n, k, codes): (usize, u32, Vec<u64>),
+) -> anyhow::Result<()> {
     let mut s = String::new();
-    writeln!(s, "# {source}; extracted by `cargo run -p shoal-node --example extract_code_tables`")?;
-    writeln!(s, "# data bits row-major from the top-left, MSB first, 1 = white, upright")?;
+    writeln!(
+        s,
+        "# {source}; extracted by `cargo run -p shoal-node --example extract_code_tables`"
+    )?;
+    writeln!(
+        s,
+        "# data bits row-major from the top-left, MSB first, 1 = white, upright"
+    )?;
     writeln!(s, "# data_side = {n}")?;
     writeln!(s, "# max_correction_bits = {k}")?;
     let digits = (n * n).div_ceil(4);
@@ -64,7 +80,11 @@ fn write_table(path: &PathBuf, source: &str, (n, k, codes): (usize, u32, Vec<u64
         writeln!(s, "0x{c:0digits$x}")?;
     }
     std::fs::write(path, s)?;
-    println!("{}: {} codes, {n}x{n}, max_correction_bits = {k}", path.display(), codes.len());
+    println!(
+        "{}: {} codes, {n}x{n}, max_correction_bits = {k}",
+        path.display(),
+        codes.len()
+    );
     Ok(())
 }
 
@@ -74,10 +94,30 @@ fn main() -> anyhow::Result<()> {
         .map(PathBuf::from)
         .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../proto/data/codes"));
     use aruco::PREDEFINED_DICTIONARY_NAME as D;
-    write_table(&out.join("aruco_4x4_1000.txt"), "OpenCV 4.6 DICT_4X4_1000", aruco_table(D::DICT_4X4_1000)?)?;
-    write_table(&out.join("aruco_5x5_1000.txt"), "OpenCV 4.6 DICT_5X5_1000", aruco_table(D::DICT_5X5_1000)?)?;
-    write_table(&out.join("aruco_6x6_1000.txt"), "OpenCV 4.6 DICT_6X6_1000", aruco_table(D::DICT_6X6_1000)?)?;
-    write_table(&out.join("apriltag_16h5.txt"), "libapriltag 3 tag16h5 (max_correction_bits: detector default)", apriltag_table(Family::Tag16h5)?)?;
-    write_table(&out.join("apriltag_36h11.txt"), "libapriltag 3 tag36h11 (max_correction_bits: detector default)", apriltag_table(Family::Tag36h11)?)?;
+    write_table(
+        &out.join("aruco_4x4_1000.txt"),
+        "OpenCV 4.6 DICT_4X4_1000",
+        aruco_table(D::DICT_4X4_1000)?,
+    )?;
+    write_table(
+        &out.join("aruco_5x5_1000.txt"),
+        "OpenCV 4.6 DICT_5X5_1000",
+        aruco_table(D::DICT_5X5_1000)?,
+    )?;
+    write_table(
+        &out.join("aruco_6x6_1000.txt"),
+        "OpenCV 4.6 DICT_6X6_1000",
+        aruco_table(D::DICT_6X6_1000)?,
+    )?;
+    write_table(
+        &out.join("apriltag_16h5.txt"),
+        "libapriltag 3 tag16h5 (max_correction_bits: detector default)",
+        apriltag_table(Family::Tag16h5)?,
+    )?;
+    write_table(
+        &out.join("apriltag_36h11.txt"),
+        "libapriltag 3 tag36h11 (max_correction_bits: detector default)",
+        apriltag_table(Family::Tag36h11)?,
+    )?;
     Ok(())
 }

@@ -9,7 +9,10 @@ fn main() -> anyhow::Result<()> {
     let rows = shoal_node::pose::features_experiment(trials, &sigmas, &counts, 2024);
     println!("sigma_px points cumulative_mm relative_mm(Eq.5) failures");
     for r in rows {
-        println!("{:8} {:6} {:13.1} {:16.1} {:8}", r.sigma_px, r.points, r.cumulative_mm, r.relative_mm, r.failures);
+        println!(
+            "{:8} {:6} {:13.1} {:16.1} {:8}",
+            r.sigma_px, r.points, r.cumulative_mm, r.relative_mm, r.failures
+        );
     }
     Ok(())
 }

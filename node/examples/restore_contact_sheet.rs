@@ -9,7 +9,7 @@
 use opencv::core::{Mat, Point, Rect, Scalar, Size, Vector, CV_8UC1};
 use opencv::imgproc;
 use opencv::prelude::*;
-use shoal_node::restore::{restorer, Hoirm, Method, RestoreParams, Restorer};
+use shoal_node::restore::{restorer, Hoirm, Method, RestoreParams};
 use shoal_proto::geometry::pose_from_xyz_rpy;
 use shoal_proto::{CameraModel, CodeSet, Pose};
 use shoal_sim_bridge::render::{Renderer, Scene};
@@ -97,7 +97,9 @@ fn main() {
             .collect();
         cols.push(("HOIRM final".into(), tile(&res.image, crop)));
         for m in [Method::Clahe, Method::Dcp, Method::Udcp] {
-            let r = restorer(m, &RestoreParams::default()).restore(&img, 0).unwrap();
+            let r = restorer(m, &RestoreParams::default())
+                .restore(&img, 0)
+                .unwrap();
             cols.push((m.name().to_uppercase(), tile(&r.image, crop)));
         }
         cols.push(("clean (sim)".into(), tile(&to_mat(&out.clean), crop)));

@@ -18,7 +18,10 @@ use shoal_sim_bridge::water::WaterParams;
 fn to_f32(g: &shoal_proto::GrayImage, r: Rect) -> Mat {
     let m = Mat::new_rows_cols_with_data(g.height as i32, g.width as i32, &g.data).unwrap();
     let mut f = Mat::default();
-    Mat::roi(&m, r).unwrap().convert_to(&mut f, CV_32F, 1.0, 0.0).unwrap();
+    Mat::roi(&m, r)
+        .unwrap()
+        .convert_to(&mut f, CV_32F, 1.0, 0.0)
+        .unwrap();
     f
 }
 
@@ -26,7 +29,10 @@ fn to_f32(g: &shoal_proto::GrayImage, r: Rect) -> Mat {
 fn affine_residual(model: &Mat, obs: &Mat) -> f64 {
     let (mut n, mut sx, mut sy, mut sxx, mut sxy, mut syy) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
     for y in 0..model.rows() {
-        let (a, b) = (model.at_row::<f32>(y).unwrap(), obs.at_row::<f32>(y).unwrap());
+        let (a, b) = (
+            model.at_row::<f32>(y).unwrap(),
+            obs.at_row::<f32>(y).unwrap(),
+        );
         for (&x, &o) in a.iter().zip(b) {
             let (x, o) = (x as f64, o as f64);
             n += 1.0;
@@ -72,7 +78,10 @@ fn main() {
         for p in [0.6, 0.8, 1.0, 1.25, 1.5, 2.0, p_hoirm] {
             let mut line = format!("  p {p:4.2}:");
             for &s in &scales {
-                let psf = GgPsf { p, sigma_px: s / (2.0 * p.sqrt()) };
+                let psf = GgPsf {
+                    p,
+                    sigma_px: s / (2.0 * p.sqrt()),
+                };
                 let mut blurred = Mat::default();
                 imgproc::filter_2d(
                     &clean,
@@ -92,6 +101,9 @@ fn main() {
             }
             println!("{line}");
         }
-        println!("  best: p {:.2}, s {} px/unit (residual {:.3})", best.1, best.2, best.0);
+        println!(
+            "  best: p {:.2}, s {} px/unit (residual {:.3})",
+            best.1, best.2, best.0
+        );
     }
 }

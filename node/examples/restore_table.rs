@@ -38,13 +38,25 @@ fn masks(clean: &Mat, quad: &[[f64; 2]]) -> (Vec<bool>, Vec<bool>, Rect) {
         .iter()
         .map(|p| Point::new(p[0].round() as i32, p[1].round() as i32))
         .collect();
-    let mut inside = Mat::new_size_with_default(clean.size().unwrap(), CV_8UC1, Scalar::all(0.0)).unwrap();
+    let mut inside =
+        Mat::new_size_with_default(clean.size().unwrap(), CV_8UC1, Scalar::all(0.0)).unwrap();
     imgproc::fill_convex_poly(&mut inside, &pts, Scalar::all(255.0), imgproc::LINE_8, 0).unwrap();
     let bbox = imgproc::bounding_rect(&pts).unwrap();
-    let k = imgproc::get_structuring_element(imgproc::MORPH_RECT, Size::new(7, 7), Point::new(-1, -1)).unwrap();
+    let k =
+        imgproc::get_structuring_element(imgproc::MORPH_RECT, Size::new(7, 7), Point::new(-1, -1))
+            .unwrap();
     let erode = |m: &Mat| {
         let mut o = Mat::default();
-        imgproc::erode(m, &mut o, &k, Point::new(-1, -1), 1, opencv::core::BORDER_CONSTANT, Scalar::all(0.0)).unwrap();
+        imgproc::erode(
+            m,
+            &mut o,
+            &k,
+            Point::new(-1, -1),
+            1,
+            opencv::core::BORDER_CONSTANT,
+            Scalar::all(0.0),
+        )
+        .unwrap();
         o
     };
     let mut max = 0.0;
@@ -52,16 +64,33 @@ fn masks(clean: &Mat, quad: &[[f64; 2]]) -> (Vec<bool>, Vec<bool>, Rect) {
     let mut white = Mat::default();
     let mut black = Mat::default();
     imgproc::threshold(clean, &mut white, 0.6 * max, 255.0, imgproc::THRESH_BINARY).unwrap();
-    imgproc::threshold(clean, &mut black, 0.4 * max, 255.0, imgproc::THRESH_BINARY_INV).unwrap();
+    imgproc::threshold(
+        clean,
+        &mut black,
+        0.4 * max,
+        255.0,
+        imgproc::THRESH_BINARY_INV,
+    )
+    .unwrap();
     let (mut w, mut b) = (Mat::default(), Mat::default());
     opencv::core::bitwise_and(&erode(&white), &inside, &mut w, &opencv::core::no_array()).unwrap();
     opencv::core::bitwise_and(&erode(&black), &inside, &mut b, &opencv::core::no_array()).unwrap();
-    let to_vec = |m: &Mat| gray_from_mat(m).unwrap().data.iter().map(|&v| v > 0).collect::<Vec<_>>();
+    let to_vec = |m: &Mat| {
+        gray_from_mat(m)
+            .unwrap()
+            .data
+            .iter()
+            .map(|&v| v > 0)
+            .collect::<Vec<_>>()
+    };
     (to_vec(&w), to_vec(&b), bbox)
 }
 
 fn main() {
-    let frames: usize = std::env::args().nth(1).and_then(|a| a.parse().ok()).unwrap_or(6);
+    let frames: usize = std::env::args()
+        .nth(1)
+        .and_then(|a| a.parse().ok())
+        .unwrap_or(6);
     opencv::core::set_num_threads(1).unwrap();
     let cam = CameraModel::vehicle_1440();
     let mut renderer = Renderer::new();
@@ -72,16 +101,22 @@ fn main() {
         let water = WaterParams::preset(c);
         let mut params = RestoreParams::default();
         // Tuning hooks: SHOAL_PSF_PX_PER_UNIT, SHOAL_ORDER=physical.
-        if let Some(s) = std::env::var("SHOAL_PSF_PX_PER_UNIT").ok().and_then(|v| v.parse().ok()) {
+        if let Some(s) = std::env::var("SHOAL_PSF_PX_PER_UNIT")
+            .ok()
+            .and_then(|v| v.parse().ok())
+        {
             params.psf_px_per_unit = s;
+        }
+        if let Some(l) = std::env::var("SHOAL_DECONV_LEVEL")
+            .ok()
+            .and_then(|v| v.parse().ok())
+        {
+            params.deconv_level = l;
         }
         if std::env::var("SHOAL_ORDER").is_ok_and(|v| v == "physical") {
             params.order = shoal_node::restore::StageOrder::Physical;
         }
-        let mut restorers: Vec<_> = Method::ALL
-            .iter()
-            .map(|&m| restorer(m, &params))
-            .collect();
+        let mut restorers: Vec<_> = Method::ALL.iter().map(|&m| restorer(m, &params)).collect();
         let mut sums = vec![[0.0f64; 6]; Method::ALL.len()];
         for k in 0..frames {
             let t = k as f64 / 30.0;
@@ -98,8 +133,14 @@ fn main() {
             let (white, black, bbox) = masks(&clean, &out.visible[0].corners_px);
             let m = 20;
             let frame = Rect::new(0, 0, img.cols(), img.rows());
-            let boxr = Rect::new(bbox.x - m, bbox.y - m, bbox.width + 2 * m, bbox.height + 2 * m) & frame;
-            let crop = |x: &Mat| gray_from_mat(&Mat::roi(x, boxr).unwrap().try_clone().unwrap()).unwrap();
+            let boxr = Rect::new(
+                bbox.x - m,
+                bbox.y - m,
+                bbox.width + 2 * m,
+                bbox.height + 2 * m,
+            ) & frame;
+            let crop =
+                |x: &Mat| gray_from_mat(&Mat::roi(x, boxr).unwrap().try_clone().unwrap()).unwrap();
             for (i, r) in restorers.iter_mut().enumerate() {
                 let res = r.restore(&img, (t * 1e9) as u64).unwrap();
                 let a = gray_from_mat(&res.image).unwrap();

@@ -6,9 +6,9 @@ pub mod apriltag_ffi;
 use crate::detect::{DetectError, Detection, MarkerDetector};
 use crate::mat::GrayView;
 use apriltag_ffi::{Family, FamilyHandle};
+use opencv::aruco;
 use opencv::core::{Mat, Point2f, Ptr, Vector};
 use opencv::prelude::*;
-use opencv::aruco;
 use shoal_proto::marker::CodeSet;
 
 /// OpenCV's predefined dictionary for an ArUco code set (`shoal` reads its
@@ -52,7 +52,11 @@ impl OpenCvAruco {
         let dict = aruco::get_predefined_dictionary(name)?;
         let mut params = aruco::DetectorParameters::create()?;
         params.set_corner_refinement_method(aruco::CORNER_REFINE_SUBPIX);
-        Ok(Self { codes, dict, params })
+        Ok(Self {
+            codes,
+            dict,
+            params,
+        })
     }
 
     /// The detector parameters, for tuning.
@@ -71,7 +75,14 @@ impl MarkerDetector for OpenCvAruco {
         let mut corners: Vector<Vector<Point2f>> = Vector::new();
         let mut ids: Vector<i32> = Vector::new();
         let mut rejected: Vector<Vector<Point2f>> = Vector::new();
-        aruco::detect_markers(gray, &self.dict, &mut corners, &mut ids, &self.params, &mut rejected)?;
+        aruco::detect_markers(
+            gray,
+            &self.dict,
+            &mut corners,
+            &mut ids,
+            &self.params,
+            &mut rejected,
+        )?;
         let first_id: u8 = if self.codes == CodeSet::Shoal { 8 } else { 0 };
         let mut out = Vec::with_capacity(ids.len());
         for (c, id) in corners.iter().zip(ids.iter()) {
@@ -79,7 +90,10 @@ impl MarkerDetector for OpenCvAruco {
             if pts.len() != 4 || id < 0 {
                 continue;
             }
-            let side: f64 = (0..4).map(|i| crate::detect::geom::dist(pts[i], pts[(i + 1) % 4])).sum::<f64>() / 4.0;
+            let side: f64 = (0..4)
+                .map(|i| crate::detect::geom::dist(pts[i], pts[(i + 1) % 4]))
+                .sum::<f64>()
+                / 4.0;
             out.push(Detection {
                 codes: self.codes,
                 id: id as u32,
@@ -121,7 +135,8 @@ impl AprilTag {
                 })
             }
         };
-        let family = FamilyHandle::new(fam).ok_or_else(|| DetectError::AprilTag("family create failed".into()))?;
+        let family = FamilyHandle::new(fam)
+            .ok_or_else(|| DetectError::AprilTag("family create failed".into()))?;
         // SAFETY: create returns a valid detector or null (checked); add_family stores the
         // family pointer, which outlives the detector (dropped after it, see Drop).
         let td = unsafe {
@@ -130,7 +145,11 @@ impl AprilTag {
                 return Err(DetectError::AprilTag("detector create failed".into()));
             }
             (*td).nthreads = 1;
-            apriltag_ffi::apriltag_detector_add_family_bits(td, family.ptr, apriltag_ffi::DEFAULT_BITS_CORRECTED as i32);
+            apriltag_ffi::apriltag_detector_add_family_bits(
+                td,
+                family.ptr,
+                apriltag_ffi::DEFAULT_BITS_CORRECTED as i32,
+            );
             td
         };
         Ok(Self {
@@ -184,7 +203,10 @@ impl MarkerDetector for AprilTag {
                 // starting at the upright tag's bottom-left: BL, BR, TR, TL.
                 let p = d.p;
                 let pts = vec![p[3], p[2], p[1], p[0]];
-                let side: f64 = (0..4).map(|k| crate::detect::geom::dist(pts[k], pts[(k + 1) % 4])).sum::<f64>() / 4.0;
+                let side: f64 = (0..4)
+                    .map(|k| crate::detect::geom::dist(pts[k], pts[(k + 1) % 4]))
+                    .sum::<f64>()
+                    / 4.0;
                 out.push(Detection {
                     codes: self.codes,
                     id: d.id as u32,
@@ -199,4 +221,3 @@ impl MarkerDetector for AprilTag {
         Ok(out)
     }
 }
-

@@ -35,8 +35,8 @@ pub mod refine;
 use crate::mat::{GrayView, MatError};
 use geom::{apply, dist, homography_4, mean_side, min_side, signed_area2, Px};
 use opencv::core::{Mat, Point, Size, ToInputArray, Vector};
-use opencv::prelude::*;
 use opencv::imgproc;
+use opencv::prelude::*;
 use refine::Polarity;
 use shoal_proto::marker::{rotate_code, CodeSet, MarkerId};
 
@@ -54,7 +54,10 @@ pub enum DetectError {
     #[error("AprilTag: {0}")]
     AprilTag(String),
     #[error("code set {set} is not supported by detector {detector}")]
-    Unsupported { detector: &'static str, set: &'static str },
+    Unsupported {
+        detector: &'static str,
+        set: &'static str,
+    },
     #[error("{path}: {reason}")]
     Input { path: String, reason: String },
     #[error("writing output: {0}")]
@@ -121,7 +124,10 @@ pub struct DetectParams {
     pub min_contrast: f64,
     /// Fraction of border (and ring) modules allowed to read wrong.
     pub max_border_error_rate: f64,
-    /// Bits corrected at most; `None` = the code table's `max_correction_bits`.
+    /// Bits corrected at most; `None` = the larger of the code table's
+    /// `max_correction_bits` and the unique-decoding radius `(d_min − 1) / 2`
+    /// of the IDs in use (1 bit for the enhanced marker's 50 codes, as OpenCV's
+    /// `DICT_4X4_50`; the 1000-code table's own figure is 0).
     pub max_correction_bits: Option<u32>,
     pub refinement: Refinement,
 }
@@ -167,9 +173,12 @@ impl ShoalDetector {
             .filter_map(|id| codes.code(id).ok().map(|c| (id, c)))
             .flat_map(|(id, c)| (0..4).map(move |k| (rotate_code(c, n, k), id, k)))
             .collect();
-        let correction_bits = params
-            .max_correction_bits
-            .unwrap_or_else(|| codes.table().max_correction_bits.max(unique_decoding_radius(&rotated)));
+        let correction_bits = params.max_correction_bits.unwrap_or_else(|| {
+            codes
+                .table()
+                .max_correction_bits
+                .max(unique_decoding_radius(&rotated))
+        });
         Self {
             codes,
             name: format!("shoal-{}", codes.name()),
@@ -188,13 +197,19 @@ impl ShoalDetector {
     }
 
     /// Detect in a [`shoal_proto::image::GrayImage`] (wrapped without copying).
-    pub fn detect_gray(&mut self, img: &shoal_proto::image::GrayImage) -> Result<Vec<Detection>, DetectError> {
+    pub fn detect_gray(
+        &mut self,
+        img: &shoal_proto::image::GrayImage,
+    ) -> Result<Vec<Detection>, DetectError> {
         let mat = crate::mat::gray_as_mat(img)?;
         self.detect_in(&mat)
     }
 
     /// Step 1–2: candidate quads from the contours of one pyramid level.
-    fn find_quads(&self, gray: &(impl MatTraitConst + ToInputArray)) -> Result<Vec<Quad>, DetectError> {
+    fn find_quads(
+        &self,
+        gray: &(impl MatTraitConst + ToInputArray),
+    ) -> Result<Vec<Quad>, DetectError> {
         let p = &self.params;
         let (level, scale) = if gray.cols() > p.full_res_max_width {
             let mut half = Mat::default();
@@ -251,7 +266,12 @@ impl ShoalDetector {
                     q[i] = [f64::from(pt.x), f64::from(pt.y)];
                 }
                 let margin = p.border_margin_px / scale;
-                if q.iter().any(|c| c[0] < margin || c[1] < margin || c[0] > w - 1.0 - margin || c[1] > h - 1.0 - margin) {
+                if q.iter().any(|c| {
+                    c[0] < margin
+                        || c[1] < margin
+                        || c[0] > w - 1.0 - margin
+                        || c[1] > h - 1.0 - margin
+                }) {
                     continue;
                 }
                 if min_side(&q) < min_side_lvl {
@@ -316,7 +336,10 @@ impl ShoalDetector {
             }
             v
         };
-        let border: Vec<f64> = ring_cells(0).into_iter().map(|(r, c)| cell_mean(r, c)).collect();
+        let border: Vec<f64> = ring_cells(0)
+            .into_iter()
+            .map(|(r, c)| cell_mean(r, c))
+            .collect();
         let outside: Vec<f64> = ring_cells(1)
             .into_iter()
             .filter_map(|(r, c)| {
@@ -336,7 +359,9 @@ impl ShoalDetector {
         let bad_border = border.iter().filter(|&&v| v > thr).count();
         let bad_outside = outside.iter().filter(|&&v| v < thr).count();
         let rate = self.params.max_border_error_rate;
-        if bad_border as f64 > rate * border.len() as f64 || bad_outside as f64 > rate * outside.len() as f64 {
+        if bad_border as f64 > rate * border.len() as f64
+            || bad_outside as f64 > rate * outside.len() as f64
+        {
             return None;
         }
         let mut bits = 0u64;
@@ -372,7 +397,13 @@ impl ShoalDetector {
 
     /// Step 4: the frame square whose corners sit `off` modules outside the
     /// code square (enhanced marker: 1 = frame inner edge, 2 = outer edge).
-    fn find_frame(&self, code: &[Px; 4], module_px: f64, off: f64, quads: &[Quad]) -> Option<[Px; 4]> {
+    fn find_frame(
+        &self,
+        code: &[Px; 4],
+        module_px: f64,
+        off: f64,
+        quads: &[Quad],
+    ) -> Option<[Px; 4]> {
         let ms = self.codes.data_side() as f64 + 2.0;
         let cells = [[0.0, 0.0], [ms, 0.0], [ms, ms], [0.0, ms]];
         let hmat = homography_4(&cells, code)?;
@@ -407,10 +438,21 @@ impl ShoalDetector {
         best.map(|b| b.1)
     }
 
-    fn refine(&self, gray: &impl ToInputArray, view: &GrayView<'_>, quad: &[Px; 4], module_px: f64, polarity: Polarity) -> [Px; 4] {
+    fn refine(
+        &self,
+        gray: &impl ToInputArray,
+        view: &GrayView<'_>,
+        quad: &[Px; 4],
+        module_px: f64,
+        polarity: Polarity,
+    ) -> [Px; 4] {
         match self.params.refinement {
-            Refinement::EdgeLines => refine::refine_by_edge_lines(view, quad, module_px, polarity).unwrap_or(*quad),
-            Refinement::CornerSubPix => refine::refine_by_corner_subpix(gray, quad, module_px).unwrap_or(*quad),
+            Refinement::EdgeLines => {
+                refine::refine_by_edge_lines(view, quad, module_px, polarity).unwrap_or(*quad)
+            }
+            Refinement::CornerSubPix => {
+                refine::refine_by_corner_subpix(gray, quad, module_px).unwrap_or(*quad)
+            }
             Refinement::None => *quad,
         }
     }
@@ -470,10 +512,15 @@ impl MarkerDetector for ShoalDetector {
 
 impl ShoalDetector {
     /// [`MarkerDetector::detect`] for any grey `Mat`-like input (a borrowed `BoxedRef<Mat>` too).
-    pub fn detect_in(&mut self, gray: &(impl MatTraitConst + ToInputArray)) -> Result<Vec<Detection>, DetectError> {
+    pub fn detect_in(
+        &mut self,
+        gray: &(impl MatTraitConst + ToInputArray),
+    ) -> Result<Vec<Detection>, DetectError> {
         let view = GrayView::new(gray)?;
         if self.rotated.is_empty() {
-            return Err(DetectError::NoCodes { set: self.codes.name() });
+            return Err(DetectError::NoCodes {
+                set: self.codes.name(),
+            });
         }
         let quads = self.find_quads(gray)?;
         let m = (self.codes.data_side() + 2) as f64;
@@ -536,5 +583,30 @@ impl ShoalDetector {
             });
         }
         Ok(out)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn enhanced_set_corrects_one_bit_like_opencv_4x4_50() {
+        let det = ShoalDetector::new(CodeSet::Shoal, DetectParams::default());
+        assert_eq!(det.correction_bits, 1);
+        let det = ShoalDetector::new(CodeSet::AprilTag36h11, DetectParams::default());
+        assert!(det.correction_bits >= 2);
+    }
+
+    #[test]
+    fn same_quad_ignores_the_starting_corner() {
+        let a = [[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]];
+        let b = [a[2], a[3], a[0], a[1]];
+        assert!(same_quad(&a, &b, 0.5));
+        assert!(!same_quad(
+            &a,
+            &[[0.0, 0.0], [9.0, 0.0], [10.0, 10.0], [0.0, 10.0]],
+            0.5
+        ));
     }
 }

@@ -10,12 +10,19 @@ use shoal_proto::image::GrayImage;
 /// Errors of this module.
 #[derive(Debug, thiserror::Error)]
 pub enum MatError {
-    #[error("expected an 8-bit single-channel image, got OpenCV type {typ} with {channels} channel(s)")]
+    #[error(
+        "expected an 8-bit single-channel image, got OpenCV type {typ} with {channels} channel(s)"
+    )]
     NotGray8 { typ: i32, channels: i32 },
     #[error("image is empty ({width}x{height})")]
     Empty { width: i32, height: i32 },
     #[error("image of {width}x{height} has {len} bytes, expected {expected}")]
-    SizeMismatch { width: u32, height: u32, len: usize, expected: usize },
+    SizeMismatch {
+        width: u32,
+        height: u32,
+        len: usize,
+        expected: usize,
+    },
     #[error("OpenCV: {0}")]
     OpenCv(#[from] opencv::Error),
 }
@@ -31,7 +38,16 @@ pub fn gray_as_mat(img: &GrayImage) -> Result<BoxedRef<'_, Mat>, MatError> {
             expected,
         });
     }
-    Ok(Mat::new_rows_cols_with_data(img.height as i32, img.width as i32, &img.data)?)
+    Ok(Mat::new_rows_cols_with_data(
+        img.height as i32,
+        img.width as i32,
+        &img.data,
+    )?)
+}
+
+/// Copy a [`GrayImage`] into an owned `Mat` (when the `Mat` must outlive the image).
+pub fn gray_to_mat(img: &GrayImage) -> Result<Mat, MatError> {
+    Ok(gray_as_mat(img)?.clone_pointee())
 }
 
 /// Copy an 8-bit grey `Mat` into a [`GrayImage`].
@@ -85,7 +101,13 @@ impl<'a> GrayView<'a> {
     }
 
     #[allow(unsafe_code)] // A non-continuous Mat (a ROI) has no safe slice accessor in the opencv crate.
-    fn from_roi(mat: &'a impl MatTraitConst, width: usize, height: usize, stride: usize, len: usize) -> Result<Self, MatError> {
+    fn from_roi(
+        mat: &'a impl MatTraitConst,
+        width: usize,
+        height: usize,
+        stride: usize,
+        len: usize,
+    ) -> Result<Self, MatError> {
         let first = mat.ptr(0)?;
         // SAFETY: `ptr(0)` points at row 0 of a live Mat borrowed for 'a; rows are
         // `stride` bytes apart in one allocation, so `len` bytes from it are readable.
@@ -136,7 +158,10 @@ impl<'a> GrayView<'a> {
 
     /// True when `(x, y)` lies inside the image with `margin` pixels to spare.
     pub fn contains(&self, x: f64, y: f64, margin: f64) -> bool {
-        x >= margin && y >= margin && x <= self.width as f64 - 1.0 - margin && y <= self.height as f64 - 1.0 - margin
+        x >= margin
+            && y >= margin
+            && x <= self.width as f64 - 1.0 - margin
+            && y <= self.height as f64 - 1.0 - margin
     }
 }
 
@@ -162,9 +187,16 @@ mod tests {
             height: 3,
             data: vec![0; 5],
         };
-        assert!(matches!(gray_as_mat(&bad), Err(MatError::SizeMismatch { .. })));
-        let colour = Mat::new_rows_cols_with_default(2, 2, opencv::core::CV_8UC3, 0.into()).unwrap();
-        assert!(matches!(GrayView::new(&colour), Err(MatError::NotGray8 { .. })));
+        assert!(matches!(
+            gray_as_mat(&bad),
+            Err(MatError::SizeMismatch { .. })
+        ));
+        let colour =
+            Mat::new_rows_cols_with_default(2, 2, opencv::core::CV_8UC3, 0.into()).unwrap();
+        assert!(matches!(
+            GrayView::new(&colour),
+            Err(MatError::NotGray8 { .. })
+        ));
     }
 
     #[test]

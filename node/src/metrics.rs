@@ -176,8 +176,8 @@ pub fn ssim(a: &GrayImage, b: &GrayImage) -> Result<f64, MetricError> {
         let va = e_aa[i] - ma * ma;
         let vb = e_bb[i] - mb * mb;
         let cov = e_ab[i] - ma * mb;
-        sum += ((2.0 * ma * mb + c1) * (2.0 * cov + c2))
-            / ((ma * ma + mb * mb + c1) * (va + vb + c2));
+        sum +=
+            ((2.0 * ma * mb + c1) * (2.0 * cov + c2)) / ((ma * ma + mb * mb + c1) * (va + vb + c2));
     }
     Ok(sum / n as f64)
 }
@@ -354,7 +354,10 @@ mod tests {
         assert!(matches!(ssim(&a, &a), Err(MetricError::TooSmall { .. })));
         let b = GrayImage::filled(20, 20, 0);
         let c = GrayImage::filled(20, 21, 0);
-        assert!(matches!(ssim(&b, &c), Err(MetricError::SizeMismatch { .. })));
+        assert!(matches!(
+            ssim(&b, &c),
+            Err(MetricError::SizeMismatch { .. })
+        ));
         let bad = GrayImage {
             width: 20,
             height: 20,
@@ -419,7 +422,10 @@ mod tests {
         // 80 / sqrt(64 + 64) = 7.07; rounding adds 1/12 to each variance.
         let expected = 80.0 / (2.0 * (64.0 + 1.0 / 12.0f64)).sqrt();
         let got = cnr(&img, &white, &black).unwrap();
-        assert!((got - expected).abs() < 0.1, "got {got}, expected {expected}");
+        assert!(
+            (got - expected).abs() < 0.1,
+            "got {got}, expected {expected}"
+        );
     }
 
     #[test]
@@ -442,8 +448,14 @@ mod tests {
     fn mat_variants_agree_with_gray_image_ones() {
         let a = random_image(30, 20, 4);
         let b = random_image(30, 20, 5);
-        let ma = Mat::new_rows_cols_with_data(20, 30, &a.data).unwrap().try_clone().unwrap();
-        let mb = Mat::new_rows_cols_with_data(20, 30, &b.data).unwrap().try_clone().unwrap();
+        let ma = Mat::new_rows_cols_with_data(20, 30, &a.data)
+            .unwrap()
+            .try_clone()
+            .unwrap();
+        let mb = Mat::new_rows_cols_with_data(20, 30, &b.data)
+            .unwrap()
+            .try_clone()
+            .unwrap();
         assert_eq!(gray_from_mat(&ma).unwrap(), a);
         assert_eq!(ssim_mat(&ma, &mb).unwrap(), ssim(&a, &b).unwrap());
         assert_eq!(psnr_mat(&ma, &mb).unwrap(), psnr(&a, &b).unwrap());

@@ -81,8 +81,12 @@ pub fn estimate_pose(
             actual: object_pts.len(),
         });
     }
-    if !object_pts.iter().all(|p| p.coords.iter().all(|v| v.is_finite()))
-        || !image_pts.iter().all(|p| p[0].is_finite() && p[1].is_finite())
+    if !object_pts
+        .iter()
+        .all(|p| p.coords.iter().all(|v| v.is_finite()))
+        || !image_pts
+            .iter()
+            .all(|p| p[0].is_finite() && p[1].is_finite())
     {
         return Err(PoseError::NonFinite);
     }
@@ -99,7 +103,10 @@ pub fn estimate_pose(
         let Some(pose) = refine_lm(cam, object_pts, image_pts, init) else {
             continue;
         };
-        if hyps.iter().any(|h| difference(&h.camera_from_marker, &pose).norm() < 1e-6) {
+        if hyps
+            .iter()
+            .any(|h| difference(&h.camera_from_marker, &pose).norm() < 1e-6)
+        {
             continue;
         }
         if let Some(h) = hypothesis(cam, object_pts, image_pts, pose, corner_sigma_px) {
@@ -116,13 +123,21 @@ pub fn estimate_pose(
 }
 
 fn camera_mats(cam: &CameraModel) -> Result<(Mat, Mat), PoseError> {
-    let k = Mat::from_slice_2d(&[[cam.fx, 0.0, cam.cx], [0.0, cam.fy, cam.cy], [0.0, 0.0, 1.0]])?;
+    let k = Mat::from_slice_2d(&[
+        [cam.fx, 0.0, cam.cx],
+        [0.0, cam.fy, cam.cy],
+        [0.0, 0.0, 1.0],
+    ])?;
     let d = Mat::from_slice(&cam.distortion)?.try_clone()?;
     Ok((k, d))
 }
 
 /// IPPE's two planar solutions (or EPnP's one for non-planar points).
-fn initial_poses(cam: &CameraModel, obj: &[Point3<f64>], img: &[[f64; 2]]) -> Result<Vec<Pose>, PoseError> {
+fn initial_poses(
+    cam: &CameraModel,
+    obj: &[Point3<f64>],
+    img: &[[f64; 2]],
+) -> Result<Vec<Pose>, PoseError> {
     use opencv::calib3d::{self, SolvePnPMethod};
     use opencv::core::{Point2d, Point3d};
     let planar = obj.iter().all(|p| p.z.abs() < 1e-12);
@@ -159,7 +174,9 @@ fn initial_poses(cam: &CameraModel, obj: &[Point3<f64>], img: &[[f64; 2]]) -> Re
         if rv.iter().chain(tv.iter()).all(|v| v.is_finite()) {
             out.push(Pose::from_parts(
                 nalgebra::Translation3::new(tv[0], tv[1], tv[2]),
-                nalgebra::UnitQuaternion::from_scaled_axis(nalgebra::Vector3::new(rv[0], rv[1], rv[2])),
+                nalgebra::UnitQuaternion::from_scaled_axis(nalgebra::Vector3::new(
+                    rv[0], rv[1], rv[2],
+                )),
             ));
         }
     }
@@ -167,7 +184,12 @@ fn initial_poses(cam: &CameraModel, obj: &[Point3<f64>], img: &[[f64; 2]]) -> Re
 }
 
 /// Residuals `project(pose · X) − u` (2n), `None` if a point is behind the camera.
-fn residuals(cam: &CameraModel, obj: &[Point3<f64>], img: &[[f64; 2]], pose: &Pose) -> Option<DVector<f64>> {
+fn residuals(
+    cam: &CameraModel,
+    obj: &[Point3<f64>],
+    img: &[[f64; 2]],
+    pose: &Pose,
+) -> Option<DVector<f64>> {
     let mut r = DVector::zeros(2 * obj.len());
     for (k, (p, u)) in obj.iter().zip(img).enumerate() {
         let q = cam.project(&(pose * p))?;
@@ -178,7 +200,12 @@ fn residuals(cam: &CameraModel, obj: &[Point3<f64>], img: &[[f64; 2]], pose: &Po
 }
 
 /// Jacobian of the residuals w.r.t. the perturbation ξ = (δt, δθ) (central differences).
-fn jacobian(cam: &CameraModel, obj: &[Point3<f64>], img: &[[f64; 2]], pose: &Pose) -> Option<DMatrix<f64>> {
+fn jacobian(
+    cam: &CameraModel,
+    obj: &[Point3<f64>],
+    img: &[[f64; 2]],
+    pose: &Pose,
+) -> Option<DMatrix<f64>> {
     let mut j = DMatrix::zeros(2 * obj.len(), 6);
     let scale = pose.translation.vector.norm().max(1e-3);
     for c in 0..6 {
@@ -263,11 +290,14 @@ fn hypothesis(
     let inv = jtj.try_inverse()?;
     let mut covariance = inv * (sigma * sigma);
     covariance = 0.5 * (covariance + covariance.transpose());
-    covariance.iter().all(|v| v.is_finite()).then_some(Hypothesis {
-        camera_from_marker: pose,
-        covariance,
-        rms_px,
-    })
+    covariance
+        .iter()
+        .all(|v| v.is_finite())
+        .then_some(Hypothesis {
+            camera_from_marker: pose,
+            covariance,
+            rms_px,
+        })
 }
 
 /// One row of the paper's Figure 3 experiment (§3.1, Eq. (5)).
@@ -310,12 +340,20 @@ pub fn features_layout(n: usize, side_m: f64) -> Vec<Point3<f64>> {
 /// generic), Gaussian noise of each σ on the projected corners, `trials` PnP
 /// solves per (σ, n), and Eq. (5)'s cumulative distance error. The paper does
 /// not give its marker size or distance; these are typical of its §6.2 tests.
-pub fn features_experiment(trials: usize, sigmas: &[f64], counts: &[usize], seed: u64) -> Vec<FeaturesRow> {
+pub fn features_experiment(
+    trials: usize,
+    sigmas: &[f64],
+    counts: &[usize],
+    seed: u64,
+) -> Vec<FeaturesRow> {
     use rand::SeedableRng;
     use rand_distr::{Distribution, Normal};
     let cam = CameraModel::paper_eq3();
     let side_m = 0.12;
-    let truth = shoal_proto::geometry::pose_from_xyz_rpy([0.02, -0.01, 1.0], [20f64.to_radians(), 15f64.to_radians(), 0.3]);
+    let truth = shoal_proto::geometry::pose_from_xyz_rpy(
+        [0.02, -0.01, 1.0],
+        [20f64.to_radians(), 15f64.to_radians(), 0.3],
+    );
     let mut rows = Vec::new();
     for &sigma in sigmas {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ sigma.to_bits());
@@ -341,7 +379,8 @@ pub fn features_experiment(trials: usize, sigmas: &[f64], counts: &[usize], seed
                     .collect();
                 match estimate_pose(&cam, &obj, &img, Some(sigma.max(1e-3))) {
                     Ok(sol) => {
-                        let d = sol.best.camera_from_marker.translation.vector - truth.translation.vector;
+                        let d = sol.best.camera_from_marker.translation.vector
+                            - truth.translation.vector;
                         cumulative_mm += 1000.0 * (d.x.abs() + d.y.abs() + d.z.abs()) / 3.0;
                     }
                     Err(_) => failures += 1,
@@ -356,7 +395,10 @@ pub fn features_experiment(trials: usize, sigmas: &[f64], counts: &[usize], seed
                 failures,
             });
         }
-        let error_20 = group.iter().find(|r| r.points == 20).map_or(0.0, |r| r.cumulative_mm);
+        let error_20 = group
+            .iter()
+            .find(|r| r.points == 20)
+            .map_or(0.0, |r| r.cumulative_mm);
         for r in &mut group {
             r.relative_mm = r.cumulative_mm - error_20;
         }

@@ -53,7 +53,12 @@ fn layout(codes: CodeSet, id: MarkerId, side_mm: f64) -> Result<Layout, PrintErr
         origin_mm,
         page_mm: side_mm + 2.0 * origin_mm,
         grid,
-        label: format!("{} id {}  {:.1} mm (black square)", codes.name(), id, side_mm),
+        label: format!(
+            "{} id {}  {:.1} mm (black square)",
+            codes.name(),
+            id,
+            side_mm
+        ),
     })
 }
 
@@ -67,8 +72,18 @@ impl Layout {
             for &y in &[lo, hi] {
                 let sx = if x == lo { -1.0 } else { 1.0 };
                 let sy = if y == lo { -1.0 } else { 1.0 };
-                v.push([x + sx * CUT_GAP_MM, y, x + sx * (CUT_GAP_MM + CUT_LEN_MM), y]);
-                v.push([x, y + sy * CUT_GAP_MM, x, y + sy * (CUT_GAP_MM + CUT_LEN_MM)]);
+                v.push([
+                    x + sx * CUT_GAP_MM,
+                    y,
+                    x + sx * (CUT_GAP_MM + CUT_LEN_MM),
+                    y,
+                ]);
+                v.push([
+                    x,
+                    y + sy * CUT_GAP_MM,
+                    x,
+                    y + sy * (CUT_GAP_MM + CUT_LEN_MM),
+                ]);
             }
         }
         v
@@ -85,10 +100,16 @@ pub fn marker_svg(codes: CodeSet, id: MarkerId, side_mm: f64) -> Result<String, 
         s,
         r#"<svg xmlns="http://www.w3.org/2000/svg" width="{p:.3}mm" height="{p:.3}mm" viewBox="0 0 {p:.3} {p:.3}" shape-rendering="crispEdges">"#
     );
-    let _ = writeln!(s, r#"<rect x="0" y="0" width="{p:.3}" height="{p:.3}" fill="white"/>"#);
+    let _ = writeln!(
+        s,
+        r#"<rect x="0" y="0" width="{p:.3}" height="{p:.3}" fill="white"/>"#
+    );
     let (o, m) = (l.origin_mm, l.module_mm);
     let n = l.modules;
-    let _ = writeln!(s, r#"<rect x="{o:.4}" y="{o:.4}" width="{side_mm:.4}" height="{side_mm:.4}" fill="black"/>"#);
+    let _ = writeln!(
+        s,
+        r#"<rect x="{o:.4}" y="{o:.4}" width="{side_mm:.4}" height="{side_mm:.4}" fill="black"/>"#
+    );
     // White modules, merged into horizontal runs.
     for r in 0..n {
         let mut c = 0;
@@ -111,7 +132,10 @@ pub fn marker_svg(codes: CodeSet, id: MarkerId, side_mm: f64) -> Result<String, 
         }
     }
     for [x0, y0, x1, y1] in l.cut_marks() {
-        let _ = writeln!(s, r#"<line x1="{x0:.3}" y1="{y0:.3}" x2="{x1:.3}" y2="{y1:.3}" stroke="black" stroke-width="0.2"/>"#);
+        let _ = writeln!(
+            s,
+            r#"<line x1="{x0:.3}" y1="{y0:.3}" x2="{x1:.3}" y2="{y1:.3}" stroke="black" stroke-width="0.2"/>"#
+        );
     }
     let _ = writeln!(
         s,
@@ -126,7 +150,12 @@ pub fn marker_svg(codes: CodeSet, id: MarkerId, side_mm: f64) -> Result<String, 
 
 /// The marker as a grey PNG at `dpi`, with the resolution stored in its
 /// `pHYs` chunk so that printing at 100 % gives the true size.
-pub fn marker_png(codes: CodeSet, id: MarkerId, side_mm: f64, dpi: f64) -> Result<Vec<u8>, PrintError> {
+pub fn marker_png(
+    codes: CodeSet,
+    id: MarkerId,
+    side_mm: f64,
+    dpi: f64,
+) -> Result<Vec<u8>, PrintError> {
     if !(72.0..=2400.0).contains(&dpi) {
         return Err(PrintError::BadDpi(dpi));
     }
@@ -216,7 +245,11 @@ fn crc32(data: &[u8]) -> u32 {
     for &b in data {
         crc ^= u32::from(b);
         for _ in 0..8 {
-            crc = if crc & 1 != 0 { (crc >> 1) ^ 0xEDB8_8320 } else { crc >> 1 };
+            crc = if crc & 1 != 0 {
+                (crc >> 1) ^ 0xEDB8_8320
+            } else {
+                crc >> 1
+            };
         }
     }
     !crc
@@ -239,8 +272,14 @@ mod tests {
         assert!(s.contains(r#"width="174.000mm""#), "{s}");
         assert!(s.contains("shoal id 17"));
         assert_eq!(s.matches("<line").count(), 8);
-        assert!(matches!(marker_svg(CodeSet::Shoal, 99, 120.0), Err(PrintError::Marker(_))));
-        assert!(matches!(marker_svg(CodeSet::Shoal, 1, f64::NAN), Err(PrintError::BadSize(_))));
+        assert!(matches!(
+            marker_svg(CodeSet::Shoal, 99, 120.0),
+            Err(PrintError::Marker(_))
+        ));
+        assert!(matches!(
+            marker_svg(CodeSet::Shoal, 1, f64::NAN),
+            Err(PrintError::BadSize(_))
+        ));
     }
 
     #[test]
@@ -258,7 +297,11 @@ mod tests {
                     let x = ((l.origin_mm + (c as f64 + 0.5) * l.module_mm) * px_per_mm) as i32;
                     let y = ((l.origin_mm + (r as f64 + 0.5) * l.module_mm) * px_per_mm) as i32;
                     let white = *img.at_2d::<u8>(y, x).unwrap() > 127;
-                    assert_eq!(white, l.grid[r * l.modules + c], "{codes} module ({r}, {c})");
+                    assert_eq!(
+                        white,
+                        l.grid[r * l.modules + c],
+                        "{codes} module ({r}, {c})"
+                    );
                 }
             }
         }

@@ -124,6 +124,9 @@ pub struct RestoreParams {
     pub psf_c_half_per_m: f64,
     /// Pixels per unit of Eq. (14)'s σ = 1/(2√p) (the paper states no unit).
     pub psf_px_per_unit: f64,
+    /// Pyramid level at which the Wiener deconvolution runs (0 = full
+    /// resolution; 1 = half, its correction up-sampled), see `docs/restoration.md`.
+    pub deconv_level: u32,
     /// Wiener noise-to-signal ratio = gain · σ_noise² / σ_signal², clamped.
     pub nsr_gain: f64,
     pub nsr_min: f64,
@@ -142,7 +145,9 @@ pub struct RestoreParams {
     pub max_pyramid_level: u32,
     /// Edge step / noise ratio the detector wants at the chosen level.
     pub edge_snr_target: f64,
-    /// The smallest region of interest (pixels) must keep this side at the chosen level.
+    /// Largest PSF σ (pixels at the chosen level) the detector should see.
+    pub level_blur_px: f64,
+    /// The largest region of interest (pixels) must keep this side at the chosen level.
     pub min_roi_side_at_level_px: i32,
     /// Region of interest search: local contrast threshold in coarse-noise units,
     /// and as a fraction of the strongest local contrast.
@@ -179,6 +184,7 @@ impl Default for RestoreParams {
             psf_p_clear: 2.0,
             psf_c_half_per_m: 6.0,
             psf_px_per_unit: 10.0,
+            deconv_level: 0,
             nsr_gain: 1.0,
             nsr_min: 2e-3,
             nsr_max: 0.5,
@@ -189,6 +195,7 @@ impl Default for RestoreParams {
             stretch_max_gain: 6.0,
             max_pyramid_level: 3,
             edge_snr_target: 12.0,
+            level_blur_px: 1.5,
             min_roi_side_at_level_px: 48,
             roi_noise_k: 4.0,
             roi_rel_threshold: 0.2,
@@ -230,6 +237,7 @@ impl RestoreParams {
             ("stretch_target", self.stretch_target),
             ("stretch_max_gain", self.stretch_max_gain),
             ("edge_snr_target", self.edge_snr_target),
+            ("level_blur_px", self.level_blur_px),
             ("baseline_clahe_clip", self.baseline_clahe_clip),
             ("clahe_clip_base", self.clahe_clip_base),
             ("dcp_t0", self.dcp_t0),
@@ -240,10 +248,18 @@ impl RestoreParams {
             }
         }
         if !(self.ambient_tau_s.is_finite() && self.ambient_tau_s >= 0.0) {
-            return bad("ambient_tau_s", self.ambient_tau_s, "must be finite and >= 0");
+            return bad(
+                "ambient_tau_s",
+                self.ambient_tau_s,
+                "must be finite and >= 0",
+            );
         }
         if !(self.ambient_alpha_max >= 0.0 && self.ambient_alpha_max < 1.0) {
-            return bad("ambient_alpha_max", self.ambient_alpha_max, "paper: 0 <= α < 1");
+            return bad(
+                "ambient_alpha_max",
+                self.ambient_alpha_max,
+                "paper: 0 <= α < 1",
+            );
         }
         if !(self.nsr_max >= self.nsr_min && self.nsr_max.is_finite()) {
             return bad("nsr_max", self.nsr_max, "must be finite and >= nsr_min");
@@ -258,6 +274,9 @@ impl RestoreParams {
         if !(self.dcp_omega > 0.0 && self.dcp_omega <= 1.0) {
             return bad("dcp_omega", self.dcp_omega, "must be in (0, 1]");
         }
+        if self.deconv_level > 3 {
+            return bad("deconv_level", self.deconv_level as f64, "must be <= 3");
+        }
         if self.clahe_tile_px < 8 {
             return bad("clahe_tile_px", self.clahe_tile_px as f64, "must be >= 8");
         }
@@ -269,10 +288,18 @@ impl RestoreParams {
             );
         }
         if self.dcp_patch < 1 || self.dcp_guided_radius < 0 {
-            return bad("dcp_patch", self.dcp_patch as f64, "patch >= 1, radius >= 0");
+            return bad(
+                "dcp_patch",
+                self.dcp_patch as f64,
+                "patch >= 1, radius >= 0",
+            );
         }
         if !(self.roi_max_fraction > 0.0 && self.roi_max_fraction <= 1.0) {
-            return bad("roi_max_fraction", self.roi_max_fraction, "must be in (0, 1]");
+            return bad(
+                "roi_max_fraction",
+                self.roi_max_fraction,
+                "must be in (0, 1]",
+            );
         }
         None
     }
@@ -377,12 +404,13 @@ pub fn restore_file(
     }
     let out = restorer(method, &params).restore(&img, 0)?;
     let out_name = output.display().to_string();
-    let ok = imgcodecs::imwrite(&out_name, &out.image, &opencv::core::Vector::new()).map_err(
-        |e| RestoreError::Write {
-            path: out_name.clone(),
-            reason: e.to_string(),
-        },
-    )?;
+    let ok =
+        imgcodecs::imwrite(&out_name, &out.image, &opencv::core::Vector::new()).map_err(|e| {
+            RestoreError::Write {
+                path: out_name.clone(),
+                reason: e.to_string(),
+            }
+        })?;
     if !ok {
         return Err(RestoreError::Write {
             path: out_name,
@@ -416,17 +444,18 @@ pub(crate) fn check_input(gray: &Mat) -> Result<(), RestoreError> {
 
 /// An area-averaged `1/factor` copy (each coarse pixel the mean of a factor x factor block).
 pub(crate) fn coarse_level(gray: &Mat, factor: i32) -> Result<Mat, RestoreError> {
-    let size = Size::new(
-        (gray.cols() / factor).max(1),
-        (gray.rows() / factor).max(1),
-    );
+    let size = Size::new((gray.cols() / factor).max(1), (gray.rows() / factor).max(1));
     let mut out = Mat::default();
     imgproc::resize(gray, &mut out, size, 0.0, 0.0, imgproc::INTER_AREA)?;
     Ok(out)
 }
 
 /// A CLAHE with `clip` and a tile grid of about `tile_px` pixels per tile, applied to `src`.
-pub(crate) fn clahe(src: &Mat, clip: f64, tile_px: i32) -> Result<Mat, RestoreError> {
+pub(crate) fn clahe(
+    src: &(impl MatTraitConst + opencv::core::ToInputArray),
+    clip: f64,
+    tile_px: i32,
+) -> Result<Mat, RestoreError> {
     let grid = Size::new(
         ((src.cols() + tile_px - 1) / tile_px).max(1),
         ((src.rows() + tile_px - 1) / tile_px).max(1),
@@ -435,7 +464,11 @@ pub(crate) fn clahe(src: &Mat, clip: f64, tile_px: i32) -> Result<Mat, RestoreEr
 }
 
 /// A CLAHE with `clip` and a `grid` of tiles, applied to `src`.
-pub(crate) fn clahe_grid(src: &Mat, clip: f64, grid: Size) -> Result<Mat, RestoreError> {
+pub(crate) fn clahe_grid(
+    src: &impl opencv::core::ToInputArray,
+    clip: f64,
+    grid: Size,
+) -> Result<Mat, RestoreError> {
     let mut c = imgproc::create_clahe(clip, grid)?;
     let mut out = Mat::default();
     c.apply(src, &mut out)?;

@@ -22,16 +22,35 @@ fn check(det: &mut dyn MarkerDetector, codes: CodeSet, id: u32, roll_deg: f64) {
             * UnitQuaternion::from_axis_angle(&Vector3::y_axis(), 0.4),
     );
     let scene = Scene::single_marker(codes, id, 0.1, pose);
-    let img = Renderer::new().render(&cam, &Pose::identity(), &scene, &WaterParams::clear(), 0.0, 1).unwrap().image;
+    let img = Renderer::new()
+        .render(
+            &cam,
+            &Pose::identity(),
+            &scene,
+            &WaterParams::clear(),
+            0.0,
+            1,
+        )
+        .unwrap()
+        .image;
     let mat = gray_as_mat(&img).unwrap().clone_pointee();
     let found = det.detect(&mat).unwrap();
-    assert_eq!(found.iter().map(|d| d.id).collect::<Vec<_>>(), vec![id], "{} roll {roll_deg}", det.name());
+    assert_eq!(
+        found.iter().map(|d| d.id).collect::<Vec<_>>(),
+        vec![id],
+        "{} roll {roll_deg}",
+        det.name()
+    );
     let d = &found[0];
     let all = codes.corners_3d(0.1);
     for (k, &cid) in d.corner_ids.iter().enumerate() {
         let q = cam.project(&(pose * all[cid as usize])).unwrap();
         let e = ((q.x - d.corners_px[k][0]).powi(2) + (q.y - d.corners_px[k][1]).powi(2)).sqrt();
-        assert!(e < CORNER_TOL_PX, "{} roll {roll_deg} corner {cid}: {e} px", det.name());
+        assert!(
+            e < CORNER_TOL_PX,
+            "{} roll {roll_deg} corner {cid}: {e} px",
+            det.name()
+        );
     }
 }
 
@@ -58,6 +77,12 @@ fn apriltag_corners_follow_corners_3d_order() {
 
 #[test]
 fn baselines_refuse_code_sets_they_cannot_read() {
-    assert!(matches!(OpenCvAruco::new(CodeSet::AprilTag36h11), Err(DetectError::Unsupported { .. })));
-    assert!(matches!(AprilTag::new(CodeSet::Shoal), Err(DetectError::Unsupported { .. })));
+    assert!(matches!(
+        OpenCvAruco::new(CodeSet::AprilTag36h11),
+        Err(DetectError::Unsupported { .. })
+    ));
+    assert!(matches!(
+        AprilTag::new(CodeSet::Shoal),
+        Err(DetectError::Unsupported { .. })
+    ));
 }

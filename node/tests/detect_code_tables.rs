@@ -11,7 +11,11 @@ fn opencv_marker(dict: aruco::PREDEFINED_DICTIONARY_NAME, id: u32, modules: usiz
     let mut img = core::Mat::default();
     aruco::draw_marker(&d, id as i32, modules as i32, &mut img, 1).unwrap();
     (0..modules * modules)
-        .map(|k| *img.at_2d::<u8>((k / modules) as i32, (k % modules) as i32).unwrap() > 127)
+        .map(|k| {
+            *img.at_2d::<u8>((k / modules) as i32, (k % modules) as i32)
+                .unwrap()
+                > 127
+        })
         .collect()
 }
 
@@ -37,7 +41,11 @@ fn aruco_tables_match_opencv_dictionaries() {
             assert_eq!(ours, opencv_marker(dict, id, m), "{set} id {id}");
         }
         let d = aruco::get_predefined_dictionary(dict).unwrap();
-        assert_eq!(set.table().max_correction_bits, d.max_correction_bits() as u32, "{set}");
+        assert_eq!(
+            set.table().max_correction_bits,
+            d.max_correction_bits() as u32,
+            "{set}"
+        );
     }
 }
 
@@ -45,21 +53,32 @@ fn aruco_tables_match_opencv_dictionaries() {
 fn smaller_aruco_dictionaries_are_prefixes() {
     use aruco::PREDEFINED_DICTIONARY_NAME as D;
     for id in [0, 10, 15, 17, 49] {
-        assert_eq!(CodeSet::Aruco4x4_50.module_grid(id).unwrap(), opencv_marker(D::DICT_4X4_50, id, 6));
-        assert_eq!(CodeSet::Aruco6x6_250.module_grid(id).unwrap(), opencv_marker(D::DICT_6X6_250, id, 8));
+        assert_eq!(
+            CodeSet::Aruco4x4_50.module_grid(id).unwrap(),
+            opencv_marker(D::DICT_4X4_50, id, 6)
+        );
+        assert_eq!(
+            CodeSet::Aruco6x6_250.module_grid(id).unwrap(),
+            opencv_marker(D::DICT_6X6_250, id, 8)
+        );
     }
 }
 
 #[test]
 fn apriltag_tables_match_libapriltag_renders() {
-    for (set, fam) in [(CodeSet::AprilTag16h5, Family::Tag16h5), (CodeSet::AprilTag36h11, Family::Tag36h11)] {
+    for (set, fam) in [
+        (CodeSet::AprilTag16h5, Family::Tag16h5),
+        (CodeSet::AprilTag36h11, Family::Tag36h11),
+    ] {
         let f = FamilyHandle::new(fam).unwrap();
         assert_eq!(set.len(), f.ncodes(), "{set}");
         let m = set.modules();
         for id in sample_ids(f.ncodes()) {
             let (w, px) = f.render(id as usize).unwrap();
             let off = (w - m) / 2;
-            let theirs: Vec<bool> = (0..m * m).map(|k| px[(off + k / m) * w + off + k % m] > 127).collect();
+            let theirs: Vec<bool> = (0..m * m)
+                .map(|k| px[(off + k / m) * w + off + k % m] > 127)
+                .collect();
             assert_eq!(set.module_grid(id).unwrap(), theirs, "{set} id {id}");
         }
     }
@@ -82,7 +101,10 @@ fn enhanced_marker_17_is_opencv_4x4_50_marker_17_inside_a_white_ring() {
         }
     }
     // The paper's other example IDs decode to distinct codes.
-    let codes: Vec<u64> = [10, 15, 17].iter().map(|&i| CodeSet::Shoal.code(i).unwrap()).collect();
+    let codes: Vec<u64> = [10, 15, 17]
+        .iter()
+        .map(|&i| CodeSet::Shoal.code(i).unwrap())
+        .collect();
     assert!(codes[0] != codes[1] && codes[1] != codes[2]);
     assert!(code_bit(codes[2], 4, 0, 0) == code[7]);
 }

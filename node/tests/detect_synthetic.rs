@@ -25,7 +25,10 @@ fn facing(x: f64, y: f64, z: f64, roll_deg: f64, yaw_deg: f64) -> Pose {
 fn render(codes: CodeSet, id: u32, pose: Pose, water: &WaterParams) -> GrayImage {
     let cam = CameraModel::vehicle_1440();
     let scene = Scene::single_marker(codes, id, SIDE_M, pose);
-    Renderer::new().render(&cam, &Pose::identity(), &scene, water, 0.0, 5).unwrap().image
+    Renderer::new()
+        .render(&cam, &Pose::identity(), &scene, water, 0.0, 5)
+        .unwrap()
+        .image
 }
 
 fn corner_errors(d: &Detection, pose: &Pose) -> Vec<f64> {
@@ -46,13 +49,18 @@ fn decodes_id_17_under_rotation_with_all_twelve_corners() {
     for roll in [0.0, 90.0, 180.0, 270.0, 33.0] {
         let pose = facing(0.01, -0.02, 0.61, roll, 30.0);
         let img = render(CodeSet::Shoal, 17, pose, &WaterParams::clear());
-        let found = ShoalDetector::new(CodeSet::Shoal, DetectParams::default()).detect_gray(&img).unwrap();
+        let found = ShoalDetector::new(CodeSet::Shoal, DetectParams::default())
+            .detect_gray(&img)
+            .unwrap();
         assert_eq!(found.len(), 1, "roll {roll}: {found:?}");
         let d = &found[0];
         assert_eq!((d.id, d.hamming), (17, 0));
         assert_eq!(d.corner_ids, (0..12).collect::<Vec<u8>>());
         let errs = corner_errors(d, &pose);
-        assert!(errs.iter().all(|&e| e < CLEAN_CORNER_TOL_PX), "roll {roll}: {errs:?}");
+        assert!(
+            errs.iter().all(|&e| e < CLEAN_CORNER_TOL_PX),
+            "roll {roll}: {errs:?}"
+        );
     }
 }
 
@@ -61,7 +69,9 @@ fn reads_the_papers_ids_in_turbid_water() {
     for id in [10, 15, 17] {
         let pose = facing(0.0, 0.0, 0.61, 0.0, 30.0);
         let img = render(CodeSet::Shoal, id, pose, &WaterParams::preset(1.38));
-        let found = ShoalDetector::new(CodeSet::Shoal, DetectParams::default()).detect_gray(&img).unwrap();
+        let found = ShoalDetector::new(CodeSet::Shoal, DetectParams::default())
+            .detect_gray(&img)
+            .unwrap();
         assert_eq!(found.iter().map(|d| d.id).collect::<Vec<_>>(), vec![id]);
     }
 }
@@ -71,13 +81,21 @@ fn clipped_outer_frame_still_gives_the_code_corners() {
     // Shifted so the outer frame runs off the left image border but the code square stays inside.
     let pose = facing(-0.31, 0.0, 0.61, 0.0, 0.0);
     let img = render(CodeSet::Shoal, 17, pose, &WaterParams::clear());
-    let found = ShoalDetector::new(CodeSet::Shoal, DetectParams::default()).detect_gray(&img).unwrap();
+    let found = ShoalDetector::new(CodeSet::Shoal, DetectParams::default())
+        .detect_gray(&img)
+        .unwrap();
     assert_eq!(found.len(), 1, "{found:?}");
     let d = &found[0];
     assert_eq!(d.id, 17);
-    assert!(!d.corner_ids.contains(&0), "outer frame is clipped: {:?}", d.corner_ids);
+    assert!(
+        !d.corner_ids.contains(&0),
+        "outer frame is clipped: {:?}",
+        d.corner_ids
+    );
     assert!(d.corner_ids.ends_with(&[8, 9, 10, 11]));
-    assert!(corner_errors(d, &pose).iter().all(|&e| e < CLEAN_CORNER_TOL_PX));
+    assert!(corner_errors(d, &pose)
+        .iter()
+        .all(|&e| e < CLEAN_CORNER_TOL_PX));
 }
 
 #[test]
@@ -86,17 +104,23 @@ fn occluded_frame_still_gives_the_code_corners() {
     let mut img = render(CodeSet::Shoal, 17, pose, &WaterParams::clear());
     // A grey bar across the top of the frame (not the code).
     let cam = CameraModel::vehicle_1440();
-    let top = cam.project(&(pose * CodeSet::Shoal.corners_3d(SIDE_M)[0])).unwrap();
+    let top = cam
+        .project(&(pose * CodeSet::Shoal.corners_3d(SIDE_M)[0]))
+        .unwrap();
     for y in (top.y as usize - 12)..(top.y as usize + 14) {
         for x in 500..900 {
             img.data[y * img.width as usize + x] = 128;
         }
     }
-    let found = ShoalDetector::new(CodeSet::Shoal, DetectParams::default()).detect_gray(&img).unwrap();
+    let found = ShoalDetector::new(CodeSet::Shoal, DetectParams::default())
+        .detect_gray(&img)
+        .unwrap();
     assert_eq!(found.len(), 1);
     assert_eq!(found[0].id, 17);
     assert!(!found[0].corner_ids.contains(&0));
-    assert!(corner_errors(&found[0], &pose).iter().all(|&e| e < CLEAN_CORNER_TOL_PX));
+    assert!(corner_errors(&found[0], &pose)
+        .iter()
+        .all(|&e| e < CLEAN_CORNER_TOL_PX));
 }
 
 #[test]
@@ -110,10 +134,21 @@ fn reads_aruco_and_apriltag_code_sets() {
     ] {
         let pose = facing(0.02, 0.01, 0.61, 90.0, 25.0);
         let img = render(codes, id, pose, &WaterParams::clear());
-        let found = ShoalDetector::new(codes, DetectParams::default()).detect_gray(&img).unwrap();
-        assert_eq!(found.iter().map(|d| d.id).collect::<Vec<_>>(), vec![id], "{codes}");
+        let found = ShoalDetector::new(codes, DetectParams::default())
+            .detect_gray(&img)
+            .unwrap();
+        assert_eq!(
+            found.iter().map(|d| d.id).collect::<Vec<_>>(),
+            vec![id],
+            "{codes}"
+        );
         assert_eq!(found[0].corner_ids, vec![0, 1, 2, 3]);
-        assert!(corner_errors(&found[0], &pose).iter().all(|&e| e < CLEAN_CORNER_TOL_PX), "{codes}");
+        assert!(
+            corner_errors(&found[0], &pose)
+                .iter()
+                .all(|&e| e < CLEAN_CORNER_TOL_PX),
+            "{codes}"
+        );
     }
 }
 
@@ -122,22 +157,36 @@ fn does_not_guess_on_noise_or_a_blank_frame() {
     let mut state = 12345u64;
     let data: Vec<u8> = (0..640 * 480)
         .map(|_| {
-            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             (state >> 56) as u8
         })
         .collect();
     let noise = GrayImage::from_vec(640, 480, data).unwrap();
     let mut det = ShoalDetector::new(CodeSet::Shoal, DetectParams::default());
     assert!(det.detect_gray(&noise).unwrap().is_empty());
-    assert!(det.detect_gray(&GrayImage::filled(64, 48, 200)).unwrap().is_empty());
+    assert!(det
+        .detect_gray(&GrayImage::filled(64, 48, 200))
+        .unwrap()
+        .is_empty());
     // A marker of another code set (AprilTag) is not read as an enhanced marker.
-    let img = render(CodeSet::AprilTag36h11, 3, facing(0.0, 0.0, 0.61, 0.0, 0.0), &WaterParams::clear());
+    let img = render(
+        CodeSet::AprilTag36h11,
+        3,
+        facing(0.0, 0.0, 0.61, 0.0, 0.0),
+        &WaterParams::clear(),
+    );
     assert!(det.detect_gray(&img).unwrap().is_empty());
 }
 
 #[test]
 fn rejects_a_malformed_image() {
-    let bad = GrayImage { width: 10, height: 10, data: vec![0; 7] };
+    let bad = GrayImage {
+        width: 10,
+        height: 10,
+        data: vec![0; 7],
+    };
     let mut det = ShoalDetector::new(CodeSet::Shoal, DetectParams::default());
     assert!(det.detect_gray(&bad).is_err());
 }

@@ -5,10 +5,14 @@ use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 use shoal_node::pose::{estimate_pose, features_experiment, PoseError};
 use shoal_proto::camera::CameraModel;
-use shoal_proto::geometry::{difference, pose_from_xyz_rpy, covariance_problem};
+use shoal_proto::geometry::{covariance_problem, difference, pose_from_xyz_rpy};
 use shoal_proto::marker::CodeSet;
 
-fn project_all(cam: &CameraModel, pose: &shoal_proto::geometry::Pose, pts: &[Point3<f64>]) -> Vec<[f64; 2]> {
+fn project_all(
+    cam: &CameraModel,
+    pose: &shoal_proto::geometry::Pose,
+    pts: &[Point3<f64>],
+) -> Vec<[f64; 2]> {
     pts.iter()
         .map(|p| {
             let q = cam.project(&(pose * p)).unwrap();
@@ -67,22 +71,45 @@ fn rejects_bad_input() {
     let cam = CameraModel::vehicle_1440();
     let obj = CodeSet::Shoal.corners_3d(0.1);
     let img = vec![[1.0, 2.0]; 3];
-    assert!(matches!(estimate_pose(&cam, &obj[..3], &img, None), Err(PoseError::TooFewPoints { .. })));
-    assert!(matches!(estimate_pose(&cam, &obj, &img, None), Err(PoseError::CountMismatch { .. })));
+    assert!(matches!(
+        estimate_pose(&cam, &obj[..3], &img, None),
+        Err(PoseError::TooFewPoints { .. })
+    ));
+    assert!(matches!(
+        estimate_pose(&cam, &obj, &img, None),
+        Err(PoseError::CountMismatch { .. })
+    ));
     let nan = vec![[f64::NAN, 0.0]; 12];
-    assert!(matches!(estimate_pose(&cam, &obj, &nan, None), Err(PoseError::NonFinite)));
+    assert!(matches!(
+        estimate_pose(&cam, &obj, &nan, None),
+        Err(PoseError::NonFinite)
+    ));
     let ok = vec![[700.0, 500.0]; 12];
-    assert!(matches!(estimate_pose(&cam, &obj, &ok, Some(-1.0)), Err(PoseError::BadSigma(_))));
+    assert!(matches!(
+        estimate_pose(&cam, &obj, &ok, Some(-1.0)),
+        Err(PoseError::BadSigma(_))
+    ));
 }
 
 /// Paper §3.1 / Figure 3: more points → less error, more so at high noise.
 #[test]
 fn features_experiment_shows_the_papers_trend() {
     let rows = features_experiment(200, &[1.0, 16.0], &[4, 12, 20], 11);
-    let get = |s: f64, n: usize| rows.iter().find(|r| r.sigma_px == s && r.points == n).unwrap().cumulative_mm;
+    let get = |s: f64, n: usize| {
+        rows.iter()
+            .find(|r| r.sigma_px == s && r.points == n)
+            .unwrap()
+            .cumulative_mm
+    };
     for s in [1.0, 16.0] {
-        assert!(get(s, 4) > get(s, 12) && get(s, 12) > get(s, 20) * 0.95, "sigma {s}: {rows:?}");
+        assert!(
+            get(s, 4) > get(s, 12) && get(s, 12) > get(s, 20) * 0.95,
+            "sigma {s}: {rows:?}"
+        );
     }
     assert!(get(16.0, 4) - get(16.0, 12) > 5.0 * (get(1.0, 4) - get(1.0, 12)));
-    assert_eq!(rows.iter().find(|r| r.points == 20).unwrap().relative_mm, 0.0);
+    assert_eq!(
+        rows.iter().find(|r| r.points == 20).unwrap().relative_mm,
+        0.0
+    );
 }

@@ -40,14 +40,19 @@ fn wiener_stage_raises_marker_cnr_over_the_de_attenuated_image() {
             keep_stages: true,
             ..RestoreParams::default()
         };
-        let out = restorer(Method::Hoirm, &params).restore(&f.degraded, 0).unwrap();
+        let out = restorer(Method::Hoirm, &params)
+            .restore(&f.degraded, 0)
+            .unwrap();
         let stages = out.stages.unwrap();
         let stage = |prefix: &str| {
             let (_, m) = stages.iter().find(|(n, _)| n.starts_with(prefix)).unwrap();
             cnr_of(m, &f)
         };
         let (before, after) = (stage("de-attenuated"), stage("deblurred"));
-        assert!(after > 1.5 * before, "c = {c}: CNR {before:.2} -> {after:.2}");
+        assert!(
+            after > 1.5 * before,
+            "c = {c}: CNR {before:.2} -> {after:.2}"
+        );
     }
 }
 
@@ -80,7 +85,8 @@ fn roi_and_full_frame_deconvolution_agree_on_the_marker() {
     let full = restorer(Method::Hoirm, &full_params)
         .restore(&f.degraded, 0)
         .unwrap();
-    let crop = |m: &Mat| gray_from_mat(&Mat::roi(m, f.marker).unwrap().try_clone().unwrap()).unwrap();
+    let crop =
+        |m: &Mat| gray_from_mat(&Mat::roi(m, f.marker).unwrap().try_clone().unwrap()).unwrap();
     let s = ssim(&crop(&roi.image), &crop(&full.image)).unwrap();
     assert!(s > 0.97, "SSIM(ROI, full) on the marker = {s}");
 }
@@ -133,8 +139,14 @@ fn every_method_returns_a_same_size_grey_image_and_its_name() {
         .unwrap();
     let names: Vec<&str> = stages.iter().map(|(n, _)| n.as_str()).collect();
     assert!(names.iter().any(|n| n.starts_with("denoised")), "{names:?}");
-    assert!(names.iter().any(|n| n.starts_with("de-attenuated")), "{names:?}");
-    assert!(names.iter().any(|n| n.starts_with("deblurred")), "{names:?}");
+    assert!(
+        names.iter().any(|n| n.starts_with("de-attenuated")),
+        "{names:?}"
+    );
+    assert!(
+        names.iter().any(|n| n.starts_with("deblurred")),
+        "{names:?}"
+    );
     assert!(matches!(
         "fog".parse::<Method>(),
         Err(RestoreError::UnknownMethod { .. })
@@ -151,7 +163,9 @@ fn both_stage_orders_run_and_differ() {
     let a = restorer(Method::Hoirm, &RestoreParams::default())
         .restore(&f.degraded, 0)
         .unwrap();
-    let b = restorer(Method::Hoirm, &phys).restore(&f.degraded, 0).unwrap();
+    let b = restorer(Method::Hoirm, &phys)
+        .restore(&f.degraded, 0)
+        .unwrap();
     let mut d = Mat::default();
     opencv::core::absdiff(&a.image, &b.image, &mut d).unwrap();
     assert!(opencv::core::count_non_zero(&d).unwrap() > 0);
@@ -161,11 +175,20 @@ fn both_stage_orders_run_and_differ() {
 fn bad_inputs_are_errors_not_panics() {
     for m in Method::ALL {
         let mut r = restorer(m, &RestoreParams::default());
-        assert!(matches!(r.restore(&Mat::default(), 0), Err(RestoreError::EmptyImage)));
+        assert!(matches!(
+            r.restore(&Mat::default(), 0),
+            Err(RestoreError::EmptyImage)
+        ));
         let colour = Mat::new_rows_cols_with_default(64, 64, CV_8UC3, Scalar::all(0.0)).unwrap();
-        assert!(matches!(r.restore(&colour, 0), Err(RestoreError::NotGray8 { .. })));
+        assert!(matches!(
+            r.restore(&colour, 0),
+            Err(RestoreError::NotGray8 { .. })
+        ));
         let tiny = Mat::new_rows_cols_with_default(8, 64, CV_8UC1, Scalar::all(0.0)).unwrap();
-        assert!(matches!(r.restore(&tiny, 0), Err(RestoreError::TooSmall { .. })));
+        assert!(matches!(
+            r.restore(&tiny, 0),
+            Err(RestoreError::TooSmall { .. })
+        ));
         // A flat frame is legal and must come back (no ROI, no NaN).
         let flat = Mat::new_rows_cols_with_default(64, 80, CV_8UC1, Scalar::all(90.0)).unwrap();
         let out = r.restore(&flat, 0).unwrap();
@@ -178,7 +201,10 @@ fn bad_inputs_are_errors_not_panics() {
     let f = frame(6.12, 9);
     assert!(matches!(
         Hoirm::new(bad).restore(&f.degraded, 0),
-        Err(RestoreError::BadParam { name: "c_per_m", .. })
+        Err(RestoreError::BadParam {
+            name: "c_per_m",
+            ..
+        })
     ));
 }
 
@@ -196,9 +222,11 @@ fn restore_file_writes_a_restored_png() {
     )
     .unwrap();
     restore_file(&input, &output, Method::Hoirm, Some(12.2)).unwrap();
-    let back =
-        opencv::imgcodecs::imread(output.to_str().unwrap(), opencv::imgcodecs::IMREAD_GRAYSCALE)
-            .unwrap();
+    let back = opencv::imgcodecs::imread(
+        output.to_str().unwrap(),
+        opencv::imgcodecs::IMREAD_GRAYSCALE,
+    )
+    .unwrap();
     assert_eq!(back.size().unwrap(), f.degraded.size().unwrap());
     assert!(matches!(
         restore_file(&dir.join("missing.png"), &output, Method::None, None),

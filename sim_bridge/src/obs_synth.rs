@@ -31,8 +31,10 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 use shoal_proto::config::{Fleet, MarkerOwner};
 use shoal_proto::geometry::{compose_jacobians, perturb, pose_from_xyz_rpy, Cov6, Pose};
-use shoal_proto::{CodeSet, ImageQuality, MarkerId, Observation, PoseHypothesis, VehicleId, VehicleTruth};
-use std::collections::BTreeMap;
+use shoal_proto::{
+    CodeSet, ImageQuality, MarkerId, Observation, PoseHypothesis, VehicleId, VehicleTruth,
+};
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
 
 /// Errors of this module.
@@ -135,7 +137,8 @@ impl VisibilityModel {
         } else if range_m <= self.full_detection_range_m {
             self.detection_prob_near
         } else {
-            let f = (range_m - self.full_detection_range_m) / (self.max_range_m - self.full_detection_range_m).max(1e-9);
+            let f = (range_m - self.full_detection_range_m)
+                / (self.max_range_m - self.full_detection_range_m).max(1e-9);
             self.detection_prob_near + f * (self.detection_prob_at_max - self.detection_prob_near)
         }
     }
@@ -206,10 +209,10 @@ pub struct SyntheticObservation {
 impl SyntheticObservation {
     /// Whether hypothesis `h` (0 primary, 1 alternative) of this observation is true.
     pub fn hypothesis_is_true(&self, h: u8) -> bool {
-        match (self.outlier, h) {
-            (OutlierKind::Inlier, 0) | (OutlierKind::Flipped, 1) => true,
-            _ => false,
-        }
+        matches!(
+            (self.outlier, h),
+            (OutlierKind::Inlier, 0) | (OutlierKind::Flipped, 1)
+        )
     }
 }
 
@@ -271,24 +274,36 @@ impl ObsSynth {
 
     /// One frame of every camera of every vehicle with a truth entry, captured at `stamp_ns`.
     pub fn observe(&mut self, truth: &[VehicleTruth], stamp_ns: u64) -> Vec<SyntheticObservation> {
-        let world_from: BTreeMap<VehicleId, Pose> = truth.iter().map(|t| (t.vehicle, t.world_from_body)).collect();
+        let world_from: BTreeMap<VehicleId, Pose> = truth
+            .iter()
+            .map(|t| (t.vehicle, t.world_from_body))
+            .collect();
         let fleet = self.fleet.clone();
         let params = self.params;
         let mut out = Vec::new();
         for observer in &fleet.vehicles {
-            let Some(world_from_obs) = world_from.get(&observer.id) else { continue };
+            let Some(world_from_obs) = world_from.get(&observer.id) else {
+                continue;
+            };
             for cam in &observer.cameras {
                 let seq = self.frame_seq.entry((observer.id, cam.index)).or_insert(0);
                 *seq += 1;
                 let frame_seq = *seq;
                 let world_from_cam = world_from_obs * cam.body_from_camera;
+                // Detections of this frame first, so that a misread never
+                // takes an ID this camera reads correctly in the same frame
+                // (the node would report two detections of one ID).
+                let mut detected = Vec::new();
                 for target in &fleet.vehicles {
                     if target.id == observer.id {
                         continue;
                     }
-                    let Some(world_from_tgt) = world_from.get(&target.id) else { continue };
+                    let Some(world_from_tgt) = world_from.get(&target.id) else {
+                        continue;
+                    };
                     for marker in &target.markers {
-                        let cam_from_marker = world_from_cam.inverse() * world_from_tgt * marker.body_from_marker;
+                        let cam_from_marker =
+                            world_from_cam.inverse() * world_from_tgt * marker.body_from_marker;
                         let p = cam_from_marker.translation.vector;
                         let range = p.norm();
                         if p.z <= 0.0 || range > params.visibility.max_range_m {
@@ -296,7 +311,11 @@ impl ObsSynth {
                         }
                         let m = &cam.model;
                         let (u, v) = (m.fx * p.x / p.z + m.cx, m.fy * p.y / p.z + m.cy);
-                        if u < 0.0 || v < 0.0 || u > m.width as f64 - 1.0 || v > m.height as f64 - 1.0 {
+                        if u < 0.0
+                            || v < 0.0
+                            || u > m.width as f64 - 1.0
+                            || v > m.height as f64 - 1.0
+                        {
                             continue;
                         }
                         let normal = cam_from_marker.rotation * Vector3::z();
@@ -304,23 +323,41 @@ impl ObsSynth {
                         if incidence > params.visibility.max_incidence_deg.to_radians() {
                             continue;
                         }
-                        if !self.rng.gen_bool(params.visibility.detection_probability(range).clamp(0.0, 1.0)) {
+                        if !self.rng.gen_bool(
+                            params
+                                .visibility
+                                .detection_probability(range)
+                                .clamp(0.0, 1.0),
+                        ) {
                             continue;
                         }
-                        out.push(self.measure(
-                            observer.id,
-                            cam.index,
-                            frame_seq,
-                            stamp_ns,
-                            &cam.body_from_camera,
-                            &cam_from_marker,
+                        detected.push((
                             target.id,
-                            marker.codes,
-                            marker.id,
-                            &marker.body_from_marker,
-                            &(world_from_obs.inverse() * world_from_tgt),
+                            marker.clone(),
+                            cam_from_marker,
+                            world_from_obs.inverse() * world_from_tgt,
                         ));
                     }
+                }
+                let mut ids_in_frame: BTreeSet<(&'static str, MarkerId)> = detected
+                    .iter()
+                    .map(|(_, m, _, _)| (m.codes.name(), m.id))
+                    .collect();
+                for (target, marker, cam_from_marker, truth) in detected {
+                    out.push(self.measure(
+                        observer.id,
+                        cam.index,
+                        frame_seq,
+                        stamp_ns,
+                        &cam.body_from_camera,
+                        &cam_from_marker,
+                        target,
+                        marker.codes,
+                        marker.id,
+                        &marker.body_from_marker,
+                        &truth,
+                        &mut ids_in_frame,
+                    ));
                 }
             }
         }
@@ -340,6 +377,7 @@ impl ObsSynth {
         marker_id: MarkerId,
         body_from_marker: &Pose,
         truth: &Pose,
+        ids_in_frame: &mut BTreeSet<(&'static str, MarkerId)>,
     ) -> SyntheticObservation {
         let o = self.params.outliers;
         let range = cam_from_marker.translation.vector.norm();
@@ -347,36 +385,55 @@ impl ObsSynth {
         let measured = perturb(cam_from_marker, &self.gaussian6(&cam_cov));
         // The ID read, and the mount the node would use for it.
         let mut outlier = OutlierKind::Inlier;
-        let (mut read_id, mut claimed_mount, mut claimed_vehicle) = (marker_id, *body_from_marker, Some(target));
+        let (mut read_id, mut claimed_mount, mut claimed_vehicle) =
+            (marker_id, *body_from_marker, Some(target));
         let draw: f64 = self.rng.gen();
         if draw < o.wrong_id_rate {
             let others: Vec<(CodeSet, MarkerId, VehicleId)> = self
                 .markers
                 .iter()
                 .copied()
-                .filter(|(c, _, v)| *c == codes && *v != target && *v != observer)
+                .filter(|(c, id, v)| {
+                    *c == codes
+                        && *v != target
+                        && *v != observer
+                        && !ids_in_frame.contains(&(c.name(), *id))
+                })
                 .collect();
             if !others.is_empty() {
                 let (c, id, v) = others[self.rng.gen_range(0..others.len())];
+                ids_in_frame.insert((c.name(), id));
                 read_id = id;
                 claimed_vehicle = Some(v);
-                claimed_mount = self.fleet.marker(v, c, id).map_or(*body_from_marker, |m| m.body_from_marker);
+                claimed_mount = self
+                    .fleet
+                    .marker(v, c, id)
+                    .map_or(*body_from_marker, |m| m.body_from_marker);
                 outlier = OutlierKind::WrongId;
             }
         } else if draw < o.wrong_id_rate + o.unknown_id_rate {
-            let used: Vec<MarkerId> = self.markers.iter().filter(|(c, _, _)| *c == codes).map(|(_, id, _)| *id).collect();
+            let used: Vec<MarkerId> = self
+                .markers
+                .iter()
+                .filter(|(c, _, _)| *c == codes)
+                .map(|(_, id, _)| *id)
+                .collect();
             // Any ID of the set no vehicle carries (the set's size, or past the largest used ID
             // while the code tables are not extracted).
             let n = (codes.len() as MarkerId).max(used.iter().max().map_or(1, |m| m + 2));
-            let free: Vec<MarkerId> = (0..n).filter(|id| !used.contains(id)).collect();
+            let free: Vec<MarkerId> = (0..n)
+                .filter(|id| !used.contains(id) && !ids_in_frame.contains(&(codes.name(), *id)))
+                .collect();
             if !free.is_empty() {
                 read_id = free[self.rng.gen_range(0..free.len())];
+                ids_in_frame.insert((codes.name(), read_id));
                 claimed_vehicle = None;
                 outlier = OutlierKind::UnknownId;
             }
         }
         let (twin, twin_angle) = planar_flip_twin(&measured);
-        let flip = self.rng.gen_bool(o.flip_rate.clamp(0.0, 1.0)) && twin_angle >= o.min_flip_deg.to_radians();
+        let flip = self.rng.gen_bool(o.flip_rate.clamp(0.0, 1.0))
+            && twin_angle >= o.min_flip_deg.to_radians();
         let with_alt = flip || self.rng.gen_bool(o.alternative_rate.clamp(0.0, 1.0));
         if flip && outlier == OutlierKind::Inlier {
             outlier = OutlierKind::Flipped;
@@ -391,14 +448,19 @@ impl ObsSynth {
         let cov = (cov + cov.transpose()) * 0.5;
         let true_pose = body_from_marker_meas * marker_from_target;
         let twin_pose = body_from_camera * twin * marker_from_target;
-        let (primary, alternative) = if flip { (twin_pose, true_pose) } else { (true_pose, twin_pose) };
+        let (primary, alternative) = if flip {
+            (twin_pose, true_pose)
+        } else {
+            (true_pose, twin_pose)
+        };
         let rms = 0.3 + 0.1 * range;
         let obs = Observation {
             observer,
             camera,
             codes,
             target_marker: read_id,
-            target_vehicle: claimed_vehicle.filter(|v| self.fleet.marker_owner(codes, read_id) == MarkerOwner::Vehicle(*v)),
+            target_vehicle: claimed_vehicle
+                .filter(|v| self.fleet.marker_owner(codes, read_id) == MarkerOwner::Vehicle(*v)),
             stamp_ns,
             frame_seq,
             observer_from_target: primary,
@@ -471,7 +533,10 @@ pub fn synthetic_fleet_toml(n: usize, codes: CodeSet) -> Result<String, ObsSynth
 /// The fleet of [`synthetic_fleet_toml`], parsed.
 pub fn synthetic_fleet(n: usize, codes: CodeSet) -> Result<Fleet, ObsSynthError> {
     let text = synthetic_fleet_toml(n, codes)?;
-    Ok(Fleet::parse(&text, Path::new(&format!("synthetic{n}.toml")))?)
+    Ok(Fleet::parse(
+        &text,
+        Path::new(&format!("synthetic{n}.toml")),
+    )?)
 }
 
 /// Line abreast heading north (+x), `spacing_m` apart to starboard (+y), in the order given.
@@ -506,7 +571,13 @@ impl Default for FormationJitter {
 
 /// Vehicles abreast in `columns` (along +y) and stacked in layers (along +z,
 /// deeper), `spacing_m` apart, all heading north, jittered (seeded).
-pub fn grid_formation(ids: &[VehicleId], columns: usize, spacing_m: f64, jitter: FormationJitter, seed: u64) -> Vec<VehicleTruth> {
+pub fn grid_formation(
+    ids: &[VehicleId],
+    columns: usize,
+    spacing_m: f64,
+    jitter: FormationJitter,
+    seed: u64,
+) -> Vec<VehicleTruth> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let columns = columns.max(1);
     ids.iter()
@@ -542,7 +613,10 @@ mod tests {
         let (twin, angle) = planar_flip_twin(&m);
         let n = m.rotation * Vector3::z();
         let n2 = twin.rotation * Vector3::z();
-        assert!((n.x + n2.x).abs() < 1e-9 && (n.z - n2.z).abs() < 1e-9, "{n} vs {n2}");
+        assert!(
+            (n.x + n2.x).abs() < 1e-9 && (n.z - n2.z).abs() < 1e-9,
+            "{n} vs {n2}"
+        );
         assert!((angle - 0.70).abs() < 1e-9);
         assert_eq!(twin.translation, m.translation);
     }
@@ -551,12 +625,19 @@ mod tests {
     fn synthetic_fleet_has_unique_markers_and_line_abreast_neighbours_see_each_other() {
         let fleet = synthetic_fleet(3, CodeSet::Aruco4x4_1000).unwrap();
         assert_eq!(fleet.vehicles.len(), 3);
-        assert_eq!(fleet.marker_owner(CodeSet::Aruco4x4_1000, 5), MarkerOwner::Vehicle(2));
+        assert_eq!(
+            fleet.marker_owner(CodeSet::Aruco4x4_1000, 5),
+            MarkerOwner::Vehicle(2)
+        );
         let truth = line_abreast(&[1, 2, 3], 1.5);
         let mut synth = ObsSynth::new(&fleet, ObsSynthParams::default(), 7);
         let obs = synth.observe(&truth, 1_000);
-        assert!(obs.iter().any(|o| o.obs.observer == 1 && o.true_target == 2));
-        assert!(obs.iter().any(|o| o.obs.observer == 2 && o.true_target == 1));
+        assert!(obs
+            .iter()
+            .any(|o| o.obs.observer == 1 && o.true_target == 2));
+        assert!(obs
+            .iter()
+            .any(|o| o.obs.observer == 2 && o.true_target == 1));
         for o in &obs {
             let err = difference(&o.obs.observer_from_target, &o.truth_observer_from_target);
             assert!(err.norm() < 0.2, "{err}");

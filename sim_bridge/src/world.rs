@@ -285,7 +285,9 @@ impl SwarmWorld {
             })
     }
 
-    /// Advance the world by `dt_s` (split into steps of at most 50 ms).
+    /// Advance the world by `dt_s` (split into steps of at most 50 ms); the
+    /// clock advances by `dt_s` rounded to whole nanoseconds. A non-positive
+    /// or non-finite `dt_s` does nothing.
     pub fn step(&mut self, dt_s: f64) {
         if !(dt_s.is_finite() && dt_s > 0.0) {
             return;
@@ -372,6 +374,23 @@ impl SwarmWorld {
             .collect()
     }
 
+    /// The ground-truth message for this instant (`visible`: the rendered
+    /// frames' [`shoal_proto::VisibleMarker`]s of this tick, if any).
+    pub fn sim_truth(
+        &self,
+        tick: u64,
+        water_c_per_m: f64,
+        visible: Vec<shoal_proto::VisibleMarker>,
+    ) -> shoal_proto::SimTruth {
+        shoal_proto::SimTruth {
+            stamp_ns: self.time_ns,
+            tick,
+            water_c_per_m,
+            vehicles: self.truth(),
+            visible,
+        }
+    }
+
     /// The vehicles' IDs, in fleet order.
     pub fn vehicle_ids(&self) -> Vec<VehicleId> {
         self.vehicles.iter().map(|v| v.id).collect()
@@ -429,6 +448,10 @@ mod tests {
         let (_, c) = run(4);
         assert_eq!(t1, 20_000_000_000);
         assert_eq!(a, b);
+        let w = SwarmWorld::new(&fleet, Formation::V, 2.0, 3);
+        let truth = w.sim_truth(0, 0.5, Vec::new());
+        assert_eq!(truth.vehicles.len(), 3);
+        assert!(shoal_proto::WireMessage::validate(&truth).is_ok());
         assert_ne!(a, c);
     }
 

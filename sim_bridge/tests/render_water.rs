@@ -349,3 +349,52 @@ fn fleet_view_shows_the_neighbours_marker_where_truth_says() {
     )
     .is_err());
 }
+
+#[test]
+fn hull_in_front_occludes_part_of_a_marker_and_truth_says_how_much() {
+    use shoal_proto::geometry::pose_from_xyz_rpy;
+    use shoal_sim_bridge::render::SceneHull;
+    let cam = CameraModel::vehicle_1440();
+    let marker_pose = facing_camera([0.0, 0.0, 1.0], [0.0; 3]);
+    let mut scene = Scene::single_marker(CodeSet::Shoal, 15, 0.1, marker_pose);
+    // A 125 mm hull 0.5 m in front of the marker, lying horizontally (axis
+    // along camera x) across the marker's lower part.
+    scene.hulls.push(SceneHull {
+        vehicle: 3,
+        world_from_body: pose_from_xyz_rpy([0.0, 0.07, 0.5], [0.0; 3]),
+        diameter_m: 0.125,
+        length_m: 1.0,
+    });
+    let out = Renderer::new()
+        .render(
+            &cam,
+            &Pose::identity(),
+            &scene,
+            &WaterParams::preset(0.5),
+            0.0,
+            1,
+        )
+        .unwrap();
+    let v = &out.visible[0];
+    // Seen from the camera the hull covers y/z ≥ (0.07 − 0.0625)/0.5 = 0.015, so
+    // of the marker's y/z ∈ [−0.05, 0.05] the upper 65 % stays visible.
+    assert!(
+        (v.visible_fraction - 0.65).abs() < 0.06,
+        "{}",
+        v.visible_fraction
+    );
+    // Corner 0 (top-left, above the hull) is drawn as marker, corner 3 (bottom-left) is hidden by the hull.
+    let at = |c: [f64; 2], dx: f64, dy: f64| {
+        out.clean
+            .get((c[0] + dx).round() as u32, (c[1] + dy).round() as u32)
+    };
+    assert!(
+        at(v.corners_px[0], 3.0, 3.0) < 20,
+        "top-left should be black frame"
+    );
+    let hull_level = at(v.corners_px[3], 3.0, -3.0);
+    assert!(
+        hull_level > 60 && hull_level < 160,
+        "bottom-left should be hull grey, got {hull_level}"
+    );
+}

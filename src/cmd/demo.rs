@@ -12,11 +12,14 @@ pub struct DemoArgs {
     #[arg(long, default_value_t = 0.5)]
     water: f64,
     /// Simulated seconds to run.
-    #[arg(long, default_value_t = 30.0)]
+    #[arg(long, default_value_t = 20.0)]
     duration: f64,
-    /// Camera frames per second (each of the five cameras of each vehicle).
-    #[arg(long, default_value_t = 2.0)]
+    /// Camera frames per simulated second (each of the five cameras of each vehicle).
+    #[arg(long, default_value_t = 1.0)]
     rate: f64,
+    /// Simulated seconds per wall-clock second (below 1 lets rendering keep up on a small machine).
+    #[arg(long, default_value_t = 0.5)]
+    time_scale: f64,
     /// Render only these cameras (comma-separated names, e.g. `port,starboard`).
     #[arg(long, value_delimiter = ',')]
     cameras: Option<Vec<String>>,
@@ -28,6 +31,15 @@ pub struct DemoArgs {
     /// Let the followers drift instead of steering them with the formation controller.
     #[arg(long)]
     open_loop: bool,
+    /// MCAP log of the run (opens in Foxglove; `shoal log info`, `shoal replay`, `shoal fuse` read it).
+    #[arg(long, default_value = "out/demo.mcap")]
+    log: PathBuf,
+    /// Write no log.
+    #[arg(long)]
+    no_log: bool,
+    /// Include camera frames in the log (about 0.8 MB each).
+    #[arg(long)]
+    log_frames: bool,
     /// Also write the figures as JSON.
     #[arg(long)]
     summary_json: Option<PathBuf>,
@@ -42,8 +54,11 @@ pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
         cameras: a.cameras,
         spacing_m: a.spacing,
         seed: a.seed,
+        time_scale: a.time_scale,
         progress: true,
         closed_loop: !a.open_loop,
+        log: (!a.no_log).then_some(a.log),
+        log_frames: a.log_frames,
     };
     let bar = ProgressBar::new((cfg.duration_s * 10.0) as u64);
     bar.set_style(
@@ -73,16 +88,27 @@ pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
         );
     }
     println!(
-        "frames processed {} (dropped {}), mean per-frame pipeline latency {:.1} ms, observations {}, maps {}, sim ticks {} ({} skipped), wall time {:.1} s",
+        "frames processed {} (dropped {}), mean per-frame pipeline latency {:.1} ms, frame-to-map latency {:.0} ms, observations {}, maps {}, sim ticks {} ({} skipped), wall time {:.1} s",
         summary.frames_processed,
         summary.frames_dropped,
         summary.mean_latency_ms,
+        summary.mean_end_to_end_latency_ms,
         summary.observations_sent,
         summary.maps_received,
         summary.sim_ticks,
         summary.sim_ticks_skipped,
         summary.wall_time_s
     );
+    if let Some(log) = &summary.log {
+        println!(
+            "log: {} ({} messages, {} dropped, {:.1} MB) — try `shoal log info {}`",
+            log.path.display(),
+            log.messages,
+            log.dropped,
+            log.file_bytes as f64 / 1e6,
+            log.path.display()
+        );
+    }
     if let Some(path) = a.summary_json {
         std::fs::write(&path, serde_json::to_string_pretty(&summary)?)?;
         println!("summary written to {}", path.display());

@@ -2,6 +2,8 @@
 
 pub mod config;
 pub mod demo;
+pub mod eval;
+pub mod log;
 pub mod net;
 pub mod services;
 pub mod tools;

@@ -14,7 +14,8 @@ pub const FRAME_NS: u64 = 100_000_000; // 10 Hz cameras
 pub const T0_NS: u64 = 1_000_000_000_000;
 
 pub fn paper_fleet() -> Fleet {
-    Fleet::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/fleets/paper.toml")).expect("paper fleet loads")
+    Fleet::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/fleets/paper.toml"))
+        .expect("paper fleet loads")
 }
 
 /// `frames` frames of every camera at 10 Hz, fed to a new `Fusion` as they
@@ -44,15 +45,25 @@ pub fn run_frames(
 
 /// `reference_from_vehicle` truth.
 pub fn truth_poses(fleet: &Fleet, truth: &[VehicleTruth]) -> BTreeMap<VehicleId, Pose> {
-    let world: BTreeMap<VehicleId, Pose> = truth.iter().map(|t| (t.vehicle, t.world_from_body)).collect();
+    let world: BTreeMap<VehicleId, Pose> = truth
+        .iter()
+        .map(|t| (t.vehicle, t.world_from_body))
+        .collect();
     let world_from_ref = world[&fleet.reference_vehicle];
-    world.iter().map(|(v, p)| (*v, world_from_ref.inverse() * p)).collect()
+    world
+        .iter()
+        .map(|(v, p)| (*v, world_from_ref.inverse() * p))
+        .collect()
 }
 
 /// Largest translation (m) and rotation (rad) error over the Live vehicles, and how many were Live.
 pub fn map_error(map: &FleetMap, truth: &BTreeMap<VehicleId, Pose>) -> (f64, f64, usize) {
     let (mut t, mut r, mut n) = (0.0f64, 0.0f64, 0);
-    for v in map.vehicles.iter().filter(|v| v.state == VehicleState::Live) {
+    for v in map
+        .vehicles
+        .iter()
+        .filter(|v| v.state == VehicleState::Live)
+    {
         let e = difference(&v.reference_from_vehicle, &truth[&v.vehicle]);
         t = t.max(e.fixed_rows::<3>(0).norm());
         r = r.max(e.fixed_rows::<3>(3).norm());
@@ -99,7 +110,16 @@ pub fn score(map: &FleetMap, obs: &[SyntheticObservation]) -> Scores {
     type Key = (u64, VehicleId, u8, u64, u32);
     let mut reports: BTreeMap<Key, Vec<&EdgeReport>> = BTreeMap::new();
     for e in &map.edges {
-        reports.entry((e.stamp_ns, e.observer, e.camera, e.frame_seq, e.target_marker)).or_default().push(e);
+        reports
+            .entry((
+                e.stamp_ns,
+                e.observer,
+                e.camera,
+                e.frame_seq,
+                e.target_marker,
+            ))
+            .or_default()
+            .push(e);
     }
     let mut s = Scores::default();
     for o in obs {
@@ -107,8 +127,16 @@ pub fn score(map: &FleetMap, obs: &[SyntheticObservation]) -> Scores {
         if o.outlier != OutlierKind::Inlier {
             s.outlier_observations += 1;
         }
-        let k = (o.obs.stamp_ns, o.obs.observer, o.obs.camera, o.obs.frame_seq, o.obs.target_marker);
-        let r = reports.get(&k).unwrap_or_else(|| panic!("no report for {k:?}"));
+        let k = (
+            o.obs.stamp_ns,
+            o.obs.observer,
+            o.obs.camera,
+            o.obs.frame_seq,
+            o.obs.target_marker,
+        );
+        let r = reports
+            .get(&k)
+            .unwrap_or_else(|| panic!("no report for {k:?}"));
         let n_hyp = if o.obs.alternative.is_some() { 2 } else { 1 };
         for h in 0..n_hyp {
             let rejected = r.get(h as usize).unwrap_or(&r[0]).rejected.is_some();

@@ -100,7 +100,10 @@ extern "C" {
         bits_corrected: c_int,
     );
     pub fn apriltag_detector_destroy(td: *mut apriltag_detector_t);
-    pub fn apriltag_detector_detect(td: *mut apriltag_detector_t, im: *mut image_u8_t) -> *mut zarray_t;
+    pub fn apriltag_detector_detect(
+        td: *mut apriltag_detector_t,
+        im: *mut image_u8_t,
+    ) -> *mut zarray_t;
     pub fn apriltag_detections_destroy(detections: *mut zarray_t);
 }
 
@@ -154,7 +157,11 @@ impl FamilyHandle {
             if im.is_null() {
                 return None;
             }
-            let (w, h, s) = ((*im).width as usize, (*im).height as usize, (*im).stride as usize);
+            let (w, h, s) = (
+                (*im).width as usize,
+                (*im).height as usize,
+                (*im).stride as usize,
+            );
             let mut out = Vec::with_capacity(w * h);
             for y in 0..h {
                 out.extend_from_slice(std::slice::from_raw_parts((*im).buf.add(y * s), w));

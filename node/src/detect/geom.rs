@@ -14,8 +14,10 @@ pub fn homography_4(src: &[Px; 4], dst: &[Px; 4]) -> Option<Matrix3<f64>> {
         let [x, y] = src[i];
         let [u, v] = dst[i];
         let r = 2 * i;
-        a.row_mut(r).copy_from_slice(&[x, y, 1.0, 0.0, 0.0, 0.0, -u * x, -u * y]);
-        a.row_mut(r + 1).copy_from_slice(&[0.0, 0.0, 0.0, x, y, 1.0, -v * x, -v * y]);
+        a.row_mut(r)
+            .copy_from_slice(&[x, y, 1.0, 0.0, 0.0, 0.0, -u * x, -u * y]);
+        a.row_mut(r + 1)
+            .copy_from_slice(&[0.0, 0.0, 0.0, x, y, 1.0, -v * x, -v * y]);
         b[r] = u;
         b[r + 1] = v;
     }
@@ -23,7 +25,9 @@ pub fn homography_4(src: &[Px; 4], dst: &[Px; 4]) -> Option<Matrix3<f64>> {
     if !h.iter().all(|v| v.is_finite()) {
         return None;
     }
-    Some(Matrix3::new(h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], 1.0))
+    Some(Matrix3::new(
+        h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], 1.0,
+    ))
 }
 
 /// Apply a homography to a point.
@@ -56,7 +60,9 @@ pub fn mean_side(q: &[Px; 4]) -> f64 {
 
 /// Shortest side length of a quad.
 pub fn min_side(q: &[Px; 4]) -> f64 {
-    (0..4).map(|i| dist(q[i], q[(i + 1) % 4])).fold(f64::INFINITY, f64::min)
+    (0..4)
+        .map(|i| dist(q[i], q[(i + 1) % 4]))
+        .fold(f64::INFINITY, f64::min)
 }
 
 /// A line `n · p = d` with unit normal `n`.
@@ -136,12 +142,16 @@ mod tests {
             assert!(dist(apply(&h, src[i]), dst[i]) < 1e-9);
         }
         let degenerate = [[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [0.0, 1.0]];
-        assert!(homography_4(&degenerate, &dst).is_none() || homography_4(&src, &degenerate).is_none());
+        assert!(
+            homography_4(&degenerate, &dst).is_none() || homography_4(&src, &degenerate).is_none()
+        );
     }
 
     #[test]
     fn line_fit_and_intersection() {
-        let pts: Vec<(Px, f64)> = (0..10).map(|i| ([i as f64, 2.0 * i as f64 + 1.0], 1.0)).collect();
+        let pts: Vec<(Px, f64)> = (0..10)
+            .map(|i| ([i as f64, 2.0 * i as f64 + 1.0], 1.0))
+            .collect();
         let l = Line::fit(&pts).unwrap();
         assert!(l.distance([3.0, 7.0]).abs() < 1e-9);
         let v = Line::through([5.0, -10.0], [5.0, 10.0]).unwrap();

@@ -63,7 +63,11 @@ pub fn detect_paths(
         sum.files += 1;
         let source = path.display().to_string();
         let emit_error = |out: &mut dyn Write, reason: String| -> Result<(), DetectError> {
-            writeln!(out, "{}", serde_json::json!({"source": source, "error": reason}))?;
+            writeln!(
+                out,
+                "{}",
+                serde_json::json!({"source": source, "error": reason})
+            )?;
             Ok(())
         };
         if !path.is_file() {
@@ -85,7 +89,15 @@ pub fn detect_paths(
             while cap.read(&mut frame).unwrap_or(false) && !frame.empty() {
                 let gray = to_gray(&frame)?;
                 sum.frames += 1;
-                sum.detections += detect_one(&mut det, &gray, &source, Some(idx), camera.as_ref(), side_m, out)?;
+                sum.detections += detect_one(
+                    &mut det,
+                    &gray,
+                    &source,
+                    Some(idx),
+                    camera.as_ref(),
+                    side_m,
+                    out,
+                )?;
                 idx += 1;
             }
         } else {
@@ -98,7 +110,8 @@ pub fn detect_paths(
                 }
             };
             sum.frames += 1;
-            sum.detections += detect_one(&mut det, &img, &source, None, camera.as_ref(), side_m, out)?;
+            sum.detections +=
+                detect_one(&mut det, &img, &source, None, camera.as_ref(), side_m, out)?;
         }
     }
     Ok(sum)
@@ -131,7 +144,9 @@ fn detect_one(
                     let h = |h: &crate::pose::Hypothesis| {
                         let t = h.camera_from_marker.translation.vector;
                         let q = h.camera_from_marker.rotation.coords;
-                        let cov: Vec<Vec<f64>> = (0..6).map(|r| (0..6).map(|c| h.covariance[(r, c)]).collect()).collect();
+                        let cov: Vec<Vec<f64>> = (0..6)
+                            .map(|r| (0..6).map(|c| h.covariance[(r, c)]).collect())
+                            .collect();
                         serde_json::json!({"t_m": [t.x, t.y, t.z], "q_xyzw": [q.x, q.y, q.z, q.w], "rms_px": h.rms_px, "covariance": cov})
                     };
                     let mut p = h(&sol.best);

@@ -23,7 +23,16 @@ pub enum Polarity {
 
 /// The strongest edge along a profile through `base` in direction `n`,
 /// searched over `[-half, half]` px: sub-pixel offset and gradient strength.
-fn edge_on_profile(view: &GrayView<'_>, base: Px, n: Px, half: f64, sign: f64) -> Option<(f64, f64)> {
+fn edge_on_profile(
+    view: &GrayView<'_>,
+    base: Px,
+    n: Px,
+    half: f64,
+    sign: f64,
+) -> Option<(f64, f64)> {
+    // Tangent direction: each profile sample averages three points 1 px apart
+    // along the edge, which cuts sensor noise by √3 without blurring across it.
+    let tg = [-n[1], n[0]];
     const STEP: f64 = 0.5;
     let k = (half / STEP).ceil() as i32;
     // Samples at t = (j - k - 2) * STEP for j in 0..2k+5 (two extra each side for the derivative).
@@ -34,7 +43,10 @@ fn edge_on_profile(view: &GrayView<'_>, base: Px, n: Px, half: f64, sign: f64) -
     }
     for j in 0..len {
         let t = (j as f64 - f64::from(k) - 2.0) * STEP;
-        prof[j] = view.sample(base[0] + t * n[0], base[1] + t * n[1]);
+        let (x, y) = (base[0] + t * n[0], base[1] + t * n[1]);
+        prof[j] = view.sample(x - tg[0], y - tg[1])
+            + view.sample(x, y)
+            + view.sample(x + tg[0], y + tg[1]);
     }
     // Derivative over ±1 px (two steps), polarity applied.
     let mut best = (f64::MIN, 0usize);
@@ -51,14 +63,25 @@ fn edge_on_profile(view: &GrayView<'_>, base: Px, n: Px, half: f64, sign: f64) -
     }
     let (a, b, c) = (der[j - 1], der[j], der[j + 1]);
     let denom = a - 2.0 * b + c;
-    let off = if denom < -1e-12 { 0.5 * (a - c) / denom } else { 0.0 };
+    let off = if denom < -1e-12 {
+        0.5 * (a - c) / denom
+    } else {
+        0.0
+    };
     let t = (j as f64 - f64::from(k) - 2.0 + off.clamp(-0.5, 0.5)) * STEP;
     Some((t, peak))
 }
 
 /// Fit a line to the edge along the side `a → b` (outward normal to the left of
 /// travel in a y-down image, i.e. the quad is clockwise on screen).
-fn fit_side(view: &GrayView<'_>, a: Px, b: Px, half: f64, sign: f64, spacing_px: f64) -> Option<Line> {
+fn fit_side(
+    view: &GrayView<'_>,
+    a: Px,
+    b: Px,
+    half: f64,
+    sign: f64,
+    spacing_px: f64,
+) -> Option<Line> {
     let len = dist(a, b);
     if len < 4.0 {
         return None;
@@ -101,7 +124,12 @@ fn fit_side(view: &GrayView<'_>, a: Px, b: Px, half: f64, sign: f64, spacing_px:
 
 /// Refine the corners of a square (clockwise on screen) by edge-line fitting.
 /// `module_px` sets the search range; returns `None` when a side has no edge.
-pub fn refine_by_edge_lines(view: &GrayView<'_>, quad: &[Px; 4], module_px: f64, polarity: Polarity) -> Option<[Px; 4]> {
+pub fn refine_by_edge_lines(
+    view: &GrayView<'_>,
+    quad: &[Px; 4],
+    module_px: f64,
+    polarity: Polarity,
+) -> Option<[Px; 4]> {
     let sign = match polarity {
         Polarity::DarkInside => 1.0,
         Polarity::BrightInside => -1.0,
@@ -136,9 +164,16 @@ pub fn refine_by_edge_lines(view: &GrayView<'_>, quad: &[Px; 4], module_px: f64,
 
 /// OpenCV's `cornerSubPix` with a window scaled to the module size (`0.35 ·
 /// module_px`, clamped to 2..=15 px half-width), the alternative to edge lines.
-pub fn refine_by_corner_subpix(gray: &impl opencv::core::ToInputArray, quad: &[Px; 4], module_px: f64) -> opencv::Result<[Px; 4]> {
+pub fn refine_by_corner_subpix(
+    gray: &impl opencv::core::ToInputArray,
+    quad: &[Px; 4],
+    module_px: f64,
+) -> opencv::Result<[Px; 4]> {
     use opencv::core::{Point2f, Size, TermCriteria, TermCriteria_Type, Vector};
-    let mut pts: Vector<Point2f> = quad.iter().map(|p| Point2f::new(p[0] as f32, p[1] as f32)).collect();
+    let mut pts: Vector<Point2f> = quad
+        .iter()
+        .map(|p| Point2f::new(p[0] as f32, p[1] as f32))
+        .collect();
     let win = (0.35 * module_px).round().clamp(2.0, 15.0) as i32;
     let crit = TermCriteria::new(
         TermCriteria_Type::COUNT as i32 + TermCriteria_Type::EPS as i32,

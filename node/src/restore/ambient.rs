@@ -109,7 +109,8 @@ impl AmbientLight {
         }
         self.last_stamp_ns = Some(stamp_ns);
         let mut mean = Mat::default();
-        self.sum.convert_to(&mut mean, CV_32F, 1.0 / self.norm, 0.0)?;
+        self.sum
+            .convert_to(&mut mean, CV_32F, 1.0 / self.norm, 0.0)?;
         Ok(mean)
     }
 }
@@ -195,7 +196,10 @@ mod tests {
                     .map(|(s, wn)| wn * *s.at_2d::<f32>(y, x).unwrap() as f64)
                     .sum();
                 let running = alpha * *last.at_2d::<f32>(y, x).unwrap() as f64;
-                assert!((explicit - running).abs() < 1e-3, "({x},{y}): {explicit} vs {running}");
+                assert!(
+                    (explicit - running).abs() < 1e-3,
+                    "({x},{y}): {explicit} vs {running}"
+                );
             }
         }
     }

@@ -24,8 +24,8 @@
 
 use super::water::{histogram, WaterEstimate};
 use super::{
-    check_input, clahe_grid, coarse_level, snapshot, Method, RestoreError, RestoreParams,
-    Restored, Restorer,
+    check_input, clahe_grid, coarse_level, snapshot, Method, RestoreError, RestoreParams, Restored,
+    Restorer,
 };
 use opencv::core::{self, Mat, Point, Size, BORDER_REFLECT_101, CV_32F, CV_8U};
 use opencv::imgproc;
@@ -185,7 +185,15 @@ pub fn guided_filter(guide: &Mat, p: &Mat, radius: i32, eps: f64) -> Result<Mat,
     let k = Size::new(2 * radius + 1, 2 * radius + 1);
     let boxf = |m: &Mat| -> Result<Mat, RestoreError> {
         let mut o = Mat::default();
-        imgproc::box_filter(m, &mut o, CV_32F, k, Point::new(-1, -1), true, BORDER_REFLECT_101)?;
+        imgproc::box_filter(
+            m,
+            &mut o,
+            CV_32F,
+            k,
+            Point::new(-1, -1),
+            true,
+            BORDER_REFLECT_101,
+        )?;
         Ok(o)
     };
     let mul = |a: &Mat, b: &Mat| -> Result<Mat, RestoreError> {
@@ -252,8 +260,12 @@ impl Restorer for DarkChannel {
         }
         let t0 = p.dcp_t0 as f32;
         let a32 = a as f32;
-        let mut out =
-            Mat::new_rows_cols_with_default(gray.rows(), gray.cols(), CV_8U, core::Scalar::all(0.0))?;
+        let mut out = Mat::new_rows_cols_with_default(
+            gray.rows(),
+            gray.cols(),
+            CV_8U,
+            core::Scalar::all(0.0),
+        )?;
         for y in 0..gray.rows() {
             let (g, tr) = (gray.at_row::<u8>(y)?, t.at_row::<f32>(y)?);
             let o = out.at_row_mut::<u8>(y)?;

@@ -9,22 +9,25 @@
 //!    that what is taken away matches the veil the image shows; up-sampled
 //!    and subtracted (Eq. 13).
 //! 3. De-attenuation: a global gain `1/t̂` (the 99.5th percentile of
-//!    `I − B_L` stretched to `stretch_target`), then CLAHE with a clip limit
-//!    growing with `c` for the local part.
+//!    `I − B_L` stretched to `stretch_target`) on the whole frame, then CLAHE
+//!    with a clip limit growing with `c` for the local part.
 //! 4. De-blurring: Wiener deconvolution with Eq. (14)'s PSF, `p` and σ from
-//!    `c`, the noise-to-signal ratio measured in each region — in the regions
-//!    of interest ([`super::roi`]) or the whole frame.
-//!    ([`StageOrder`] swaps 3 and 4.)
-//! 5. Pyramid level: the finest level at which the marker region's edge
-//!    step over noise reaches `edge_snr_target` (measured with `pyrDown` on
-//!    the region), no coarser than keeps the region `min_roi_side_at_level_px`.
+//!    `c`, the noise-to-signal ratio measured in each region.
+//!    CLAHE and deconvolution run in the regions of interest ([`super::roi`],
+//!    feathered into the globally restored frame) or on the whole frame;
+//!    [`StageOrder`] swaps 3b and 4.
+//! 5. Pyramid level: the coarser of (a) the finest level at which the PSF's
+//!    σ is at most `level_blur_px` and (b) the finest level at which the
+//!    marker region's edge step over noise reaches `edge_snr_target`
+//!    (measured with `pyrDown` on the region), but no coarser than keeps the
+//!    largest region `min_roi_side_at_level_px` wide.
 
 use super::ambient::AmbientLight;
 use super::psf::{GgPsf, Wiener};
 use super::water::{self, WaterEstimate};
 use super::{
-    check_input, clahe, coarse_level, roi, snapshot, Method, RestoreError, RestoreParams,
-    Restored, Restorer, StageOrder,
+    check_input, clahe, coarse_level, roi, snapshot, Method, RestoreError, RestoreParams, Restored,
+    Restorer, StageOrder,
 };
 use opencv::core::{self, Mat, Rect, CV_8U};
 use opencv::imgproc;
@@ -32,6 +35,9 @@ use opencv::prelude::*;
 
 /// Down-sampling of the level used for the water estimate, ambient light and ROI search.
 pub const COARSE_FACTOR: i32 = 8;
+
+/// Width of the ramp over which a restored region is blended into the frame, pixels.
+pub const FEATHER_PX: i32 = 16;
 
 /// Side of the patch on which the pyramid level is chosen, pixels.
 const LEVEL_PATCH_PX: i32 = 384;
@@ -88,30 +94,73 @@ impl Hoirm {
         )
     }
 
-    /// Deconvolve `src` inside `rois` (all of it when `rois` covers the frame).
-    fn deblur(&mut self, src: &Mat, rois: &[Rect], psf: &GgPsf) -> Result<Mat, RestoreError> {
-        let mut out = src.try_clone()?;
-        let frame = Rect::new(0, 0, src.cols(), src.rows());
-        let margin = psf.radius_px();
-        for &r in rois {
-            // Deconvolve with a margin of real pixels so the region's own
-            // border is not reflected into it, then keep the region.
-            let tile = Rect::new(
-                r.x - margin,
-                r.y - margin,
-                r.width + 2 * margin,
-                r.height + 2 * margin,
-            ) & frame;
-            let view = Mat::roi(src, tile)?;
-            let nsr = self.nsr(&view)?;
-            let restored = self.wiener.deconvolve(&view, psf, nsr)?;
-            let inner = Mat::roi(
-                &restored,
-                Rect::new(r.x - tile.x, r.y - tile.y, r.width, r.height),
-            )?;
-            let mut dst = Mat::roi_mut(&mut out, r)?;
-            inner.copy_to(&mut dst)?;
+    /// CLAHE and Wiener deconvolution of one region of the globally
+    /// de-attenuated frame, in the configured order; returns
+    /// `(after the first stage, after both)`.
+    fn restore_region(
+        &mut self,
+        src: &(impl MatTraitConst + core::ToInputArray),
+        clip: f64,
+        psf: &GgPsf,
+    ) -> Result<(Mat, Mat), RestoreError> {
+        let tile = self.params.clahe_tile_px;
+        Ok(match self.params.order {
+            StageOrder::Paper => {
+                let deatt = clahe(src, clip, tile)?;
+                let deblurred = self.deconvolve(&deatt, psf)?;
+                (deatt, deblurred)
+            }
+            StageOrder::Physical => {
+                let deblurred = self.deconvolve(src, psf)?;
+                let deatt = clahe(&deblurred, clip, tile)?;
+                (deblurred, deatt)
+            }
+        })
+    }
+
+    /// Wiener deconvolution of a region at pyramid level `deconv_level`:
+    /// the region is `pyrDown`-ed, deconvolved with the PSF scaled to that
+    /// level, and the correction (restored − blurred) is up-sampled and
+    /// added to the full-resolution region. Forward scatter is a
+    /// low-frequency degradation (a halo of σ ≈ 5 px at working range), so
+    /// the correction it needs lies well below the 1/2 level's Nyquist
+    /// frequency, while the frequencies above it — mostly noise — are left
+    /// alone rather than amplified; the DFTs are 4x smaller per level.
+    fn deconvolve(
+        &mut self,
+        src: &(impl MatTraitConst + core::ToInputArray),
+        psf: &GgPsf,
+    ) -> Result<Mat, RestoreError> {
+        let level = self.params.deconv_level;
+        if level == 0 {
+            let nsr = self.nsr(src)?;
+            return self.wiener.deconvolve(src, psf, nsr);
         }
+        let mut small = Mat::default();
+        imgproc::pyr_down_def(src, &mut small)?;
+        for _ in 1..level {
+            let mut next = Mat::default();
+            imgproc::pyr_down_def(&small, &mut next)?;
+            small = next;
+        }
+        let psf_l = GgPsf {
+            p: psf.p,
+            sigma_px: psf.sigma_px / f64::from(1u32 << level),
+        };
+        let nsr = self.nsr(&small)?;
+        let restored = self.wiener.deconvolve(&small, &psf_l, nsr)?;
+        // The restored level, up-sampled: the band above its Nyquist
+        // frequency — mostly CLAHE-amplified noise, which the full-resolution
+        // Wiener filter would suppress anyway — is dropped.
+        let mut out = Mat::default();
+        imgproc::resize(
+            &restored,
+            &mut out,
+            src.size()?,
+            0.0,
+            0.0,
+            imgproc::INTER_LINEAR,
+        )?;
         Ok(out)
     }
 
@@ -127,7 +176,7 @@ impl Hoirm {
 
     /// Choose the pyramid level for edge detection on a patch of `img`
     /// around the largest region of interest (the centre when there is none).
-    fn choose_level(&self, img: &Mat, rois: &[Rect]) -> Result<u32, RestoreError> {
+    fn choose_level(&self, img: &Mat, rois: &[Rect], psf: &GgPsf) -> Result<u32, RestoreError> {
         let frame = Rect::new(0, 0, img.cols(), img.rows());
         let focus = rois
             .iter()
@@ -142,16 +191,24 @@ impl Hoirm {
             side_w,
             side_h,
         ) & frame;
-        let smallest = rois
-            .iter()
-            .map(|r| r.width.min(r.height))
-            .min()
-            .unwrap_or(frame.width.min(frame.height));
+        // The largest region is normally the marker; small ones are often
+        // specks of veil texture and must not hold the level down.
+        let focus_side = focus.width.min(focus.height);
+        // Blur rule: the finest level at which the forward-scatter PSF's σ is
+        // at most `level_blur_px` — edges a few pixels wide, what a contour
+        // detector expects.
+        let mut blur_level = 0u32;
+        while blur_level < self.params.max_pyramid_level
+            && psf.sigma_px / f64::from(1u32 << blur_level) > self.params.level_blur_px
+        {
+            blur_level += 1;
+        }
+        let fits = |level: u32| (focus_side >> level) >= self.params.min_roi_side_at_level_px;
         let mut patch = Mat::roi(img, patch_rect)?.try_clone()?;
         let mut best = (0u32, 0.0f64);
         for level in 0..=self.params.max_pyramid_level {
             if level > 0 {
-                if (smallest >> level) < self.params.min_roi_side_at_level_px
+                if (focus_side >> level) < self.params.min_roi_side_at_level_px
                     || patch.cols() < 8
                     || patch.rows() < 8
                 {
@@ -166,13 +223,20 @@ impl Hoirm {
             let noise = water::noise_sigma(&patch, 1)?;
             let snr = step / noise;
             if snr >= self.params.edge_snr_target {
-                return Ok(level);
+                best = (level, f64::INFINITY);
+                break;
             }
             if snr > best.1 {
                 best = (level, snr);
             }
         }
-        Ok(best.0)
+        // Noise rule: the finest level whose edge step / noise reaches the
+        // target. The coarser of the two, as far as the regions still fit.
+        let mut level = best.0.max(blur_level);
+        while level > 0 && !fits(level) {
+            level -= 1;
+        }
+        Ok(level)
     }
 
     /// Restore one frame and also return the parameters derived for it.
@@ -207,30 +271,31 @@ impl Hoirm {
         set_mean.convert_to(&mut bl_coarse, CV_8U, alpha, 0.0)?;
         let mut bl = Mat::default();
         imgproc::resize(&bl_coarse, &mut bl, full, 0.0, 0.0, imgproc::INTER_LINEAR)?;
-        let mut denoised = Mat::default();
-        core::subtract(gray, &bl, &mut denoised, &core::no_array(), -1)?;
-        if keep {
-            stages.push(("input".to_string(), snapshot(gray)?));
-            stages.push(("ambient light B_L".to_string(), bl));
-            stages.push(("denoised (I - B_L)".to_string(), snapshot(&denoised)?));
-        }
-        // Global part of de-attenuation: I − B_L ≈ J·t, so scale by 1/t̂,
+
+        // 3a. Global part of de-attenuation: I − B_L ≈ J·t, so scale by 1/t̂,
         // with t̂ read off the coarse level (its 99.5th percentile of I − B_L
         // brought to `stretch_target`), capped at `stretch_max_gain`.
         let mut residual = Mat::default();
         core::subtract(&coarse, &bl_coarse, &mut residual, &core::no_array(), -1)?;
         let top = water::percentile(&water::histogram(&residual)?, 0.995).max(1.0);
         let gain = (self.params.stretch_target / top).clamp(1.0, self.params.stretch_max_gain);
-        if gain > 1.0 {
-            let mut scaled = Mat::default();
-            denoised.convert_to(&mut scaled, CV_8U, gain, 0.0)?;
-            denoised = scaled;
+        // gain·(I − B_L) in one saturating pass (Eq. (13) and the 1/t̂ gain).
+        let mut global = Mat::default();
+        core::add_weighted(gray, gain, &bl, -gain, 0.0, &mut global, CV_8U)?;
+        if keep {
+            let mut denoised = Mat::default();
+            core::subtract(gray, &bl, &mut denoised, &core::no_array(), -1)?;
+            stages.push(("input".to_string(), snapshot(gray)?));
+            stages.push(("ambient light B_L".to_string(), bl));
+            stages.push(("denoised (I - B_L)".to_string(), denoised));
         }
 
-        // 3./4. De-attenuation and de-blurring.
-        let margin = 16 + psf.radius_px();
+        // 3b./4. Local de-attenuation (CLAHE) and de-blurring (Wiener), in
+        // the regions of interest (feathered into the globally restored
+        // frame) or on the whole frame.
         let frame = Rect::new(0, 0, full.width, full.height);
         let rois = if self.params.roi_only {
+            let margin = FEATHER_PX + 8 + psf.radius_px() / 4;
             roi::find_rois(
                 &coarse,
                 COARSE_FACTOR,
@@ -242,34 +307,35 @@ impl Hoirm {
         } else {
             vec![frame]
         };
-        let tile = self.params.clahe_tile_px;
-        let image = match self.params.order {
-            StageOrder::Paper => {
-                let deatt = clahe(&denoised, clip, tile)?;
-                if keep {
-                    stages.push(("de-attenuated (CLAHE)".to_string(), snapshot(&deatt)?));
-                }
-                let deblurred = self.deblur(&deatt, &rois, &psf)?;
-                if keep {
-                    stages.push(("deblurred (Wiener)".to_string(), snapshot(&deblurred)?));
-                }
-                deblurred
-            }
-            StageOrder::Physical => {
-                let deblurred = self.deblur(&denoised, &rois, &psf)?;
-                if keep {
-                    stages.push(("deblurred (Wiener)".to_string(), snapshot(&deblurred)?));
-                }
-                let deatt = clahe(&deblurred, clip, tile)?;
-                if keep {
-                    stages.push(("de-attenuated (CLAHE)".to_string(), snapshot(&deatt)?));
-                }
-                deatt
-            }
+        let mut image = global.try_clone()?;
+        let mut first_stage = if keep {
+            Some(global.try_clone()?)
+        } else {
+            None
         };
+        for &r in &rois {
+            let view = Mat::roi(&global, r)?;
+            let (first, last) = self.restore_region(&view, clip, &psf)?;
+            feather_into(&mut image, &last, r, frame)?;
+            if let Some(st) = first_stage.as_mut() {
+                feather_into(st, &first, r, frame)?;
+            }
+        }
+        if let Some(st) = first_stage {
+            let name = match self.params.order {
+                StageOrder::Paper => "de-attenuated (CLAHE)",
+                StageOrder::Physical => "deblurred (Wiener)",
+            };
+            stages.push((name.to_string(), st));
+            let name = match self.params.order {
+                StageOrder::Paper => "deblurred (Wiener)",
+                StageOrder::Physical => "de-attenuated (CLAHE)",
+            };
+            stages.push((name.to_string(), snapshot(&image)?));
+        }
 
         // 5. Pyramid level for the detector.
-        let pyramid_level = self.choose_level(&image, &rois)?;
+        let pyramid_level = self.choose_level(&image, &rois, &psf)?;
         let level_image = if pyramid_level > 0 {
             let mut cur = image.try_clone()?;
             for _ in 0..pyramid_level {
@@ -316,5 +382,71 @@ impl Restorer for Hoirm {
 
     fn restore(&mut self, gray: &Mat, stamp_ns: u64) -> Result<Restored, RestoreError> {
         Ok(self.restore_with_params(gray, stamp_ns)?.0)
+    }
+}
+
+/// Paste `region` (the size of `r`) into `dst` at `r`, blending linearly
+/// from `dst`'s own pixels at the region's edges to `region`'s over
+/// [`FEATHER_PX`] (sides on the frame border are not blended), so a region's
+/// border never becomes an edge the detector could take for a marker side.
+fn feather_into(dst: &mut Mat, region: &Mat, r: Rect, frame: Rect) -> Result<(), RestoreError> {
+    let f = FEATHER_PX as f32;
+    let left = r.x > frame.x;
+    let top = r.y > frame.y;
+    let right = r.x + r.width < frame.x + frame.width;
+    let bottom = r.y + r.height < frame.y + frame.height;
+    for y in 0..r.height {
+        let dy_top = if top { y as f32 + 0.5 } else { f32::INFINITY };
+        let dy_bot = if bottom {
+            (r.height - y) as f32 - 0.5
+        } else {
+            f32::INFINITY
+        };
+        let wy = (dy_top.min(dy_bot) / f).min(1.0);
+        let src = region.at_row::<u8>(y)?;
+        let out = &mut dst.at_row_mut::<u8>(r.y + y)?[r.x as usize..(r.x + r.width) as usize];
+        for x in 0..r.width as usize {
+            let dx_l = if left { x as f32 + 0.5 } else { f32::INFINITY };
+            let dx_r = if right {
+                (r.width as usize - x) as f32 - 0.5
+            } else {
+                f32::INFINITY
+            };
+            let w = wy.min((dx_l.min(dx_r) / f).min(1.0));
+            out[x] = if w >= 1.0 {
+                src[x]
+            } else {
+                (w * src[x] as f32 + (1.0 - w) * out[x] as f32).round() as u8
+            };
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use opencv::core::{Scalar, CV_8UC1};
+
+    #[test]
+    fn feathered_region_has_no_step_at_its_border_but_keeps_frame_sides() {
+        let frame = Rect::new(0, 0, 200, 100);
+        let mut dst =
+            Mat::new_rows_cols_with_default(100, 200, CV_8UC1, Scalar::all(100.0)).unwrap();
+        let region = Mat::new_rows_cols_with_default(60, 80, CV_8UC1, Scalar::all(200.0)).unwrap();
+        // Touches the top of the frame, inside on the other three sides.
+        let r = Rect::new(50, 0, 80, 60);
+        feather_into(&mut dst, &region, r, frame).unwrap();
+        let at = |x: i32, y: i32| *dst.at_2d::<u8>(y, x).unwrap() as i32;
+        // Interior: the region; outside: untouched.
+        assert_eq!(at(90, 30), 200);
+        assert_eq!(at(49, 30), 100);
+        // Left edge: within 100/16·0.5 ≈ 3 grey levels of the outside, then a ramp.
+        assert!(at(50, 30) - 100 <= 4, "{}", at(50, 30));
+        for x in 50..50 + FEATHER_PX {
+            assert!(at(x + 1, 30) - at(x, 30) <= 8, "step at x = {x}");
+        }
+        // Top side lies on the frame border: not blended.
+        assert_eq!(at(90, 0), 200);
     }
 }

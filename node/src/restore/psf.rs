@@ -23,15 +23,15 @@
 //! σ_noise²/σ_signal²` (a flat `K` over-amplifies the highest frequencies,
 //! where a real image has little power and the noise all of it); the mean is taken out so the filter's
 //! DC gain `1/(1+K)` does not darken the image. The region is reflected by
-//! the kernel radius on each side before the DFT so the circular
+//! half the kernel radius on each side before the DFT so the circular
 //! convolution does not wrap the opposite border in. Filter spectra are
 //! cached per (DFT size, p, σ, K) with sizes rounded up to multiples of 32
 //! and `K` quantized to steps of 25 %, so consecutive frames reuse them.
 
 use super::RestoreError;
 use opencv::core::{
-    self, Mat, Rect, Scalar, Vec2f, BORDER_REFLECT_101, CV_32F, CV_32FC1, CV_8U, DFT_COMPLEX_OUTPUT,
-    DFT_REAL_OUTPUT, DFT_SCALE,
+    self, Mat, Rect, Scalar, Vec2f, BORDER_REFLECT_101, CV_32F, CV_32FC1, CV_8U,
+    DFT_COMPLEX_OUTPUT, DFT_REAL_OUTPUT, DFT_SCALE,
 };
 use opencv::prelude::*;
 use std::collections::HashMap;
@@ -177,7 +177,9 @@ impl Wiener {
         psf: &GgPsf,
         nsr: f64,
     ) -> Result<Mat, RestoreError> {
-        let r = psf.radius_px();
+        // Reflect by half the kernel radius: the kernel's mass beyond it is
+        // small, and what wraps around lands in the region's outer margin.
+        let r = (psf.radius_px() / 2).max(4);
         let (h, w) = (src.rows(), src.cols());
         let rows = round_dft(h + 2 * r)?;
         let cols = round_dft(w + 2 * r)?;
@@ -259,7 +261,8 @@ fn wiener_spectrum(rows: i32, cols: i32, psf: &GgPsf, k: f64) -> Result<Mat, Res
     let shape = |u: i32, v: i32| {
         let fu = u.min(rows - u) as f64 / rows as f64;
         let fv = v.min(cols - v) as f64 / cols as f64;
-        1.0 / (1.0 + (fu * fu + fv * fv) / (SIGNAL_CORNER_CYCLES_PER_PX * SIGNAL_CORNER_CYCLES_PER_PX))
+        1.0 / (1.0
+            + (fu * fu + fv * fv) / (SIGNAL_CORNER_CYCLES_PER_PX * SIGNAL_CORNER_CYCLES_PER_PX))
     };
     let mut mean_g = 0.0;
     for u in 0..rows {
@@ -307,7 +310,10 @@ mod tests {
     #[test]
     fn gaussian_shape_has_the_requested_standard_deviation() {
         // p = 2: A = σ·sqrt(Γ(1/2)/Γ(3/2)) = σ√2, i.e. exp(−r²/(2σ²)).
-        let psf = GgPsf { p: 2.0, sigma_px: 1.7 };
+        let psf = GgPsf {
+            p: 2.0,
+            sigma_px: 1.7,
+        };
         assert!((psf.scale_px() - 1.7 * 2f64.sqrt()).abs() < 1e-12);
         let k = psf.kernel().unwrap();
         let r = psf.radius_px();
@@ -326,8 +332,14 @@ mod tests {
 
     #[test]
     fn smaller_p_has_heavier_tails() {
-        let a = GgPsf { p: 2.0, sigma_px: 1.5 };
-        let b = GgPsf { p: 0.8, sigma_px: 1.5 };
+        let a = GgPsf {
+            p: 2.0,
+            sigma_px: 1.5,
+        };
+        let b = GgPsf {
+            p: 0.8,
+            sigma_px: 1.5,
+        };
         assert!(b.profile(9.0) / b.profile(0.0) > 100.0 * a.profile(9.0) / a.profile(0.0));
         assert!(b.radius_px() > a.radius_px());
     }
@@ -336,7 +348,8 @@ mod tests {
     /// closer to the original than the blurred image is.
     #[test]
     fn wiener_deconvolution_undoes_a_known_blur() {
-        let mut sharp = Mat::new_rows_cols_with_default(96, 96, CV_8UC1, Scalar::all(60.0)).unwrap();
+        let mut sharp =
+            Mat::new_rows_cols_with_default(96, 96, CV_8UC1, Scalar::all(60.0)).unwrap();
         for y in 0..96 {
             let row = sharp.at_row_mut::<u8>(y).unwrap();
             for x in 0..96usize {
@@ -345,7 +358,10 @@ mod tests {
                 }
             }
         }
-        let psf = GgPsf { p: 1.2, sigma_px: 1.8 };
+        let psf = GgPsf {
+            p: 1.2,
+            sigma_px: 1.8,
+        };
         let mut blurred = Mat::default();
         imgproc::filter_2d(
             &sharp,
@@ -376,7 +392,14 @@ mod tests {
     fn deconvolution_keeps_the_mean_of_a_flat_region() {
         let flat = Mat::new_rows_cols_with_default(40, 50, CV_8UC1, Scalar::all(137.0)).unwrap();
         let out = Wiener::new()
-            .deconvolve(&flat, &GgPsf { p: 1.0, sigma_px: 1.0 }, 0.05)
+            .deconvolve(
+                &flat,
+                &GgPsf {
+                    p: 1.0,
+                    sigma_px: 1.0,
+                },
+                0.05,
+            )
             .unwrap();
         let m = core::mean(&out, &core::no_array()).unwrap()[0];
         assert!((m - 137.0).abs() < 0.5, "{m}");

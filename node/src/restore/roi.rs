@@ -16,7 +16,7 @@ use opencv::imgproc;
 use opencv::prelude::*;
 
 /// Coarse components smaller than this many coarse pixels are noise specks.
-const MIN_COMPONENT_AREA: i32 = 3;
+const MIN_COMPONENT_AREA: i32 = 8;
 
 /// Regions of interest at full resolution (`full` is the frame size,
 /// `factor` the coarse level's down-sampling, `noise_full` the frame's noise σ).
@@ -30,11 +30,8 @@ pub fn find_rois(
     margin_px: i32,
     params: &RestoreParams,
 ) -> Result<Vec<Rect>, RestoreError> {
-    let kernel = imgproc::get_structuring_element(
-        imgproc::MORPH_RECT,
-        Size::new(3, 3),
-        Point::new(-1, -1),
-    )?;
+    let kernel =
+        imgproc::get_structuring_element(imgproc::MORPH_RECT, Size::new(3, 3), Point::new(-1, -1))?;
     let mut grad = Mat::default();
     imgproc::morphology_ex(
         coarse,
@@ -179,7 +176,10 @@ mod tests {
         let r = rois[0];
         // The square spans x 480..720, y 320..560 at full resolution.
         assert!(r.x <= 480 - 16 && r.y <= 320 - 16, "{r:?}");
-        assert!(r.x + r.width >= 720 + 16 && r.y + r.height >= 560 + 16, "{r:?}");
+        assert!(
+            r.x + r.width >= 720 + 16 && r.y + r.height >= 560 + 16,
+            "{r:?}"
+        );
         assert!(r.width < 320 && r.height < 320, "{r:?}");
     }
 }

@@ -127,7 +127,7 @@ pub fn marker_frame(
     let side = 12 * module_px;
     let x0 = cx - side / 2;
     let y0 = cy - side / 2;
-    let mut cell = vec![[true; 12]; 12];
+    let mut cell = [[true; 12]; 12];
     for r in 0..12 {
         for c in 0..12 {
             let ring = r.min(c).min(11 - r).min(11 - c);
@@ -200,6 +200,11 @@ pub fn marker_frame(
         degraded,
         white,
         black,
-        marker: Rect::new(x0 + module_px, y0 + module_px, 10 * module_px, 10 * module_px),
+        marker: Rect::new(
+            x0 + module_px,
+            y0 + module_px,
+            10 * module_px,
+            10 * module_px,
+        ),
     })
 }

@@ -10,7 +10,7 @@
 //!   → 1 as backscatter swamps the signal;
 //! - **contrast** `(bright − B) / (bright + B)` (Michelson);
 //! - **noise** σ: Immerkær's Laplacian-difference estimator with a median
-//!   (robust to edges) on every 4th row of the full-resolution frame.
+//!   (robust to edges) on every 16th row of the full-resolution frame.
 //!
 //! - **local contrast** `ΔI`: the 99.9th percentile of the 3x3 morphological
 //!   gradient of the coarse level (less 3 coarse noise σ): the black/white
@@ -74,7 +74,7 @@ impl WaterEstimate {
         let mean = hist_mean(&hist);
         let veil_fraction = (backscatter / bright).clamp(0.0, 1.0);
         let contrast = (bright - backscatter) / (bright + backscatter).max(1.0);
-        let noise_sigma = noise_sigma(full, 4)?;
+        let noise_sigma = noise_sigma(full, 16)?;
         // Strongest local contrast: 99.9th percentile of the 3x3
         // morphological gradient of the coarse level, less its noise floor.
         let kernel = imgproc::get_structuring_element(
@@ -94,8 +94,7 @@ impl WaterEstimate {
             imgproc::morphology_default_border_value()?,
         )?;
         let noise_coarse = noise_sigma / COARSE_FACTOR_FOR_NOISE;
-        let local_contrast =
-            (percentile(&histogram(&grad)?, 0.999) - 3.0 * noise_coarse).max(0.0);
+        let local_contrast = (percentile(&histogram(&grad)?, 0.999) - 3.0 * noise_coarse).max(0.0);
         let t = (params.white_over_veil * local_contrast / backscatter.max(1.0)).clamp(1e-4, 1.0);
         let c_per_m = (-t.ln()
             / ((1.0 - params.forward_scatter_fraction) * params.reference_range_m))
@@ -193,8 +192,7 @@ pub fn noise_sigma(m: &impl MatTraitConst, row_step: usize) -> Result<f64, Resto
         let r1 = m.at_row::<u8>(y)?;
         let r2 = m.at_row::<u8>(y + 1)?;
         for x in 1..cols as usize - 1 {
-            let v = r0[x - 1] as i32 - 2 * r0[x] as i32 + r0[x + 1] as i32
-                - 2 * r1[x - 1] as i32
+            let v = r0[x - 1] as i32 - 2 * r0[x] as i32 + r0[x + 1] as i32 - 2 * r1[x - 1] as i32
                 + 4 * r1[x] as i32
                 - 2 * r1[x + 1] as i32
                 + r2[x - 1] as i32
@@ -231,8 +229,7 @@ mod tests {
     fn noisy_flat(mean: f64, sigma: f64, seed: u64) -> Mat {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let n = Normal::new(mean, sigma).unwrap();
-        let mut m =
-            Mat::new_rows_cols_with_default(200, 300, CV_8UC1, Scalar::all(0.0)).unwrap();
+        let mut m = Mat::new_rows_cols_with_default(200, 300, CV_8UC1, Scalar::all(0.0)).unwrap();
         for y in 0..200 {
             for v in m.at_row_mut::<u8>(y).unwrap() {
                 *v = n.sample(&mut rng).round().clamp(0.0, 255.0) as u8;
@@ -246,14 +243,16 @@ mod tests {
         for sigma in [2.0, 5.0, 12.0] {
             let m = noisy_flat(120.0, sigma, 3);
             let est = noise_sigma(&m, 1).unwrap();
-            assert!((est - sigma).abs() < 0.12 * sigma + 0.3, "σ {sigma}: estimated {est}");
+            assert!(
+                (est - sigma).abs() < 0.12 * sigma + 0.3,
+                "σ {sigma}: estimated {est}"
+            );
         }
     }
 
     #[test]
     fn noise_estimate_ignores_a_step_edge() {
-        let mut m =
-            Mat::new_rows_cols_with_default(100, 100, CV_8UC1, Scalar::all(40.0)).unwrap();
+        let mut m = Mat::new_rows_cols_with_default(100, 100, CV_8UC1, Scalar::all(40.0)).unwrap();
         for y in 0..100 {
             for v in &mut m.at_row_mut::<u8>(y).unwrap()[50..] {
                 *v = 200;

@@ -1,5 +1,3 @@
-//! (Unit tests: they run before the code tables exist, see `grid_of`.)
-//!
 //! The rendered geometry is the camera model's: marker corners measured in
 //! the rendered image from its anti-aliased intensities land where
 //! `CameraModel::project` puts them.

@@ -230,7 +230,11 @@ impl Medium {
                     direct: j * tr,
                     scatter: j * tr * ((self.s * self.c * r).exp() - 1.0),
                     veil: 1.0 - tr,
-                    lamp: self.lamp.fraction(r),
+                    lamp: if self.lamp_power > 0.0 {
+                        self.lamp.fraction(r)
+                    } else {
+                        1.0
+                    },
                 }
             }
         }
@@ -431,6 +435,10 @@ impl Renderer {
         let w = cam.width as usize;
         let h = cam.height as usize;
         let mut spans: Vec<(usize, usize, bool)> = Vec::new();
+        // Objects whose ROI covers the current row: (id, x0, x1).
+        let mut row_objects: Vec<(u32, usize, usize)> = Vec::new();
+        let mut span_ids: Vec<u32> = Vec::new();
+        let mut pixel_ids: Vec<u32> = Vec::new();
         let mut fine_objects = vec![false; rois.len()];
         for (i, r) in rois.iter().enumerate() {
             if let Some(r) = r {
@@ -441,9 +449,13 @@ impl Renderer {
         let mut prev: Vec<(usize, usize, Vec<LatticePoint>)> = Vec::new();
         for y in 0..h {
             spans.clear();
-            for r in rois.iter().flatten() {
-                if y >= r.rect.y0 && y <= r.rect.y1 {
-                    spans.push((r.rect.x0, r.rect.x1, r.fine));
+            row_objects.clear();
+            for (id, r) in rois.iter().enumerate() {
+                if let Some(r) = r {
+                    if y >= r.rect.y0 && y <= r.rect.y1 {
+                        spans.push((r.rect.x0, r.rect.x1, r.fine));
+                        row_objects.push((id as u32, r.rect.x0, r.rect.x1));
+                    }
                 }
             }
             if spans.is_empty() {
@@ -463,27 +475,67 @@ impl Renderer {
             for &(x0, x1) in &merged {
                 // Pixel-corner lattice rows above and below this row (shared by
                 // neighbouring pixels; the upper one reused from the row above).
+                // ROIs have a margin of ≥ 2 px around their objects, so rays
+                // through this span can only hit objects whose ROI meets it.
+                span_ids.clear();
+                span_ids.extend(
+                    row_objects
+                        .iter()
+                        .filter(|o| o.1 <= x1 && o.2 >= x0)
+                        .map(|o| o.0),
+                );
                 let top = match prev.iter().position(|(a, b, _)| *a == x0 && *b == x1) {
                     Some(k) => prev.swap_remove(k).2,
-                    None => lattice_row(cam, objects, x0, x1, v - 0.5),
+                    None => lattice_row(cam, objects, &span_ids, x0, x1, v - 0.5),
                 };
-                let bottom = lattice_row(cam, objects, x0, x1, v + 0.5);
-                let mut guess = top[0].0;
+                let bottom = lattice_row(cam, objects, &span_ids, x0, x1, v + 0.5);
                 for x in x0..=x1 {
                     let k = x - x0;
                     let u = x as f64;
+                    let guess = (
+                        0.25 * (top[k].0 .0
+                            + top[k + 1].0 .0
+                            + bottom[k].0 .0
+                            + bottom[k + 1].0 .0),
+                        0.25 * (top[k].0 .1
+                            + top[k + 1].0 .1
+                            + bottom[k].0 .1
+                            + bottom[k + 1].0 .1),
+                    );
                     let centre = trace::ray_from(cam, u, v, guess);
-                    guess = centre;
-                    let hit_c = objects.trace(centre.0, centre.1);
+                    pixel_ids.clear();
+                    pixel_ids.extend(
+                        row_objects
+                            .iter()
+                            .filter(|o| o.1 <= x && o.2 >= x)
+                            .map(|o| o.0),
+                    );
+                    let hit_c = objects.trace_in(&pixel_ids, centre.0, centre.1);
                     let corners = [top[k].1, top[k + 1].1, bottom[k + 1].1, bottom[k].1];
-                    let uniform = pixel_is_uniform(objects, &hit_c, &corners, &fine_objects);
-                    let s = if uniform {
+                    let kind = classify_pixel(objects, &hit_c, &corners, &fine_objects);
+                    let s = if let PixelKind::Uniform = kind {
                         medium.sample(hit_c, centre.0, centre.1)
+                    } else if let (PixelKind::PlateEdge(white), Some(h)) = (kind, hit_c) {
+                        // Exact area coverage of the modules under the pixel.
+                        let plate = &objects.plates[h.object as usize];
+                        let mix = |a: f64, b: f64| white * a + (1.0 - white) * b;
+                        let cos_i = h.lamp_geom
+                            / if h.radiance > 0.5 * plate.shade {
+                                trace::ALBEDO_WHITE
+                            } else {
+                                trace::ALBEDO_BLACK
+                            };
+                        let hit = Hit {
+                            radiance: plate.shade * mix(trace::ALBEDO_WHITE, trace::ALBEDO_BLACK),
+                            lamp_geom: cos_i * mix(trace::ALBEDO_WHITE, trace::ALBEDO_BLACK),
+                            ..h
+                        };
+                        medium.sample(Some(hit), centre.0, centre.1)
                     } else {
                         let mut acc = Sample::default();
                         for &(du, dv) in &self.offsets {
                             let r = trace::ray_from(cam, u + du, v + dv, centre);
-                            let s = medium.sample(objects.trace(r.0, r.1), r.0, r.1);
+                            let s = medium.sample(objects.trace_in(&pixel_ids, r.0, r.1), r.0, r.1);
                             acc.clean += s.clean;
                             acc.direct += s.direct;
                             acc.scatter += s.scatter;
@@ -583,18 +635,76 @@ type LatticePoint = ((f64, f64), Option<Hit>);
 fn lattice_row(
     cam: &CameraModel,
     objects: &Objects,
+    ids: &[u32],
     x0: usize,
     x1: usize,
     v: f64,
 ) -> Vec<LatticePoint> {
-    let mut guess = cam.ray(x0 as f64 - 0.5, v);
+    let first = cam.ray(x0 as f64 - 0.5, v);
+    let (mut prev, mut last) = (first, first);
     (x0..=x1 + 1)
         .map(|x| {
+            // Linear extrapolation from the two previous rays: Newton then
+            // converges in one step.
+            let guess = (2.0 * last.0 - prev.0, 2.0 * last.1 - prev.1);
             let r = trace::ray_from(cam, x as f64 - 0.5, v, guess);
-            guess = r;
-            (r, objects.trace(r.0, r.1))
+            prev = if x == x0 { r } else { last };
+            last = r;
+            (r, objects.trace_in(ids, r.0, r.1))
         })
         .collect()
+}
+
+/// How a pixel is rendered.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum PixelKind {
+    /// One uniform patch: its centre sample.
+    Uniform,
+    /// Inside one plate's face, across module edges: this white fraction.
+    PlateEdge(f64),
+    /// Anything else (silhouettes, occlusions, tiny features): supersampled.
+    Mixed,
+}
+
+/// Classify a pixel from the hits at its centre and corners (see
+/// [`pixel_is_uniform`]). Plate edges: all five on one plate's face; the
+/// pixel's footprint is the corners' quadrilateral in plate coordinates and
+/// its white fraction is computed exactly.
+fn classify_pixel(
+    objects: &Objects,
+    centre: &Option<Hit>,
+    corners: &[Option<Hit>; 4],
+    fine: &[bool],
+) -> PixelKind {
+    if pixel_is_uniform(objects, centre, corners, fine) {
+        return PixelKind::Uniform;
+    }
+    let (Some(c), [Some(a), Some(b), Some(d), Some(e)]) = (centre, corners) else {
+        return PixelKind::Mixed;
+    };
+    let Some(plate) = objects.plates.get(c.object as usize) else {
+        return PixelKind::Mixed;
+    };
+    let back = (plate.modules as u32 + 2).pow(2);
+    let hits = [a, b, d, e, c];
+    if fine.get(c.object as usize).copied().unwrap_or(true)
+        || hits.iter().any(|h| h.object != c.object || h.patch == back)
+    {
+        return PixelKind::Mixed;
+    }
+    let (mut c0, mut c1, mut r0, mut r1) = (i64::MAX, i64::MIN, i64::MAX, i64::MIN);
+    for h in hits {
+        let (col, row) = plate.decode_patch(h.patch);
+        c0 = c0.min(col);
+        c1 = c1.max(col);
+        r0 = r0.min(row);
+        r1 = r1.max(row);
+    }
+    let quad = [a.plane, b.plane, d.plane, e.plane];
+    match plate.white_coverage(&quad, c0, c1, r0, r1) {
+        Some(f) => PixelKind::PlateEdge(f),
+        None => PixelKind::Mixed,
+    }
 }
 
 /// Whether a pixel is one uniform patch, from the hits at its centre and
@@ -835,26 +945,6 @@ fn psf_groups(cam: &CameraModel, water: &WaterParams, rois: &[Option<Roi>]) -> V
 fn grid_of(codes: CodeSet, id: MarkerId) -> Result<Vec<bool>, SimError> {
     match codes.module_grid(id) {
         Ok(g) => Ok(g),
-        // This crate's own unit tests (geometry only) must not depend on the
-        // generated code tables being present: they get the set's rings
-        // around a fixed checkerboard of data bits.
-        #[cfg(test)]
-        Err(shoal_proto::marker::MarkerError::TableMissing { .. }) => {
-            let m = codes.modules();
-            let n = codes.data_side();
-            let off = (m - n) / 2;
-            Ok((0..m * m)
-                .map(|k| {
-                    let (r, c) = (k / m, k % m);
-                    let ring = r.min(c).min(m - 1 - r).min(m - 1 - c);
-                    if r >= off && r < off + n && c >= off && c < off + n {
-                        (r + c + id as usize) % 2 == 0
-                    } else {
-                        codes == CodeSet::Shoal && ring == 1
-                    }
-                })
-                .collect())
-        }
         Err(e) => Err(SimError::Marker {
             codes,
             id,

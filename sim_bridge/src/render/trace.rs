@@ -63,9 +63,11 @@ pub struct Hit {
     pub t: f64,
     /// Index into the traced objects (plates first, then hulls).
     pub object: u32,
-    /// Which uniform patch: for plates the module index (row·(m+4)+col of the
-    /// grid including the quiet zone and one more ring), for hulls 0.
+    /// Which uniform patch: for plates the module index `row·(m+2)+col` in
+    /// the grid including the quiet zone (`(m+2)²` for the back), for hulls 0.
     pub patch: u32,
+    /// Plate coordinates of the hit (m, marker frame x and y); 0 for hulls.
+    pub plane: (f64, f64),
     /// Clean radiance under the ambient light (albedo · shading), 0..1.
     pub radiance: f64,
     /// `albedo · max(0, cos incidence)` for a lamp at the camera.
@@ -166,6 +168,47 @@ impl Plate {
         true
     }
 
+    /// Fraction of the convex quadrilateral `quad` (plate coordinates, the
+    /// footprint of a pixel whose corners all hit this plate's face) that is
+    /// white: exact area coverage over the modules in the inclusive index
+    /// rectangle `c0..=c1` x `r0..=r1`. `None` for a degenerate footprint.
+    pub fn white_coverage(
+        &self,
+        quad: &[(f64, f64); 4],
+        c0: i64,
+        c1: i64,
+        r0: i64,
+        r1: i64,
+    ) -> Option<f64> {
+        let total = polygon_area(quad);
+        if total.is_nan() || total <= 0.0 {
+            return None;
+        }
+        let (mut white, mut covered) = (0.0, 0.0);
+        let mut poly = Vec::with_capacity(8);
+        let mut tmp = Vec::with_capacity(8);
+        for r in r0..=r1 {
+            for c in c0..=c1 {
+                let is_white = self.white_at(c, r)?;
+                let xlo = -self.half_m + c as f64 * self.module_m;
+                let yhi = self.half_m - r as f64 * self.module_m;
+                poly.clear();
+                poly.extend_from_slice(quad);
+                clip(&mut poly, &mut tmp, |p| p.0 - xlo);
+                clip(&mut poly, &mut tmp, |p| xlo + self.module_m - p.0);
+                clip(&mut poly, &mut tmp, |p| yhi - p.1);
+                clip(&mut poly, &mut tmp, |p| p.1 - (yhi - self.module_m));
+                let a = polygon_area(&poly);
+                covered += a;
+                if is_white {
+                    white += a;
+                }
+            }
+        }
+        // The cells must tile the footprint (else it left the plate).
+        ((covered - total).abs() <= 1e-6 * total).then_some(white / total)
+    }
+
     /// Plate module index (col, row) encoded in a patch id.
     pub fn decode_patch(&self, patch: u32) -> (i64, i64) {
         let w = self.modules as u32 + 2;
@@ -173,7 +216,8 @@ impl Plate {
     }
 
     #[inline]
-    fn intersect(&self, x: f64, y: f64, t_max: f64) -> Option<(f64, u32, f64, f64)> {
+    #[allow(clippy::type_complexity)]
+    fn intersect(&self, x: f64, y: f64, t_max: f64) -> Option<(f64, u32, f64, f64, (f64, f64))> {
         let d = Vector3::new(x, y, 1.0);
         let denom = self.normal.dot(&d);
         if denom.abs() < 1e-15 {
@@ -202,6 +246,7 @@ impl Plate {
                 (row * w + col) as u32,
                 albedo * self.shade,
                 albedo * cos_i,
+                (px, py),
             ))
         } else {
             // The back of the plate: one uniform patch id past the grid.
@@ -211,9 +256,47 @@ impl Plate {
                 (w * w) as u32,
                 ALBEDO_PLATE_BACK * back_shade,
                 ALBEDO_PLATE_BACK * cos_i,
+                (px, py),
             ))
         }
     }
+}
+
+/// Area of a simple polygon (absolute, shoelace).
+fn polygon_area(p: &[(f64, f64)]) -> f64 {
+    let n = p.len();
+    if n < 3 {
+        return 0.0;
+    }
+    let mut a = 0.0;
+    for i in 0..n {
+        let (x0, y0) = p[i];
+        let (x1, y1) = p[(i + 1) % n];
+        a += x0 * y1 - x1 * y0;
+    }
+    0.5 * a.abs()
+}
+
+/// Sutherland–Hodgman: keep the part of `poly` where `inside(p) ≥ 0` (a half-plane).
+fn clip(
+    poly: &mut Vec<(f64, f64)>,
+    tmp: &mut Vec<(f64, f64)>,
+    inside: impl Fn(&(f64, f64)) -> f64,
+) {
+    tmp.clear();
+    let n = poly.len();
+    for i in 0..n {
+        let (a, b) = (poly[i], poly[(i + 1) % n]);
+        let (da, db) = (inside(&a), inside(&b));
+        if da >= 0.0 {
+            tmp.push(a);
+        }
+        if (da >= 0.0) != (db >= 0.0) {
+            let t = da / (da - db);
+            tmp.push((a.0 + (b.0 - a.0) * t, a.1 + (b.1 - a.1) * t));
+        }
+    }
+    std::mem::swap(poly, tmp);
 }
 
 impl Hull {
@@ -274,35 +357,57 @@ impl Objects {
     #[inline]
     pub fn trace(&self, x: f64, y: f64) -> Option<Hit> {
         let mut best: Option<Hit> = None;
-        let mut t_max = f64::INFINITY;
-        for (i, p) in self.plates.iter().enumerate() {
-            if let Some((t, patch, radiance, lamp_geom)) = p.intersect(x, y, t_max) {
-                t_max = t;
-                best = Some(Hit {
-                    t,
-                    object: i as u32,
-                    patch,
-                    radiance,
-                    lamp_geom,
-                });
-            }
-        }
-        let np = self.plates.len() as u32;
-        for (i, h) in self.hulls.iter().enumerate() {
-            if let Some((t, n)) = h.intersect(x, y, t_max) {
-                t_max = t;
-                let d = Vector3::new(x, y, 1.0);
-                let cos_i = (-n.dot(&d) / d.norm()).clamp(0.0, 1.0);
-                best = Some(Hit {
-                    t,
-                    object: np + i as u32,
-                    patch: 0,
-                    radiance: ALBEDO_HULL * ambient_shading(&n, &self.up),
-                    lamp_geom: ALBEDO_HULL * cos_i,
-                });
+        for i in 0..self.object_count() as u32 {
+            let t_max = best.map_or(f64::INFINITY, |h| h.t);
+            if let Some(h) = self.hit_object(i, x, y, t_max) {
+                best = Some(h);
             }
         }
         best
+    }
+
+    /// As [`Objects::trace`] but only against the objects `ids` (those whose
+    /// regions of interest contain the pixel).
+    #[inline]
+    pub fn trace_in(&self, ids: &[u32], x: f64, y: f64) -> Option<Hit> {
+        let mut best: Option<Hit> = None;
+        for &i in ids {
+            let t_max = best.map_or(f64::INFINITY, |h| h.t);
+            if let Some(h) = self.hit_object(i, x, y, t_max) {
+                best = Some(h);
+            }
+        }
+        best
+    }
+
+    /// The hit on object `i` (plates first, then hulls) nearer than `t_max`.
+    #[inline]
+    fn hit_object(&self, i: u32, x: f64, y: f64, t_max: f64) -> Option<Hit> {
+        let np = self.plates.len() as u32;
+        if i < np {
+            let (t, patch, radiance, lamp_geom, plane) =
+                self.plates[i as usize].intersect(x, y, t_max)?;
+            Some(Hit {
+                t,
+                object: i,
+                patch,
+                plane,
+                radiance,
+                lamp_geom,
+            })
+        } else {
+            let (t, n) = self.hulls.get((i - np) as usize)?.intersect(x, y, t_max)?;
+            let d = Vector3::new(x, y, 1.0);
+            let cos_i = (-n.dot(&d) / d.norm()).clamp(0.0, 1.0);
+            Some(Hit {
+                t,
+                object: i,
+                patch: 0,
+                plane: (0.0, 0.0),
+                radiance: ALBEDO_HULL * ambient_shading(&n, &self.up),
+                lamp_geom: ALBEDO_HULL * cos_i,
+            })
+        }
     }
 
     /// Whether the point `p` (camera frame) is the first thing its ray hits
@@ -338,6 +443,30 @@ mod tests {
                 "{u},{v} -> {p}"
             );
         }
+    }
+
+    #[test]
+    fn white_coverage_is_the_exact_area_fraction() {
+        // A 4-module marker: modules of 0.1 m, plate half side 0.3 m.
+        let plate = Plate::new(
+            &Isometry3::translation(0.0, 0.0, 1.0),
+            4,
+            0.4,
+            vec![false; 16],
+            &Vector3::y(),
+        );
+        // A square straddling the quiet zone (white, x < -0.2) and
+        // the black frame, 30 % of it on the white side.
+        let q = [(-0.23, 0.05), (-0.13, 0.05), (-0.13, -0.05), (-0.23, -0.05)];
+        let (c0, r0) = (0, 2);
+        let f = plate.white_coverage(&q, c0, c0 + 1, r0, r0 + 1).unwrap();
+        assert!((f - 0.3).abs() < 1e-12, "{f}");
+        // A diamond centred on the boundary: half white.
+        let d = [(-0.2, 0.05), (-0.15, 0.0), (-0.2, -0.05), (-0.25, 0.0)];
+        let f = plate.white_coverage(&d, 0, 1, 2, 3).unwrap();
+        assert!((f - 0.5).abs() < 1e-12, "{f}");
+        // A footprint not tiled by the given cells is refused.
+        assert!(plate.white_coverage(&q, 1, 1, 2, 3).is_none());
     }
 
     #[test]

@@ -1,0 +1,278 @@
+//! Offline re-fusion (`shoal fuse`): run [`shoal_fusion::Fusion`] over a log's
+//! observations, with no Zenoh and no wall clock, as fast as the CPU allows.
+//!
+//! The time line is the log's simulated clock: `now` is the newest capture
+//! stamp seen so far (SimTruth and observation stamps), observations are
+//! ingested in log order, and the map is solved at the stamps of the original
+//! run's maps (or at a fixed rate of that clock). `solve_time_us` is not
+//! recorded, so the same file gives the same output, bit for bit.
+
+use crate::reader::{header, read_file, scan, Item, ScanError};
+use crate::recorder::{Converter, RecordOptions, RecorderStats};
+use crate::writer::{LogWriter, WriterOptions};
+use crate::RecordError;
+use proto::config::Fleet;
+use proto::geometry::difference;
+use proto::{FleetMap, KeyKind, MessageKind, Observation, SimTruth, VehicleId, VehicleState};
+use shoal_fusion::{Fusion, FusionParams};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+/// When to solve.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum SolveAt {
+    /// At the stamps of the central maps recorded in the log.
+    OriginalMaps,
+    /// Every `1/rate` seconds of the log's clock.
+    RateHz(f64),
+}
+
+#[derive(Debug, Clone)]
+pub struct FuseOptions {
+    pub params: FusionParams,
+    pub solve_at: SolveAt,
+    /// Use this fleet instead of the one attached to the log.
+    pub fleet: Option<Fleet>,
+}
+
+impl Default for FuseOptions {
+    fn default() -> Self {
+        Self {
+            params: FusionParams::default(),
+            solve_at: SolveAt::OriginalMaps,
+            fleet: None,
+        }
+    }
+}
+
+/// Differences between the re-fused maps and the original ones at the same stamps.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct MapComparison {
+    pub maps_compared: u64,
+    /// Vehicle estimates compared (Live in both maps).
+    pub estimates_compared: u64,
+    pub max_position_diff_m: f64,
+    pub max_angle_diff_deg: f64,
+    pub mean_position_diff_m: f64,
+}
+
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct FuseSummary {
+    pub output: PathBuf,
+    pub observations: u64,
+    pub rejected_at_ingest: u64,
+    pub maps_written: u64,
+    pub original_maps: u64,
+    pub comparison: MapComparison,
+}
+
+/// The fleet a log was recorded with (its attachment), unless overridden.
+pub fn fleet_of(buf: &[u8], input: &Path) -> Result<Fleet, RecordError> {
+    let h = header(buf)?;
+    let text = h
+        .fleet_toml
+        .ok_or_else(|| RecordError::NoFleet(input.to_path_buf()))?;
+    let source = h
+        .metadata
+        .get("fleet_file")
+        .map_or_else(|| PathBuf::from("fleet.toml"), PathBuf::from);
+    Fleet::parse(&text, &source).map_err(|e| {
+        RecordError::Format(format!(
+            "{}: fleet attached to the log: {e}",
+            input.display()
+        ))
+    })
+}
+
+/// Re-fuse `input` into `output`. The output carries the input's
+/// observations, truth, status and commands (raw and Foxglove), and the new
+/// map track in place of the old one.
+pub fn refuse(input: &Path, output: &Path, opts: &FuseOptions) -> Result<FuseSummary, RecordError> {
+    let buf = read_file(input)?;
+    let fleet = match &opts.fleet {
+        Some(f) => f.clone(),
+        None => fleet_of(&buf, input)?,
+    };
+    let h = header(&buf)?;
+    let keys = fleet.keys();
+    let mut params = opts.params;
+    params.record_solve_time = false;
+    let mut fusion = Fusion::new(&fleet, params, "central");
+    let mut meta = h.metadata.clone();
+    meta.insert(
+        "refused_from".into(),
+        input
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default(),
+    );
+    meta.insert(
+        "fusion".into(),
+        format!("offline re-fusion, {:?}", opts.solve_at),
+    );
+    let mut writer = LogWriter::create(
+        output,
+        &WriterOptions::default(),
+        &meta,
+        h.fleet_toml.as_deref(),
+        0,
+    )?;
+    let conv_opts = RecordOptions {
+        frames: false,
+        ..RecordOptions::default()
+    };
+    let fleet = Arc::new(fleet);
+    let mut conv = Converter::new(fleet.clone(), conv_opts);
+    let stats = RecorderStats::default();
+    let mut summary = FuseSummary {
+        output: output.to_path_buf(),
+        ..FuseSummary::default()
+    };
+    let mut now: u64 = 0;
+    let mut next_solve: Option<u64> = None;
+    let mut cmp = CompareAcc::default();
+    let map_key = keys.map();
+    let res = scan(&buf, |item| -> Result<(), RecordError> {
+        let Item::Message {
+            channel,
+            log_time,
+            data,
+            ..
+        } = item
+        else {
+            return Ok(());
+        };
+        if !channel.is_wire() {
+            return Ok(());
+        }
+        let key = channel.topic.as_str();
+        let kind = crate::recorder::envelope_kind(data);
+        match (kind, keys.parse(key)) {
+            (Some(MessageKind::SimTruth), _) => {
+                if let Ok(t) = proto::decode::<SimTruth>(data) {
+                    now = now.max(t.stamp_ns);
+                }
+                conv.write(&mut writer, key, data, log_time, &stats)?;
+            }
+            (Some(MessageKind::Observation), Ok(KeyKind::Observations { vehicle })) => {
+                if let Ok(o) = proto::decode::<Observation>(data) {
+                    now = now.max(o.stamp_ns);
+                    summary.observations += 1;
+                    if fusion.ingest(o, vehicle, now).is_err() {
+                        summary.rejected_at_ingest += 1;
+                    }
+                }
+                conv.write(&mut writer, key, data, log_time, &stats)?;
+            }
+            (Some(MessageKind::FleetMap), _) => {
+                if key == map_key {
+                    if let Ok(original) = proto::decode::<FleetMap>(data) {
+                        summary.original_maps += 1;
+                        if opts.solve_at == SolveAt::OriginalMaps {
+                            let map = fusion.solve(original.stamp_ns);
+                            cmp.add(&map, &original);
+                            write_map(&mut writer, &mut conv, &map_key, &map, log_time, &stats)?;
+                            summary.maps_written += 1;
+                        }
+                    }
+                }
+                return Ok(());
+            }
+            (Some(MessageKind::CameraFrame), _) => return Ok(()),
+            _ => conv.write(&mut writer, key, data, log_time, &stats)?,
+        }
+        if let SolveAt::RateHz(rate) = opts.solve_at {
+            let period = (1e9 / rate.max(1e-3)) as u64;
+            let due = *next_solve.get_or_insert(now + period);
+            if now >= due {
+                let map = fusion.solve(now);
+                write_map(&mut writer, &mut conv, &map_key, &map, log_time, &stats)?;
+                summary.maps_written += 1;
+                next_solve = Some(due + period * ((now - due) / period + 1));
+            }
+        }
+        Ok(())
+    });
+    match res {
+        Ok(outcome) => {
+            if let Some(d) = outcome.damage.filter(|_| !outcome.complete) {
+                tracing::warn!("{}: {d}; re-fused what was readable", input.display());
+            }
+        }
+        Err(ScanError::Visitor(e)) => return Err(e),
+        Err(e) => return Err(RecordError::Format(format!("{}: {e}", input.display()))),
+    }
+    writer.finish()?;
+    summary.comparison = cmp.finish();
+    Ok(summary)
+}
+
+fn write_map(
+    writer: &mut LogWriter,
+    conv: &mut Converter,
+    key: &str,
+    map: &FleetMap,
+    log_time: u64,
+    stats: &RecorderStats,
+) -> Result<(), RecordError> {
+    let bytes =
+        proto::encode(map).map_err(|e| RecordError::Format(format!("encoding a map: {e}")))?;
+    conv.write(writer, key, &bytes, log_time, stats)
+}
+
+#[derive(Default)]
+struct CompareAcc {
+    c: MapComparison,
+    sum: f64,
+}
+
+impl CompareAcc {
+    fn add(&mut self, ours: &FleetMap, original: &FleetMap) {
+        if let Some(d) = compare_maps(ours, original) {
+            self.c.maps_compared += 1;
+            for (pos, ang) in d.values() {
+                self.c.estimates_compared += 1;
+                self.sum += pos;
+                self.c.max_position_diff_m = self.c.max_position_diff_m.max(*pos);
+                self.c.max_angle_diff_deg = self.c.max_angle_diff_deg.max(*ang);
+            }
+        }
+    }
+    fn finish(mut self) -> MapComparison {
+        if self.c.estimates_compared > 0 {
+            self.c.mean_position_diff_m = self.sum / self.c.estimates_compared as f64;
+        }
+        self.c
+    }
+}
+
+/// Position (m) and angle (deg) difference of every non-reference vehicle
+/// Live in both maps; `None` if the maps have different references.
+pub fn compare_maps(a: &FleetMap, b: &FleetMap) -> Option<BTreeMap<VehicleId, (f64, f64)>> {
+    if a.reference != b.reference {
+        return None;
+    }
+    let mut out = BTreeMap::new();
+    for va in a
+        .vehicles
+        .iter()
+        .filter(|v| v.state == VehicleState::Live && v.vehicle != a.reference)
+    {
+        if let Some(vb) = b
+            .vehicles
+            .iter()
+            .find(|v| v.vehicle == va.vehicle && v.state == VehicleState::Live)
+        {
+            let d = difference(&va.reference_from_vehicle, &vb.reference_from_vehicle);
+            out.insert(
+                va.vehicle,
+                (
+                    d.fixed_rows::<3>(0).norm(),
+                    d.fixed_rows::<3>(3).norm().to_degrees(),
+                ),
+            );
+        }
+    }
+    Some(out)
+}

@@ -1,0 +1,270 @@
+//! `shoal record`, `shoal replay`, `shoal fuse`, `shoal log info|recover`: MCAP logs of swarm trials.
+
+use super::net::{wait_for_ctrl_c, NetArgs};
+use anyhow::{bail, Context};
+use clap::{Args, Subcommand};
+use shoal_fusion::FusionParams;
+use shoal_proto::config::Fleet;
+use shoal_proto::MessageKind;
+use shoal_record::{FuseOptions, RecordOptions, ReplayOptions, SolveAt};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+#[derive(Debug, Args)]
+pub struct RecordArgs {
+    #[arg(long, default_value = "configs/fleets/paper.toml")]
+    fleet: PathBuf,
+    /// Output MCAP file.
+    #[arg(long)]
+    out: PathBuf,
+    /// Also record camera frames (raw, and as PNG for Foxglove); they dominate the size.
+    #[arg(long)]
+    frames: bool,
+    /// At most this many frames per second per camera (0: every frame).
+    #[arg(long, default_value_t = 2.0)]
+    frame_rate: f64,
+    /// At most this many Foxglove PNG images per second per camera (0: every recorded frame); PNG costs ~50 ms a frame.
+    #[arg(long, default_value_t = 1.0)]
+    image_rate: f64,
+    /// Raw wire channels only, no Foxglove channels.
+    #[arg(long)]
+    no_foxglove: bool,
+    /// Water attenuation coefficient of the trial, per metre (file metadata).
+    #[arg(long)]
+    water: Option<f64>,
+    /// Close a chunk at least this often (milliseconds): a killed recorder loses at most this much.
+    #[arg(long, default_value_t = 1000)]
+    flush_ms: u64,
+    /// Stop after this many seconds (default: Ctrl-C).
+    #[arg(long)]
+    duration: Option<f64>,
+    #[command(flatten)]
+    net: NetArgs,
+}
+
+pub fn run_record(a: RecordArgs) -> anyhow::Result<()> {
+    let fleet = Arc::new(Fleet::load(&a.fleet)?);
+    let bus = a.net.open()?;
+    let opts = RecordOptions {
+        frames: a.frames,
+        frame_rate_limit_hz: (a.frame_rate > 0.0).then_some(a.frame_rate),
+        image_rate_limit_hz: (a.image_rate > 0.0).then_some(a.image_rate),
+        foxglove: !a.no_foxglove,
+        flush_interval: Duration::from_millis(a.flush_ms.max(1)),
+        water_c_per_m: a.water,
+        ..RecordOptions::default()
+    };
+    let rec = shoal_record::Recorder::spawn(&bus, fleet, &a.out, opts)?;
+    tracing::info!("recording to {}; Ctrl-C to stop", a.out.display());
+    let started = std::time::Instant::now();
+    wait_for_ctrl_c(|| {
+        rec.failed()
+            || a.duration
+                .is_some_and(|d| started.elapsed().as_secs_f64() >= d)
+    });
+    let s = rec.stop()?;
+    println!(
+        "wrote {} ({:.2} MB, {} wire messages, {} dropped, {} frames rate-limited, {} undecodable, {} PNG images dropped) in {:.1} s, writer CPU {:.2} s",
+        s.path.display(),
+        s.file_bytes as f64 / 1e6,
+        s.wire_messages,
+        s.dropped,
+        s.frames_rate_limited,
+        s.undecodable,
+        s.images_dropped,
+        s.wall_time_s,
+        s.writer_cpu_s
+    );
+    for (topic, c) in &s.channels {
+        println!(
+            "  {topic:<44} {:>7} messages {:>10.3} MB",
+            c.messages,
+            c.bytes as f64 / 1e6
+        );
+    }
+    Ok(())
+}
+
+#[derive(Debug, Args)]
+pub struct ReplayArgs {
+    /// The MCAP log.
+    #[arg(value_name = "LOG.mcap")]
+    file: PathBuf,
+    /// Speed factor (2.0: twice as fast; `max`: as fast as possible).
+    #[arg(long, default_value = "1.0")]
+    rate: String,
+    /// Start this many seconds into the log.
+    #[arg(long)]
+    from: Option<f64>,
+    /// Stop this many seconds into the log.
+    #[arg(long)]
+    to: Option<f64>,
+    /// Only these message kinds (comma-separated: observation, map, frame, truth, status, command).
+    #[arg(long, value_delimiter = ',')]
+    only: Option<Vec<String>>,
+    #[command(flatten)]
+    net: NetArgs,
+}
+
+fn kind_of(name: &str) -> anyhow::Result<MessageKind> {
+    Ok(match name {
+        "observation" | "obs" => MessageKind::Observation,
+        "map" => MessageKind::FleetMap,
+        "frame" => MessageKind::CameraFrame,
+        "truth" => MessageKind::SimTruth,
+        "status" => MessageKind::NodeStatus,
+        "command" | "cmd" => MessageKind::VehicleCommand,
+        other => bail!(
+            "message kind {other:?}: expected observation, map, frame, truth, status or command"
+        ),
+    })
+}
+
+pub fn run_replay(a: ReplayArgs) -> anyhow::Result<()> {
+    let rate = match a.rate.as_str() {
+        "max" => f64::INFINITY,
+        r => r
+            .parse::<f64>()
+            .ok()
+            .filter(|r| *r > 0.0)
+            .with_context(|| format!("--rate {r:?}: expected a positive number or `max`"))?,
+    };
+    let kinds = a
+        .only
+        .as_ref()
+        .map(|ks| {
+            ks.iter()
+                .map(|k| kind_of(k))
+                .collect::<anyhow::Result<Vec<_>>>()
+        })
+        .transpose()?;
+    let bus = a.net.open()?;
+    let stop = Arc::new(AtomicBool::new(false));
+    for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+        let _ = signal_hook::flag::register(sig, stop.clone());
+    }
+    let s = shoal_record::replay(
+        &bus,
+        &a.file,
+        &ReplayOptions {
+            rate,
+            from_s: a.from,
+            to_s: a.to,
+            kinds,
+            ..ReplayOptions::default()
+        },
+        &stop,
+    )?;
+    println!(
+        "replayed {} messages ({:.2} MB) covering {:.1} s of log in {:.1} s (latest message {:.1} ms behind schedule){}",
+        s.messages,
+        s.bytes as f64 / 1e6,
+        s.log_span_s,
+        s.wall_time_s,
+        s.max_late_ms,
+        if stop.load(Ordering::Relaxed) { ", interrupted" } else { "" }
+    );
+    Ok(())
+}
+
+#[derive(Debug, Args)]
+pub struct FuseArgs {
+    /// The MCAP log.
+    #[arg(value_name = "LOG.mcap")]
+    file: PathBuf,
+    /// Output MCAP with the re-fused map track.
+    #[arg(long)]
+    out: PathBuf,
+    /// Solve at this rate of the log's clock instead of at the original maps' stamps.
+    #[arg(long)]
+    rate: Option<f64>,
+    /// Fleet file (default: the one attached to the log).
+    #[arg(long)]
+    fleet: Option<PathBuf>,
+    /// Also write the summary as JSON.
+    #[arg(long)]
+    summary_json: Option<PathBuf>,
+}
+
+pub fn run_fuse(a: FuseArgs) -> anyhow::Result<()> {
+    let opts = FuseOptions {
+        params: FusionParams::default(),
+        solve_at: a.rate.map_or(SolveAt::OriginalMaps, SolveAt::RateHz),
+        fleet: a.fleet.as_deref().map(Fleet::load).transpose()?,
+    };
+    let started = std::time::Instant::now();
+    let s = shoal_record::refuse(&a.file, &a.out, &opts)?;
+    println!(
+        "re-fused {} observations ({} rejected on arrival) into {} maps in {:.2} s → {}",
+        s.observations,
+        s.rejected_at_ingest,
+        s.maps_written,
+        started.elapsed().as_secs_f64(),
+        s.output.display()
+    );
+    let c = &s.comparison;
+    if c.maps_compared > 0 {
+        println!(
+            "against the {} original maps: {} estimates compared, position difference mean {:.2} mm, max {:.2} mm, angle max {:.3}°",
+            s.original_maps,
+            c.estimates_compared,
+            c.mean_position_diff_m * 1e3,
+            c.max_position_diff_m * 1e3,
+            c.max_angle_diff_deg
+        );
+    }
+    if let Some(p) = a.summary_json {
+        std::fs::write(&p, serde_json::to_string_pretty(&s)?)
+            .with_context(|| format!("cannot write {}", p.display()))?;
+    }
+    Ok(())
+}
+
+#[derive(Debug, Subcommand)]
+pub enum LogCmd {
+    /// Vehicles, duration, messages per channel, detection rate and gaps of a log.
+    Info {
+        #[arg(value_name = "LOG.mcap")]
+        file: PathBuf,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Rewrite a log whose recorder was killed (no summary) with every readable record and a proper summary.
+    Recover {
+        #[arg(value_name = "LOG.mcap")]
+        file: PathBuf,
+        #[arg(long)]
+        out: PathBuf,
+    },
+}
+
+pub fn run_log(c: LogCmd) -> anyhow::Result<()> {
+    match c {
+        LogCmd::Info { file, json } => {
+            let i = shoal_record::info(&file)?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&i)?);
+            } else {
+                print!("{i}");
+            }
+        }
+        LogCmd::Recover { file, out } => {
+            let r = shoal_record::recover(&file, &out)?;
+            println!(
+                "recovered {} messages on {} channels from {} chunks into {}{}",
+                r.messages,
+                r.channels,
+                r.chunks_read,
+                out.display(),
+                r.damage.map_or_else(
+                    || " (the input was intact)".to_string(),
+                    |d| format!(" (input: {d})")
+                )
+            );
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,243 @@
+//! `shoal eval <experiment>`: the paper's measurements (§3.1, §6) repeated on
+//! shoal, with the baselines run on identical frames in the same run.
+//!
+//! Every experiment writes into its output directory a CSV of every trial or
+//! frame, plots as PNG and SVG, and a `summary.json` holding its headline
+//! figures under stable names (so a later run can be compared with an
+//! earlier one), each beside the paper's figure where the paper gives one.
+//!
+//! | experiment        | paper                  | module          |
+//! |-------------------|------------------------|-----------------|
+//! | `features`        | §3.1, Fig. 3           | [`features`]    |
+//! | `accuracy`        | §6.2, Figs. 11–14      | [`accuracy`]    |
+//! | `accuracy-yaw`    | §6.2, Fig. 15          | [`accuracy`]    |
+//! | `accuracy-rmse`   | §6.2, Figs. 16–17      | [`accuracy`]    |
+//! | `detection`       | §6.1, Table 5          | [`detection`]   |
+//! | `restoration`     | §6.1, Tables 1–4       | [`restoration`] |
+//! | `calibrate-water` | Table 5's CLAHE row    | [`calibrate`]   |
+//! | `fusion`          | (shoal's own)          | [`fusion`]      |
+//! | `swarm`           | §6.3                   | [`swarm`]       |
+//!
+//! `quick` runs a reduced version of each (seconds in a debug build) for CI.
+
+pub mod accuracy;
+pub mod calibrate;
+pub mod detection;
+pub mod features;
+pub mod fusion;
+pub mod plot;
+pub mod restoration;
+pub mod scene;
+pub mod swarm;
+pub mod table;
+
+use indicatif::{ProgressBar, ProgressStyle};
+use shoal_node::restore::Method;
+use std::path::{Path, PathBuf};
+
+/// The experiments, in the order of issue #6's priorities.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Experiment {
+    Features,
+    Accuracy,
+    AccuracyYaw,
+    AccuracyRmse,
+    Detection,
+    Restoration,
+    CalibrateWater,
+    Fusion,
+    Swarm,
+}
+
+impl Experiment {
+    pub const ALL: [Experiment; 9] = [
+        Experiment::Features,
+        Experiment::Accuracy,
+        Experiment::AccuracyYaw,
+        Experiment::AccuracyRmse,
+        Experiment::Detection,
+        Experiment::Restoration,
+        Experiment::CalibrateWater,
+        Experiment::Fusion,
+        Experiment::Swarm,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Experiment::Features => "features",
+            Experiment::Accuracy => "accuracy",
+            Experiment::AccuracyYaw => "accuracy-yaw",
+            Experiment::AccuracyRmse => "accuracy-rmse",
+            Experiment::Detection => "detection",
+            Experiment::Restoration => "restoration",
+            Experiment::CalibrateWater => "calibrate-water",
+            Experiment::Fusion => "fusion",
+            Experiment::Swarm => "swarm",
+        }
+    }
+}
+
+impl std::fmt::Display for Experiment {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for Experiment {
+    type Err = EvalError;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        Experiment::ALL
+            .into_iter()
+            .find(|e| e.name().eq_ignore_ascii_case(s.trim()))
+            .ok_or_else(|| EvalError::UnknownExperiment {
+                name: s.to_string(),
+                known: Experiment::ALL.map(|e| e.name()).join(", "),
+            })
+    }
+}
+
+/// How to run an experiment.
+#[derive(Debug, Clone)]
+pub struct EvalOptions {
+    /// Output directory (created if missing).
+    pub out: PathBuf,
+    /// The reduced CI variant.
+    pub quick: bool,
+    /// Frames (or trials) per condition, overriding the experiment's default.
+    pub frames: Option<usize>,
+    /// Seeds every random stream (pose jitter, sensor noise).
+    pub seed: u64,
+    /// Restoration applied to the frames of every marker in the accuracy
+    /// experiments (the same for all methods, so only the markers and their
+    /// detectors differ).
+    pub restore: Method,
+    /// Show a progress bar on stderr.
+    pub progress: bool,
+    /// Save the first frame of every condition (raw and restored PNG) under `out/frames/`.
+    pub save_frames: bool,
+}
+
+impl EvalOptions {
+    /// Defaults: full run, seed 1, HOIRM for every marker, progress bar on.
+    pub fn new(out: impl Into<PathBuf>) -> EvalOptions {
+        EvalOptions {
+            out: out.into(),
+            quick: false,
+            frames: None,
+            seed: 1,
+            restore: Method::Hoirm,
+            progress: true,
+            save_frames: false,
+        }
+    }
+
+    /// `frames` if given, else `quick` or `full`.
+    pub fn count(&self, quick: usize, full: usize) -> usize {
+        self.frames
+            .unwrap_or(if self.quick { quick } else { full })
+            .max(1)
+    }
+
+    /// A progress bar of `len` steps (hidden unless `progress`).
+    pub fn bar(&self, len: usize, what: &str) -> ProgressBar {
+        if !self.progress {
+            return ProgressBar::hidden();
+        }
+        let bar = ProgressBar::new(len as u64);
+        if let Ok(style) = ProgressStyle::with_template(
+            "{msg:>24} [{bar:40}] {pos}/{len} {elapsed_precise} (eta {eta})",
+        ) {
+            bar.set_style(style.progress_chars("=> "));
+        }
+        bar.set_message(what.to_string());
+        bar
+    }
+}
+
+/// Errors of the evaluation.
+#[derive(Debug, thiserror::Error)]
+pub enum EvalError {
+    #[error("{}: {source}", path.display())]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("rendering: {0}")]
+    Render(#[from] shoal_sim_bridge::SimError),
+    #[error("restoration: {0}")]
+    Restore(#[from] shoal_node::restore::RestoreError),
+    #[error("detection: {0}")]
+    Detect(#[from] shoal_node::detect::DetectError),
+    #[error("image: {0}")]
+    Image(#[from] shoal_node::mat::MatError),
+    #[error("image metric: {0}")]
+    Metric(#[from] shoal_node::metrics::MetricError),
+    #[error("plot {}: {reason}", path.display())]
+    Plot { path: PathBuf, reason: String },
+    #[error("writing summary: {0}")]
+    Json(#[from] serde_json::Error),
+    #[error("setting up the experiment: {0}")]
+    Setup(String),
+    #[error("unknown experiment {name:?}; known: {known}")]
+    UnknownExperiment { name: String, known: String },
+}
+
+/// Run `experiment` into `opts.out`; returns the summary it wrote to `summary.json`.
+pub fn run(experiment: Experiment, opts: &EvalOptions) -> Result<serde_json::Value, EvalError> {
+    std::fs::create_dir_all(&opts.out).map_err(|source| EvalError::Io {
+        path: opts.out.clone(),
+        source,
+    })?;
+    let started = std::time::Instant::now();
+    let mut summary = match experiment {
+        Experiment::Features => features::run(opts)?,
+        Experiment::Accuracy => accuracy::run_main(opts)?,
+        Experiment::AccuracyYaw => accuracy::run_yaw(opts)?,
+        Experiment::AccuracyRmse => accuracy::run_rmse(opts)?,
+        Experiment::Detection => detection::run(opts)?,
+        Experiment::Restoration => restoration::run(opts)?,
+        Experiment::CalibrateWater => calibrate::run(opts)?,
+        Experiment::Fusion => fusion::run(opts)?,
+        Experiment::Swarm => swarm::run(opts)?,
+    };
+    if let Some(obj) = summary.as_object_mut() {
+        obj.insert("experiment".into(), experiment.name().into());
+        obj.insert("quick".into(), opts.quick.into());
+        obj.insert("seed".into(), opts.seed.into());
+        obj.insert(
+            "elapsed_s".into(),
+            ((started.elapsed().as_secs_f64() * 10.0).round() / 10.0).into(),
+        );
+        obj.insert(
+            "build".into(),
+            if cfg!(debug_assertions) {
+                "debug"
+            } else {
+                "release"
+            }
+            .into(),
+        );
+    }
+    write_json(&opts.out.join("summary.json"), &summary)?;
+    Ok(summary)
+}
+
+/// Write pretty JSON.
+pub fn write_json(path: &Path, value: &serde_json::Value) -> Result<(), EvalError> {
+    let text = serde_json::to_string_pretty(value)?;
+    std::fs::write(path, text + "\n").map_err(|source| EvalError::Io {
+        path: path.to_path_buf(),
+        source,
+    })
+}
+
+/// A water key for summaries, as the paper writes it: `"0.126"`, `"8.22"`, `"14.20"`.
+pub fn water_key(c_per_m: f64) -> String {
+    let hundredths = c_per_m * 100.0;
+    if (hundredths - hundredths.round()).abs() < 1e-6 {
+        format!("{c_per_m:.2}")
+    } else {
+        format!("{c_per_m:.3}")
+    }
+}

@@ -1,0 +1,268 @@
+//! `swarm` (paper §6.3): the paper's three vehicles (IDs 10, 15, 17, five
+//! 1440x1080 cameras each) in line abreast at 0.5 /m, every camera rendered
+//! and run through the node's real chain (`node::pipeline::CameraPipeline`:
+//! HOIRM → detector → PnP) and every observation fused
+//! (`shoal_fusion::Fusion`) — directly, without Zenoh, so the run is
+//! deterministic. Measures the per-frame processing time, the fused relative
+//! pose error of every pair, and, over a sweep of the formation spacing, the
+//! largest spacing at which each vehicle is still localized.
+
+use super::features::plot_or_warn;
+use super::plot::{self, Grouped};
+use super::table::{median, quantile, Csv};
+use super::{EvalError, EvalOptions};
+use opencv::prelude::*;
+use serde_json::{json, Map, Value};
+use shoal_fusion::{Fusion, FusionParams};
+use shoal_node::pipeline::{CameraPipeline, PipelineParams};
+use shoal_proto::config::Fleet;
+use shoal_proto::{VehicleId, VehicleState, VehicleTruth};
+use shoal_sim_bridge::render::{render_fleet_view, Renderer};
+use shoal_sim_bridge::water::WaterPresets;
+use shoal_sim_bridge::world::{Formation, SwarmWorld};
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::sync::Arc;
+
+/// The paper's trial water (1/m).
+pub const WATER_C_PER_M: f64 = 0.5;
+/// The paper's frame interval is not given; 10 Hz as the node service.
+const DT_S: f64 = 0.1;
+/// The paper's mean processing time per frame (ms, Jetson Orin NX) and its effective range (m).
+pub const PAPER_FRAME_MS: f64 = 61.28;
+pub const PAPER_RANGE_M: f64 = 4.0;
+/// Formation spacings of the range sweep (m).
+const SWEEP_M: [f64; 5] = [1.75, 2.5, 3.5, 4.5, 5.5];
+
+/// One run of the swarm at one spacing.
+struct Trial {
+    /// Per camera image: restore + detect + pose, ms.
+    camera_ms: Vec<f64>,
+    /// Per vehicle frame (its five cameras), ms.
+    vehicle_ms: Vec<f64>,
+    /// (a, b) → per-map (position error m, angle error deg).
+    pair_errors: BTreeMap<(VehicleId, VehicleId), Vec<(f64, f64)>>,
+    /// Vehicle → maps in which it was Live.
+    live: BTreeMap<VehicleId, usize>,
+    maps: usize,
+    observations: usize,
+}
+
+fn relative(truth: &[VehicleTruth], a: VehicleId, b: VehicleId) -> Option<shoal_proto::Pose> {
+    let wa = truth.iter().find(|t| t.vehicle == a)?.world_from_body;
+    let wb = truth.iter().find(|t| t.vehicle == b)?.world_from_body;
+    Some(wa.inverse() * wb)
+}
+
+fn run_trial(
+    opts: &EvalOptions,
+    fleet: &Arc<Fleet>,
+    spacing_m: f64,
+    frames: usize,
+    what: &str,
+) -> Result<Trial, EvalError> {
+    let water = WaterPresets::builtin().get(WATER_C_PER_M)?;
+    let mut world = SwarmWorld::new(fleet, Formation::Line, spacing_m, opts.seed);
+    let mut renderer = Renderer::new();
+    let setup = |e: shoal_node::pipeline::PipelineError| EvalError::Setup(e.to_string());
+    let mut pipelines = Vec::new();
+    for v in &fleet.vehicles {
+        for c in 0..v.cameras.len() {
+            pipelines.push((
+                v.id,
+                c as u8,
+                CameraPipeline::new(fleet.clone(), v.id, c as u8, PipelineParams::default())
+                    .map_err(setup)?,
+            ));
+        }
+    }
+    let mut fusion = Fusion::new(fleet, FusionParams::default(), "eval");
+    let ids: Vec<VehicleId> = fleet.vehicles.iter().map(|v| v.id).collect();
+    let mut trial = Trial {
+        camera_ms: Vec::new(),
+        vehicle_ms: Vec::new(),
+        pair_errors: BTreeMap::new(),
+        live: BTreeMap::new(),
+        maps: 0,
+        observations: 0,
+    };
+    let bar = opts.bar(frames, what);
+    for k in 0..frames {
+        world.step(DT_S);
+        let truth = world.truth();
+        let stamp_ns = world.time_ns();
+        let time_s = stamp_ns as f64 * 1e-9;
+        let mut per_vehicle: BTreeMap<VehicleId, f64> = BTreeMap::new();
+        for (v, cam, pipeline) in pipelines.iter_mut() {
+            let seed = opts.seed ^ ((*v as u64) << 40) ^ ((*cam as u64) << 32) ^ k as u64;
+            let frame = render_fleet_view(
+                &mut renderer,
+                fleet,
+                &truth,
+                *v,
+                *cam,
+                &water,
+                time_s,
+                k as u64,
+                seed,
+            )?;
+            let mat = shoal_node::mat::gray_as_mat(&frame.image)?;
+            let owned = mat.try_clone().map_err(shoal_node::mat::MatError::from)?;
+            let out = pipeline
+                .process(&owned, stamp_ns, k as u64)
+                .map_err(|e| EvalError::Setup(e.to_string()))?;
+            let ms = out.restore_ms + out.detect_ms + out.pose_ms;
+            trial.camera_ms.push(ms);
+            *per_vehicle.entry(*v).or_insert(0.0) += ms;
+            for obs in out.observations {
+                trial.observations += 1;
+                let _ = fusion.ingest(obs, *v, stamp_ns);
+            }
+        }
+        trial.vehicle_ms.extend(per_vehicle.values());
+        let map = fusion.solve(stamp_ns);
+        trial.maps += 1;
+        let est: BTreeMap<VehicleId, _> = map
+            .vehicles
+            .iter()
+            .filter(|e| e.state == VehicleState::Live)
+            .map(|e| (e.vehicle, e.reference_from_vehicle))
+            .collect();
+        for id in est.keys() {
+            *trial.live.entry(*id).or_insert(0) += 1;
+        }
+        for (i, &a) in ids.iter().enumerate() {
+            for &b in &ids[i + 1..] {
+                let (Some(ea), Some(eb), Some(t)) =
+                    (est.get(&a), est.get(&b), relative(&truth, a, b))
+                else {
+                    continue;
+                };
+                let e = ea.inverse() * eb;
+                let d = (e.translation.vector - t.translation.vector).norm();
+                let ang = (e.rotation * t.rotation.inverse()).angle().to_degrees();
+                trial.pair_errors.entry((a, b)).or_default().push((d, ang));
+            }
+        }
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    Ok(trial)
+}
+
+pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
+    let frames = opts.count(2, 100);
+    let sweep_frames = if opts.quick {
+        1
+    } else {
+        opts.frames.unwrap_or(10).min(10)
+    };
+    let sweep: Vec<f64> = if opts.quick {
+        vec![1.75, 5.5]
+    } else {
+        SWEEP_M.to_vec()
+    };
+    let fleet = Arc::new(
+        Fleet::parse(
+            crate::demo::PAPER_FLEET,
+            Path::new("configs/fleets/paper.toml"),
+        )
+        .map_err(|e| EvalError::Setup(e.to_string()))?,
+    );
+    let main = run_trial(opts, &fleet, SWEEP_M[0], frames, "swarm: frames")?;
+
+    let mut pairs = Map::new();
+    let mut csv = Csv::new(&[
+        "pair",
+        "maps_localized",
+        "median_position_error_mm",
+        "p90_position_error_mm",
+        "median_angle_error_deg",
+    ]);
+    for ((a, b), errs) in &main.pair_errors {
+        let d: Vec<f64> = errs.iter().map(|e| e.0 * 1e3).collect();
+        let g: Vec<f64> = errs.iter().map(|e| e.1).collect();
+        csv.row(vec![
+            format!("{a}-{b}"),
+            errs.len().to_string(),
+            format!("{:.3}", median(&d).unwrap_or(f64::NAN)),
+            format!("{:.3}", quantile(&d, 0.9).unwrap_or(f64::NAN)),
+            format!("{:.4}", median(&g).unwrap_or(f64::NAN)),
+        ]);
+        pairs.insert(
+            format!("{a}-{b}"),
+            json!({
+                "maps_localized": errs.len(),
+                "median_position_error_mm": median(&d),
+                "p90_position_error_mm": quantile(&d, 0.9),
+                "median_angle_error_deg": median(&g),
+            }),
+        );
+    }
+    csv.write(&opts.out.join("swarm-pairs.csv"))?;
+
+    // Range sweep: the largest spacing at which each vehicle is Live in at least half the maps.
+    let mut sweep_csv = Csv::new(&["spacing_m", "vehicle", "maps_live", "maps"]);
+    let mut largest: BTreeMap<VehicleId, f64> = BTreeMap::new();
+    let mut live_frac: Vec<Vec<Option<f64>>> = vec![Vec::new(); fleet.vehicles.len()];
+    for &s in &sweep {
+        let t = run_trial(
+            opts,
+            &fleet,
+            s,
+            sweep_frames,
+            &format!("swarm: spacing {s} m"),
+        )?;
+        for (vi, v) in fleet.vehicles.iter().enumerate() {
+            let live = t.live.get(&v.id).copied().unwrap_or(0);
+            sweep_csv.row(vec![
+                s.to_string(),
+                v.id.to_string(),
+                live.to_string(),
+                t.maps.to_string(),
+            ]);
+            let frac = live as f64 / t.maps.max(1) as f64;
+            live_frac[vi].push(Some(frac));
+            // The reference vehicle is in every map by definition.
+            if frac >= 0.5 && v.id != fleet.reference_vehicle {
+                let e = largest.entry(v.id).or_insert(0.0);
+                *e = e.max(s);
+            }
+        }
+    }
+    sweep_csv.write(&opts.out.join("swarm-range.csv"))?;
+    let plots = plot_or_warn(plot::bars(
+        &opts.out.join("eval-swarm-range"),
+        &Grouped {
+            title: format!("Maps in which each vehicle is localized, by formation spacing (c = {WATER_C_PER_M} /m)"),
+            x_label: "line-abreast spacing (m)".into(),
+            y_label: "fraction of maps Live".into(),
+            categories: sweep.iter().map(|s| format!("{s}")).collect(),
+            series: fleet.vehicles.iter().map(|v| format!("vehicle {}", v.id)).collect(),
+        },
+        &live_frac,
+    ));
+    let mean = |v: &[f64]| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
+    Ok(json!({
+        "frames": frames,
+        "water_c_per_m": WATER_C_PER_M,
+        "setup": "paper fleet (configs/fleets/paper.toml), line abreast 1.75 m, 10 Hz, every camera rendered and run through CameraPipeline (HOIRM, shoal detector, PnP) and one Fusion, no Zenoh",
+        "processing": {
+            "mean_camera_frame_ms": mean(&main.camera_ms),
+            "median_camera_frame_ms": median(&main.camera_ms),
+            "mean_vehicle_frame_ms": mean(&main.vehicle_ms),
+            "build": if cfg!(debug_assertions) { "debug" } else { "release" },
+        },
+        "observations": main.observations,
+        "maps": main.maps,
+        "live_maps": main.live.iter().map(|(k, v)| (k.to_string(), json!(v))).collect::<Map<_, _>>(),
+        "results": pairs,
+        "range": {
+            "spacings_m": sweep,
+            "frames_per_spacing": sweep_frames,
+            "largest_spacing_localized_m": largest.iter().map(|(k, v)| (k.to_string(), json!(v))).collect::<Map<_, _>>(),
+        },
+        "paper": { "mean_frame_ms": PAPER_FRAME_MS, "effective_range_m": PAPER_RANGE_M },
+        "plots": plots,
+    }))
+}
