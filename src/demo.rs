@@ -14,7 +14,9 @@ use shoal_node::pipeline::PipelineParams;
 use shoal_node::service::{NodeConfig, NodeHandle, Source};
 use shoal_proto::config::Fleet;
 use shoal_proto::geometry::difference;
-use shoal_proto::messages::{FleetMap, SimTruth, VehicleCommand, VehicleId, VehicleState};
+use shoal_proto::messages::{
+    FleetMap, RejectReason, SimTruth, VehicleCommand, VehicleId, VehicleState,
+};
 use shoal_sim_bridge::bridge::SimConfig;
 use shoal_sim_bridge::water::WaterPresets;
 use shoal_sim_bridge::world::Formation;
@@ -96,8 +98,12 @@ pub struct DemoSummary {
     pub mean_end_to_end_latency_ms: f64,
     pub maps_received: usize,
     pub observations_sent: u64,
+    /// Verdicts in the last map: accepted hypotheses, rejected observations
+    /// (any reason but a lost planar-flip twin), and lost twins (each
+    /// observation with an IPPE alternative reports both hypotheses).
     pub edges_accepted: usize,
     pub edges_rejected: usize,
+    pub flip_twins_rejected: usize,
     pub sim_ticks: u64,
     pub sim_ticks_skipped: u64,
     pub wall_time_s: f64,
@@ -116,7 +122,10 @@ pub struct LogSummary {
 fn load_fleet(cfg: &DemoConfig) -> anyhow::Result<Fleet> {
     Ok(match &cfg.fleet {
         Some(p) => Fleet::load(p)?,
-        None => Fleet::parse(PAPER_FLEET, std::path::Path::new("configs/fleets/paper.toml"))?,
+        None => Fleet::parse(
+            PAPER_FLEET,
+            std::path::Path::new("configs/fleets/paper.toml"),
+        )?,
     })
 }
 
@@ -134,7 +143,9 @@ pub struct SimulatedSwarm {
 
 impl std::fmt::Debug for SimulatedSwarm {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("SimulatedSwarm").field("port", &self.port).finish()
+        f.debug_struct("SimulatedSwarm")
+            .field("port", &self.port)
+            .finish()
     }
 }
 
@@ -247,7 +258,10 @@ impl SimulatedSwarm {
         let mut counts = (0, 0);
         if let Some(sim) = self.sim.take() {
             let s = sim.stats();
-            counts = (s.ticks.load(Ordering::Relaxed), s.ticks_skipped.load(Ordering::Relaxed));
+            counts = (
+                s.ticks.load(Ordering::Relaxed),
+                s.ticks_skipped.load(Ordering::Relaxed),
+            );
             sim.stop().map_err(|e| anyhow!(e))?;
         }
         for (_, n) in std::mem::take(&mut self.nodes) {
@@ -261,7 +275,10 @@ impl SimulatedSwarm {
 }
 
 /// Run the demo; `on_progress(sim_s, total_s, status)` is called as simulated time advances.
-pub fn run(cfg: &DemoConfig, mut on_progress: impl FnMut(f64, f64, &str)) -> anyhow::Result<DemoSummary> {
+pub fn run(
+    cfg: &DemoConfig,
+    mut on_progress: impl FnMut(f64, f64, &str),
+) -> anyhow::Result<DemoSummary> {
     let started = Instant::now();
     let fleet = Arc::new(load_fleet(cfg)?);
     let followers: Vec<VehicleId> = fleet
@@ -271,24 +288,39 @@ pub fn run(cfg: &DemoConfig, mut on_progress: impl FnMut(f64, f64, &str)) -> any
         .filter(|&v| v != fleet.reference_vehicle)
         .collect();
     let mut recorder = None;
-    let swarm = SimulatedSwarm::start_with(cfg, if cfg.closed_loop { followers.clone() } else { vec![] }, |sw| {
-        if let Some(path) = &cfg.log {
-            if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-                std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    let swarm = SimulatedSwarm::start_with(
+        cfg,
+        if cfg.closed_loop {
+            followers.clone()
+        } else {
+            vec![]
+        },
+        |sw| {
+            if let Some(path) = &cfg.log {
+                if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+                    std::fs::create_dir_all(dir)
+                        .with_context(|| format!("cannot create {}", dir.display()))?;
+                }
+                let opts = shoal_record::RecordOptions {
+                    frames: cfg.log_frames,
+                    water_c_per_m: Some(cfg.water_c_per_m),
+                    fleet_toml: Some(match &cfg.fleet {
+                        Some(p) => std::fs::read_to_string(p)
+                            .with_context(|| format!("cannot read {}", p.display()))?,
+                        None => PAPER_FLEET.to_string(),
+                    }),
+                    ..Default::default()
+                };
+                recorder = Some(shoal_record::Recorder::spawn(
+                    &sw.session()?,
+                    sw.fleet.clone(),
+                    path,
+                    opts,
+                )?);
             }
-            let opts = shoal_record::RecordOptions {
-                frames: cfg.log_frames,
-                water_c_per_m: Some(cfg.water_c_per_m),
-                fleet_toml: Some(match &cfg.fleet {
-                    Some(p) => std::fs::read_to_string(p).with_context(|| format!("cannot read {}", p.display()))?,
-                    None => PAPER_FLEET.to_string(),
-                }),
-                ..Default::default()
-            };
-            recorder = Some(shoal_record::Recorder::spawn(&sw.session()?, sw.fleet.clone(), path, opts)?);
-        }
-        Ok(())
-    })?;
+            Ok(())
+        },
+    )?;
     let clock = swarm.clock.clone();
     let observer_bus = swarm.session()?;
     let truth_sub: Subscription<SimTruth> = observer_bus.subscribe(&fleet.keys().truth(), 256)?;
@@ -297,7 +329,10 @@ pub fn run(cfg: &DemoConfig, mut on_progress: impl FnMut(f64, f64, &str)) -> any
     let mut map_client = MapClient::connect(&controller_bus, &fleet)?;
     let mut cmd_pubs = BTreeMap::new();
     for &v in &followers {
-        cmd_pubs.insert(v, controller_bus.publisher::<VehicleCommand>(fleet.keys().command(v))?);
+        cmd_pubs.insert(
+            v,
+            controller_bus.publisher::<VehicleCommand>(fleet.keys().command(v))?,
+        );
     }
 
     let mut truths: VecDeque<SimTruth> = VecDeque::new();
@@ -309,7 +344,9 @@ pub fn run(cfg: &DemoConfig, mut on_progress: impl FnMut(f64, f64, &str)) -> any
     while !swarm.sim_finished() {
         std::thread::sleep(Duration::from_millis(50));
         for t in truth_sub.drain() {
-            tick_published.entry(t.msg.stamp_ns).or_insert(t.received_at);
+            tick_published
+                .entry(t.msg.stamp_ns)
+                .or_insert(t.received_at);
             if controller.is_none() && cfg.closed_loop {
                 controller = Some(formation_from_truth(&fleet, &t.msg));
             }
@@ -319,8 +356,13 @@ pub fn run(cfg: &DemoConfig, mut on_progress: impl FnMut(f64, f64, &str)) -> any
             }
         }
         for r in map_sub.drain() {
-            let stamps: std::collections::BTreeSet<u64> =
-                r.msg.edges.iter().filter(|e| e.rejected.is_none()).map(|e| e.stamp_ns).collect();
+            let stamps: std::collections::BTreeSet<u64> = r
+                .msg
+                .edges
+                .iter()
+                .filter(|e| e.rejected.is_none())
+                .map(|e| e.stamp_ns)
+                .collect();
             for st in stamps {
                 if let Some(t0) = tick_published.remove(&st) {
                     e2e.0 += r.received_at.saturating_duration_since(t0).as_secs_f64() * 1e3;
@@ -341,13 +383,27 @@ pub fn run(cfg: &DemoConfig, mut on_progress: impl FnMut(f64, f64, &str)) -> any
                 }
             }
         }
-        let live = maps.last().map(|m| m.vehicles.iter().filter(|v| v.state == VehicleState::Live).count()).unwrap_or(0);
+        let live = maps
+            .last()
+            .map(|m| {
+                m.vehicles
+                    .iter()
+                    .filter(|v| v.state == VehicleState::Live)
+                    .count()
+            })
+            .unwrap_or(0);
         on_progress(
             clock.now_ns() as f64 * 1e-9,
             cfg.duration_s,
-            &format!("{} maps, {live}/{} vehicles localized", maps.len(), fleet.vehicles.len()),
+            &format!(
+                "{} maps, {live}/{} vehicles localized",
+                maps.len(),
+                fleet.vehicles.len()
+            ),
         );
-        if started.elapsed() > Duration::from_secs_f64(cfg.duration_s / cfg.time_scale.max(0.05) * 4.0 + 60.0) {
+        if started.elapsed()
+            > Duration::from_secs_f64(cfg.duration_s / cfg.time_scale.max(0.05) * 4.0 + 60.0)
+        {
             return Err(anyhow!("demo did not finish in time: simulator stalled"));
         }
     }
@@ -361,7 +417,10 @@ pub fn run(cfg: &DemoConfig, mut on_progress: impl FnMut(f64, f64, &str)) -> any
         .nodes()
         .map(|n| n.stats().observations_sent.load(Ordering::Relaxed))
         .sum();
-    let latencies: Vec<f64> = swarm.nodes().filter_map(|n| n.stats().mean_latency_ms()).collect();
+    let latencies: Vec<f64> = swarm
+        .nodes()
+        .filter_map(|n| n.stats().mean_latency_ms())
+        .collect();
     let (sim_ticks, sim_ticks_skipped) = swarm.shutdown()?;
     let log = match recorder {
         Some(r) => {
@@ -379,20 +438,41 @@ pub fn run(cfg: &DemoConfig, mut on_progress: impl FnMut(f64, f64, &str)) -> any
     let half = maps.len() / 2;
     let evaluated = &maps[half..];
     let pairs = pair_errors(&fleet, evaluated, &truths);
-    let (acc, rej) = evaluated.last().map(|m| {
-        let rej = m.edges.iter().filter(|e| e.rejected.is_some()).count();
-        (m.edges.len() - rej, rej)
-    }).unwrap_or((0, 0));
+    let (acc, rej, twins) = evaluated
+        .last()
+        .map(|m| {
+            let count = |f: &dyn Fn(&Option<RejectReason>) -> bool| {
+                m.edges.iter().filter(|e| f(&e.rejected)).count()
+            };
+            (
+                count(&|r| r.is_none()),
+                count(&|r| {
+                    r.as_ref()
+                        .is_some_and(|r| *r != RejectReason::FlippedHypothesis)
+                }),
+                count(&|r| r.as_ref() == Some(&RejectReason::FlippedHypothesis)),
+            )
+        })
+        .unwrap_or((0, 0, 0));
     Ok(DemoSummary {
         pairs,
         frames_processed,
         frames_dropped,
-        mean_latency_ms: if latencies.is_empty() { f64::NAN } else { latencies.iter().sum::<f64>() / latencies.len() as f64 },
-        mean_end_to_end_latency_ms: if e2e.1 > 0 { e2e.0 / e2e.1 as f64 } else { f64::NAN },
+        mean_latency_ms: if latencies.is_empty() {
+            f64::NAN
+        } else {
+            latencies.iter().sum::<f64>() / latencies.len() as f64
+        },
+        mean_end_to_end_latency_ms: if e2e.1 > 0 {
+            e2e.0 / e2e.1 as f64
+        } else {
+            f64::NAN
+        },
         maps_received: maps.len(),
         observations_sent,
         edges_accepted: acc,
         edges_rejected: rej,
+        flip_twins_rejected: twins,
         sim_ticks,
         sim_ticks_skipped,
         wall_time_s: started.elapsed().as_secs_f64(),
@@ -403,7 +483,13 @@ pub fn run(cfg: &DemoConfig, mut on_progress: impl FnMut(f64, f64, &str)) -> any
 /// The formation to hold: every follower's starting offset from the reference.
 fn formation_from_truth(fleet: &Fleet, truth: &SimTruth) -> FormationController {
     let mut c = FormationController::line_abreast(fleet, 1.0, 0.2);
-    let pose_of = |v: VehicleId| truth.vehicles.iter().find(|t| t.vehicle == v).map(|t| t.world_from_body);
+    let pose_of = |v: VehicleId| {
+        truth
+            .vehicles
+            .iter()
+            .find(|t| t.vehicle == v)
+            .map(|t| t.world_from_body)
+    };
     if let Some(world_from_ref) = pose_of(fleet.reference_vehicle) {
         for (v, slot) in c.slots.iter_mut() {
             if let Some(world_from_v) = pose_of(*v) {
@@ -417,7 +503,11 @@ fn formation_from_truth(fleet: &Fleet, truth: &SimTruth) -> FormationController 
 /// Mean error of every pair over `maps`. A map is the fused estimate as of its
 /// newest accepted observation (the window's freshest information), so each
 /// map is scored against the ground truth of that observation's capture time.
-pub fn pair_errors(fleet: &Fleet, maps: &[FleetMap], truths: &VecDeque<SimTruth>) -> Vec<PairError> {
+pub fn pair_errors(
+    fleet: &Fleet,
+    maps: &[FleetMap],
+    truths: &VecDeque<SimTruth>,
+) -> Vec<PairError> {
     let ids: Vec<VehicleId> = fleet.vehicles.iter().map(|v| v.id).collect();
     let mut out = Vec::new();
     for (i, &a) in ids.iter().enumerate() {
@@ -431,16 +521,27 @@ pub fn pair_errors(fleet: &Fleet, maps: &[FleetMap], truths: &VecDeque<SimTruth>
                     .map(|e| e.stamp_ns)
                     .max()
                     .unwrap_or(map.stamp_ns);
-                let Some(truth) = truths.iter().min_by_key(|t| t.stamp_ns.abs_diff(valid_at)) else {
+                let Some(truth) = truths.iter().min_by_key(|t| t.stamp_ns.abs_diff(valid_at))
+                else {
                     continue;
                 };
                 let view = shoal_fusion::MapView::new(map.clone());
-                let Some(rel) = view.relative(a, b) else { continue };
+                let Some(rel) = view.relative(a, b) else {
+                    continue;
+                };
                 if !rel.live {
                     continue;
                 }
-                let pose_of = |v: VehicleId| truth.vehicles.iter().find(|t| t.vehicle == v).map(|t| t.world_from_body);
-                let (Some(wa), Some(wb)) = (pose_of(a), pose_of(b)) else { continue };
+                let pose_of = |v: VehicleId| {
+                    truth
+                        .vehicles
+                        .iter()
+                        .find(|t| t.vehicle == v)
+                        .map(|t| t.world_from_body)
+                };
+                let (Some(wa), Some(wb)) = (pose_of(a), pose_of(b)) else {
+                    continue;
+                };
                 let true_a_from_b = wa.inverse() * wb;
                 let d = difference(&rel.a_from_b.pose, &true_a_from_b);
                 pos += d.fixed_rows::<3>(0).norm();

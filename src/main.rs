@@ -17,7 +17,12 @@ Start with `shoal demo` (a simulated three-vehicle swarm, no setup needed)."
 )]
 struct Cli {
     /// Log filter (tracing EnvFilter syntax), e.g. `info`, `shoal=debug,zenoh=warn`.
-    #[arg(long, global = true, env = "SHOAL_LOG", default_value = "info,zenoh=warn")]
+    #[arg(
+        long,
+        global = true,
+        env = "SHOAL_LOG",
+        default_value = "info,zenoh=warn"
+    )]
     log: String,
     #[command(subcommand)]
     command: Command,
@@ -84,6 +89,33 @@ fn main() -> std::process::ExitCode {
         Err(e) => {
             eprintln!("error: {e:#}");
             std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::CommandFactory;
+
+    #[test]
+    fn command_line_definition_is_consistent() {
+        Cli::command().debug_assert();
+    }
+
+    #[test]
+    fn every_subcommand_parses_its_defaults() {
+        // Arguments that collide with globals only fail when parsed.
+        for args in [
+            vec!["shoal", "demo"],
+            vec!["shoal", "sim"],
+            vec!["shoal", "fusion"],
+            vec!["shoal", "node", "--vehicle", "10"],
+            vec!["shoal", "config", "check", "x.toml"],
+        ] {
+            if let Err(e) = Cli::try_parse_from(&args) {
+                panic!("{args:?}: {e}");
+            }
         }
     }
 }

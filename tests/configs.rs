@@ -28,7 +28,10 @@ fn every_shipped_fleet_and_camera_file_loads() {
             n += 1;
         }
     }
-    assert!(n >= 3, "expected the shipped fleet and camera files, found {n}");
+    assert!(
+        n >= 3,
+        "expected the shipped fleet and camera files, found {n}"
+    );
 }
 
 #[test]
@@ -48,7 +51,11 @@ fn paper_fleet_cameras_look_where_they_are_named() {
             let cam = v.cameras.iter().find(|c| c.name == name).unwrap();
             // The optical axis (camera z) expressed in the body frame.
             let z = cam.body_from_camera.rotation * Vector3::z();
-            assert!((z - axis).norm() < 1e-9, "vehicle {} camera {name}: z = {z}", v.id);
+            assert!(
+                (z - axis).norm() < 1e-9,
+                "vehicle {} camera {name}: z = {z}",
+                v.id
+            );
         }
         // Side cameras keep "image down" = body down.
         for name in ["port", "starboard"] {
@@ -69,9 +76,17 @@ fn paper_fleet_markers_face_outwards_upright() {
             let up = m.body_from_marker.rotation * Vector3::y();
             let side = m.body_from_marker.translation.vector.y.signum();
             // Face points away from the hull, on the side it is mounted on.
-            assert!((normal - Vector3::y() * side).norm() < 1e-9, "marker {}: normal {normal}", m.id);
+            assert!(
+                (normal - Vector3::y() * side).norm() < 1e-9,
+                "marker {}: normal {normal}",
+                m.id
+            );
             // Upright: the print's "up" is the body's up (-z).
-            assert!((up + Vector3::z()).norm() < 1e-9, "marker {}: up {up}", m.id);
+            assert!(
+                (up + Vector3::z()).norm() < 1e-9,
+                "marker {}: up {up}",
+                m.id
+            );
             assert!(m.body_from_marker.translation.vector.y.abs() > v.hull.diameter_m / 2.0);
         }
     }

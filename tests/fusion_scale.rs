@@ -7,7 +7,9 @@ use shoal_fusion::service::{FusionConfig, Placement};
 use shoal_fusion::FusionParams;
 use shoal_proto::messages::{FleetMap, Observation, VehicleState};
 use shoal_proto::CodeSet;
-use shoal_sim_bridge::obs_synth::{grid_formation, synthetic_fleet, FormationJitter, ObsSynth, ObsSynthParams};
+use shoal_sim_bridge::obs_synth::{
+    grid_formation, synthetic_fleet, FormationJitter, ObsSynth, ObsSynthParams,
+};
 use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -69,10 +71,24 @@ fn fusion_of_100_vehicles_keeps_up_at_10_hz() {
         fusion.maps_published(),
         fusion.observations_dropped()
     );
-    assert_eq!(fusion.observations_dropped(), 0, "fusion fell behind its input");
-    assert!(rate >= 7.0, "fusion published only {rate:.1} maps/s (target 10)");
+    assert_eq!(
+        fusion.observations_dropped(),
+        0,
+        "fusion fell behind its input"
+    );
+    assert!(
+        rate >= 7.0,
+        "fusion published only {rate:.1} maps/s (target 10)"
+    );
     let last = received.last().expect("no map received");
-    let live = last.vehicles.iter().filter(|v| v.state == VehicleState::Live).count();
-    assert!(live >= 95, "only {live}/100 vehicles localized in the last map");
+    let live = last
+        .vehicles
+        .iter()
+        .filter(|v| v.state == VehicleState::Live)
+        .count();
+    assert!(
+        live >= 95,
+        "only {live}/100 vehicles localized in the last map"
+    );
     fusion.stop();
 }

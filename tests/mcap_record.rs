@@ -40,7 +40,9 @@ fn fleet() -> Arc<Fleet> {
 }
 
 fn tmp(name: &str) -> PathBuf {
-    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("mcap_record");
+    // Per process: nextest runs each test in its own process, all sharing the recording path otherwise.
+    let dir =
+        Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("mcap_record-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     dir.join(name)
 }

@@ -36,7 +36,8 @@ fn sigkilled_recorder_leaves_a_readable_file_that_recover_fixes() {
     let fleet_path = root.join("configs/fleets/paper.toml");
     let fleet = Fleet::load(&fleet_path).unwrap();
     let keys = fleet.keys();
-    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("mcap_recover");
+    let dir =
+        Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("mcap_recover-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let killed = dir.join("killed.mcap");
     let fixed = dir.join("fixed.mcap");

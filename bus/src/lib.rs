@@ -84,7 +84,10 @@ impl Connect {
 
     fn config(&self) -> Result<zenoh::Config, BusError> {
         let endpoints = |ports: &[u16]| -> String {
-            let list: Vec<String> = ports.iter().map(|p| format!("\"tcp/127.0.0.1:{p}\"")).collect();
+            let list: Vec<String> = ports
+                .iter()
+                .map(|p| format!("\"tcp/127.0.0.1:{p}\""))
+                .collect();
             format!("[{}]", list.join(","))
         };
         let set = |c: &mut zenoh::Config, k: &str, v: &str| {
@@ -126,7 +129,9 @@ impl Connect {
 
 /// A free loopback TCP port (for the demo's in-process router).
 pub fn free_port() -> std::io::Result<u16> {
-    Ok(std::net::TcpListener::bind(("127.0.0.1", 0))?.local_addr()?.port())
+    Ok(std::net::TcpListener::bind(("127.0.0.1", 0))?
+        .local_addr()?
+        .port())
 }
 
 /// Clients of an in-process router connect with this.
@@ -142,7 +147,9 @@ pub struct Bus {
 
 impl std::fmt::Debug for Bus {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Bus").field("zid", &self.session.zid()).finish()
+        f.debug_struct("Bus")
+            .field("zid", &self.session.zid())
+            .finish()
     }
 }
 
@@ -190,7 +197,9 @@ pub struct Subscription<M> {
 
 impl<M> std::fmt::Debug for Subscription<M> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Subscription").field("stats", &self.stats).finish()
+        f.debug_struct("Subscription")
+            .field("stats", &self.stats)
+            .finish()
     }
 }
 
@@ -370,7 +379,12 @@ impl Bus {
             })
             .wait()
             .map_err(declare_err("subscriber", key_expr))?;
-        Ok((queue, Declaration { _inner: Box::new(sub) }))
+        Ok((
+            queue,
+            Declaration {
+                _inner: Box::new(sub),
+            },
+        ))
     }
 
     /// Declare this process alive on `key` until the token is dropped.
@@ -402,7 +416,9 @@ impl Bus {
             })
             .wait()
             .map_err(declare_err("liveliness subscriber", key_expr))?;
-        Ok(Declaration { _inner: Box::new(sub) })
+        Ok(Declaration {
+            _inner: Box::new(sub),
+        })
     }
 
     /// Answer queries on `key` with whatever `latest()` returns (already-encoded bytes).
@@ -424,7 +440,9 @@ impl Bus {
             })
             .wait()
             .map_err(declare_err("queryable", &key))?;
-        Ok(Declaration { _inner: Box::new(q) })
+        Ok(Declaration {
+            _inner: Box::new(q),
+        })
     }
 
     /// Ask a queryable for its latest message (the late-joiner catch-up).

@@ -157,7 +157,10 @@ mod tests {
         q.close();
         assert!(!q.push(2));
         assert_eq!(q.pop_timeout(Duration::from_millis(1)), Ok(1));
-        assert_eq!(q.pop_timeout(Duration::from_millis(1)), Err(PopError::Closed));
+        assert_eq!(
+            q.pop_timeout(Duration::from_millis(1)),
+            Err(PopError::Closed)
+        );
     }
 
     #[test]

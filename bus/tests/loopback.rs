@@ -20,7 +20,9 @@ fn wait_until(mut f: impl FnMut() -> bool) -> bool {
 
 #[test]
 fn typed_messages_arrive_and_garbage_is_counted() {
-    let _ = tracing_subscriber::fmt().with_env_filter(tracing_subscriber::EnvFilter::from_default_env()).try_init();
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
+        .try_init();
     let port = free_port().unwrap();
     let _router = Bus::open(&Connect::Router { port }).unwrap();
     let a = Bus::open(&client_of(port)).unwrap();
@@ -46,9 +48,13 @@ fn typed_messages_arrive_and_garbage_is_counted() {
     }));
     let got = got.unwrap();
     assert_eq!(got.msg, cmd);
-    assert_eq!(keys.parse(&got.key).unwrap(), shoal_proto::KeyKind::Command { vehicle: 15 });
+    assert_eq!(
+        keys.parse(&got.key).unwrap(),
+        shoal_proto::KeyKind::Command { vehicle: 15 }
+    );
 
-    publ.put_bytes(b"definitely not a shoal message".to_vec()).unwrap();
+    publ.put_bytes(b"definitely not a shoal message".to_vec())
+        .unwrap();
     assert!(wait_until(|| sub.stats().rejected() >= 1));
     assert!(sub.stats().last_error().unwrap().contains("magic"));
 }
@@ -69,9 +75,15 @@ fn liveliness_and_late_joiner_query() {
         })
         .unwrap();
     let token = a.liveliness_token(keys.alive(10)).unwrap();
-    assert!(wait_until(|| seen.lock().unwrap().contains(&(keys.alive(10), true))));
+    assert!(wait_until(|| seen
+        .lock()
+        .unwrap()
+        .contains(&(keys.alive(10), true))));
     drop(token);
-    assert!(wait_until(|| seen.lock().unwrap().contains(&(keys.alive(10), false))));
+    assert!(wait_until(|| seen
+        .lock()
+        .unwrap()
+        .contains(&(keys.alive(10), false))));
 
     let status = NodeStatus {
         vehicle: 10,
@@ -79,7 +91,9 @@ fn liveliness_and_late_joiner_query() {
         ..Default::default()
     };
     let bytes = shoal_proto::encode(&status).unwrap();
-    let _q = a.serve_latest(keys.status(10), move || Some(bytes.clone())).unwrap();
+    let _q = a
+        .serve_latest(keys.status(10), move || Some(bytes.clone()))
+        .unwrap();
     let mut answer = None;
     assert!(wait_until(|| {
         answer = b
@@ -100,9 +114,16 @@ fn peers_find_each_other_through_the_loopback_rendezvous() {
     assert!(matches!(&second, Connect::Loopback { peers, .. } if peers == &vec![port]));
     let b = Bus::open(&second).unwrap();
     let keys = Keys::new("bustest").unwrap();
-    let sub = a.subscribe::<VehicleCommand>(&keys.all_commands(), 4).unwrap();
+    let sub = a
+        .subscribe::<VehicleCommand>(&keys.all_commands(), 4)
+        .unwrap();
     let publ = b.publisher::<VehicleCommand>(keys.command(17)).unwrap();
-    let cmd = VehicleCommand { vehicle: 17, stamp_ns: 2, velocity_body: [0.0; 3], yaw_rate: 0.1 };
+    let cmd = VehicleCommand {
+        vehicle: 17,
+        stamp_ns: 2,
+        velocity_body: [0.0; 3],
+        yaw_rate: 0.1,
+    };
     assert!(wait_until(|| {
         publ.put(&cmd).unwrap();
         sub.recv_timeout(Duration::from_millis(50)).is_some()

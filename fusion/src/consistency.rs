@@ -34,7 +34,8 @@
 //!    over its runner-up, then support. That tree is also the solver's
 //!    initialization.
 
-use proto::geometry::{difference, Cov6, Pose, PoseWithCovariance};
+use crate::solver::{compose, difference, invert};
+use proto::geometry::{Cov6, Pose, PoseWithCovariance};
 use proto::VehicleId;
 use std::cmp::Reverse;
 use std::collections::{BTreeMap, BTreeSet};
@@ -204,6 +205,23 @@ pub fn fuse(items: &[(Pose, Cov6)]) -> Option<(Pose, Cov6)> {
         }
         mean = proto::geometry::perturb(&mean, &(cov * acc));
     }
+    Some((mean, (cov + cov.transpose()) * 0.5))
+}
+
+/// [`fuse`] for items known to lie close together (one track's frames, each
+/// within the gate of the first): a single Gauss–Newton pass around the first
+/// item. The second pass of [`fuse`] moves the mean by the square of the
+/// spread (~1e-4 of a frame's σ at the noise of a marker pose), far below
+/// the fused σ, and costs a tangent-space difference per item.
+pub fn fuse_close(items: &[(Pose, Cov6)]) -> Option<(Pose, Cov6)> {
+    let (first, _) = items.first()?;
+    let total: Cov6 = items.iter().map(|(_, info)| info).sum();
+    let cov = total.cholesky()?.inverse();
+    let mut acc = nalgebra::Vector6::zeros();
+    for (p, info) in &items[1..] {
+        acc += info * difference(p, first);
+    }
+    let mean = proto::geometry::perturb(first, &(cov * acc));
     Some((mean, (cov + cov.transpose()) * 0.5))
 }
 
@@ -496,8 +514,10 @@ pub fn vote_triangles(pairs: &mut [PairCandidates], gate_chi2: f64) {
                             continue;
                         }
                         let composed = composed.get_or_insert_with(|| {
-                            PoseWithCovariance::new(c_ab.a_from_b, c_ab.covariance)
-                                .compose(&PoseWithCovariance::new(c_bk.a_from_b, c_bk.covariance))
+                            compose(
+                                &PoseWithCovariance::new(c_ab.a_from_b, c_ab.covariance),
+                                &PoseWithCovariance::new(c_bk.a_from_b, c_bk.covariance),
+                            )
                         });
                         let d2 = mahalanobis2(
                             &composed.pose,
@@ -525,6 +545,14 @@ pub fn vote_triangles(pairs: &mut [PairCandidates], gate_chi2: f64) {
             c.votes = n;
         }
     }
+}
+
+/// The tree's predictions of one pair's relative pose, computed on first use:
+/// the independent-path pose and variance bound, and the exact composition.
+#[derive(Debug, Default)]
+struct Prediction {
+    bound: Option<(Pose, f64)>,
+    exact: Option<PoseWithCovariance>,
 }
 
 /// One spanning tree of the selection.
@@ -559,7 +587,7 @@ impl Tree {
     fn add(&mut self, parent: VehicleId, v: VehicleId, parent_from_v: PoseWithCovariance) {
         let d = self.depth[&parent] + 1;
         self.depth.insert(v, d);
-        let root_from_v = self.root_from[&parent].compose(&parent_from_v);
+        let root_from_v = compose(&self.root_from[&parent], &parent_from_v);
         self.root_from.insert(v, root_from_v);
         self.parents.insert(v, (parent, parent_from_v));
     }
@@ -575,16 +603,32 @@ impl Tree {
         cov: &Cov6,
         gate_chi2: f64,
     ) -> bool {
-        let (ra, rb) = (&self.root_from[&a], &self.root_from[&b]);
-        let predicted = ra.pose.inverse() * rb.pose;
+        self.consistent_with_prediction(a, b, a_from_b, cov, gate_chi2, &mut Prediction::default())
+    }
+    /// [`Tree::consistent`], the tree's predictions of `a_from_b` kept in
+    /// `prediction` for the next candidate of the same pair.
+    fn consistent_with_prediction(
+        &self,
+        a: VehicleId,
+        b: VehicleId,
+        a_from_b: &Pose,
+        cov: &Cov6,
+        gate_chi2: f64,
+        prediction: &mut Prediction,
+    ) -> bool {
+        let (predicted, bound) = *prediction.bound.get_or_insert_with(|| {
+            let (ra, rb) = (&self.root_from[&a], &self.root_from[&b]);
+            let a_from_root = invert(ra);
+            (
+                ra.pose.inverse() * rb.pose,
+                compose_variance_bound(&a_from_root.covariance, &rb.pose, &rb.covariance),
+            )
+        });
         let r = difference(a_from_b, &predicted);
-        let a_from_root = ra.inverse();
-        let bound =
-            compose_variance_bound(&a_from_root.covariance, &rb.pose, &rb.covariance) + trace6(cov);
-        if r.norm_squared() > gate_chi2 * bound {
+        if r.norm_squared() > gate_chi2 * (bound + trace6(cov)) {
             return false;
         }
-        let exact = self.relative(a, b);
+        let exact = prediction.exact.get_or_insert_with(|| self.relative(a, b));
         mahalanobis2(a_from_b, cov, &exact.pose, &exact.covariance) <= gate_chi2
     }
     /// `ancestor_from_v`, composed up the tree.
@@ -592,7 +636,7 @@ impl Tree {
         let mut acc = PoseWithCovariance::new(Pose::identity(), Cov6::zeros());
         while v != ancestor {
             let (p, p_from_v) = &self.parents[&v];
-            acc = p_from_v.compose(&acc);
+            acc = compose(p_from_v, &acc);
             v = *p;
         }
         acc
@@ -608,7 +652,7 @@ impl Tree {
                 y = self.parents[&y].0;
             }
         }
-        self.up_to(a, x).inverse().compose(&self.up_to(b, x))
+        compose(&invert(&self.up_to(a, x)), &self.up_to(b, x))
     }
     /// `root_from_v` for every vehicle of the tree.
     pub fn poses(&self) -> BTreeMap<VehicleId, Pose> {
@@ -654,9 +698,17 @@ pub fn select(pairs: &[PairCandidates], reference: VehicleId, gate_chi2: f64) ->
                         continue;
                     }
                     decided[pi] = true;
+                    let mut prediction = Prediction::default();
                     choice[pi] = ranked[pi].iter().copied().find(|&c| {
                         let cl = &p.clusters[c];
-                        trees[t].consistent(p.a, p.b, &cl.a_from_b, &cl.covariance, gate_chi2)
+                        trees[t].consistent_with_prediction(
+                            p.a,
+                            p.b,
+                            &cl.a_from_b,
+                            &cl.covariance,
+                            gate_chi2,
+                            &mut prediction,
+                        )
                     });
                 }
             }
@@ -690,7 +742,7 @@ pub fn select(pairs: &[PairCandidates], reference: VehicleId, gate_chi2: f64) ->
             let (parent, child, parent_from_child) = if tree_of.get(&p.a) == Some(&t) {
                 (p.a, p.b, a_from_b)
             } else {
-                (p.b, p.a, a_from_b.inverse())
+                (p.b, p.a, invert(&a_from_b))
             };
             trees[t].add(parent, child, parent_from_child);
             tree_of.insert(child, t);
@@ -724,6 +776,19 @@ mod tests {
         let clusters = cluster_pair(&cs, &ConsistencyParams::default());
         assert_eq!(clusters[0].members, vec![0, 2], "primary wins the tie");
         assert_eq!(clusters[1].members, vec![1]);
+    }
+
+    #[test]
+    fn a_fused_track_outweighs_more_but_lighter_candidates() {
+        let p = pose_from_xyz_rpy([1.0, 0.0, 0.0], [0.0, 0.0, 0.0]);
+        let q = pose_from_xyz_rpy([1.0, 0.5, 0.0], [0.0, 0.0, 0.4]);
+        // One track fused from 20 frames vs two single frames agreeing elsewhere.
+        let cs = [cand(0, 0, p).with_weight(20), cand(1, 0, q), cand(2, 0, q)];
+        let clusters = cluster_pair(&cs, &ConsistencyParams::default());
+        assert_eq!(clusters[0].members, vec![0]);
+        assert_eq!(clusters[0].support(), 20);
+        assert_eq!(clusters[1].members, vec![1, 2]);
+        assert_eq!(clusters[1].support(), 2);
     }
 
     #[test]

@@ -68,7 +68,9 @@ impl FormationController {
                 continue;
             };
             let fresh = rel.age_ns as f64 * 1e-9 <= self.max_age_s;
-            let live = view.vehicle(v).is_some_and(|e| e.state == VehicleState::Live);
+            let live = view
+                .vehicle(v)
+                .is_some_and(|e| e.state == VehicleState::Live);
             if !fresh || !live {
                 continue;
             }
@@ -139,8 +141,16 @@ mod tests {
         let cmds = controller().commands(&MapView::new(map));
         assert_eq!(cmds.len(), 1);
         let c = cmds[0];
-        assert!(c.velocity_body[1] > 0.0, "must move to starboard: {:?}", c.velocity_body);
-        assert!(c.velocity_body[0] < 0.3, "must slow down to drop back: {:?}", c.velocity_body);
+        assert!(
+            c.velocity_body[1] > 0.0,
+            "must move to starboard: {:?}",
+            c.velocity_body
+        );
+        assert!(
+            c.velocity_body[0] < 0.3,
+            "must slow down to drop back: {:?}",
+            c.velocity_body
+        );
         assert!(c.yaw_rate < 0.0, "must turn back to port");
     }
 

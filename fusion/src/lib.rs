@@ -5,13 +5,17 @@
 //! rejected with a [`RejectReason`] on arrival), and on [`Fusion::solve`]:
 //!
 //! 1. inflates each observation's covariance with its age ([`AgeInflation`]);
-//! 2. picks, per vehicle pair, the mutually consistent hypotheses and between
-//!    pairs the cycle-consistent ones, the planar-flip twins being mutually
-//!    exclusive candidates ([`consistency`], PCM-style);
+//! 2. fuses each track's frames (same observer, camera and marker) into
+//!    time-consistent groups, one information-weighted candidate per group and
+//!    hypothesis, so that the checks run over a pair's tracks rather than
+//!    over every frame; then picks, per vehicle pair, the mutually consistent
+//!    candidates and between pairs the cycle-consistent ones, the planar-flip
+//!    twins being mutually exclusive candidates ([`consistency`], PCM-style).
+//!    Every observation inherits its group's verdict;
 //! 3. solves the pose graph on SE(3) by Levenberg–Marquardt with a robust
 //!    kernel, the reference vehicle fixing the gauge, initialized by the
 //!    spanning tree of step 2 ([`solver`]);
-//! 4. gates every accepted observation's residual against the solution
+//! 4. gates every accepted observation's own residual against the solution
 //!    (chi-square), re-solving without the rejects;
 //! 5. writes a [`FleetMap`]: every vehicle's `reference_from_vehicle` with its
 //!    marginal covariance and state, every observation's verdict.
@@ -321,7 +325,6 @@ impl Fusion {
         // Every hypothesis of every observation as measured (`observer_from_target`,
         // not inverted: that is done once per fused group) with its
         // age-inflated covariance.
-        let _tt = std::time::Instant::now(); eprintln!("TIMING T0 {:?}", _tt);//TMP
         let entries: Vec<(&ObservationKey, &window::Stored)> = self.window.entries.iter().collect();
         let frames: Vec<Frame> = entries
             .iter()
@@ -342,7 +345,6 @@ impl Fusion {
                 }
             })
             .collect();
-        let _tt = std::time::Instant::now(); eprintln!("TIMING T1 {:?}", _tt);//TMP
         // Tracks (observer, camera, marker) cut into time-consistent groups,
         // each group's frames fused per hypothesis into one candidate.
         let groups = group_tracks(
@@ -351,7 +353,6 @@ impl Fusion {
             self.params.consistency.gate_chi2,
             self.params.consistency.fuse_tracks,
         );
-        let _tt = std::time::Instant::now(); eprintln!("TIMING T2 {:?}", _tt);//TMP
         let mut by_pair: BTreeMap<(VehicleId, VehicleId), Vec<Candidate>> = BTreeMap::new();
         for (g, members) in groups.iter().enumerate() {
             let f = &frames[members[0]];
@@ -361,7 +362,6 @@ impl Fusion {
                 }
             }
         }
-        let _tt = std::time::Instant::now(); eprintln!("TIMING T3 {:?}", _tt);//TMP
         let mut pairs: Vec<PairCandidates> = by_pair
             .into_iter()
             .map(|((a, b), candidates)| {
@@ -374,11 +374,8 @@ impl Fusion {
                 }
             })
             .collect();
-        let _tt = std::time::Instant::now(); eprintln!("TIMING T4 {:?}", _tt);//TMP
         consistency::vote_triangles(&mut pairs, self.params.consistency.gate_chi2);
-        let _tt = std::time::Instant::now(); eprintln!("TIMING T5 {:?}", _tt);//TMP
         let selection = consistency::select(&pairs, reference, self.params.consistency.gate_chi2);
-        let _tt = std::time::Instant::now(); eprintln!("TIMING T6 {:?}", _tt);//TMP
         solve_stats.pairs = pairs.len();
         solve_stats.clusters = pairs.iter().map(|p| p.clusters.len()).sum();
 
@@ -408,6 +405,8 @@ impl Fusion {
         let tree = &selection.trees[0];
         let initial = tree.poses();
         let mut gated: BTreeSet<(usize, u8)> = BTreeSet::new();
+        // Each hypothesis' chi2 against the latest solution (filled by the gate).
+        let mut chi2_cache: Vec<[Option<f64>; 2]> = vec![[None; 2]; frames.len()];
         let mut solution: BTreeMap<VehicleId, (Pose, Cov6)> = BTreeMap::new();
         for round in 0..self.params.max_gate_rounds.max(1) {
             solve_stats.gate_rounds = round + 1;
@@ -488,11 +487,13 @@ impl Fusion {
             };
             // Chi-square gate on every accepted hypothesis (each observation on its own).
             let mut newly = 0;
+            chi2_cache.iter_mut().for_each(|c| *c = [None; 2]);
             for &(oi, h) in accepted.keys() {
                 if gated.contains(&(oi, h)) {
                     continue;
                 }
                 let chi2 = frames[oi].chi2(usize::from(h), &solution);
+                chi2_cache[oi][usize::from(h)] = Some(chi2);
                 if chi2 > self.params.chi2_gate {
                     gated.insert((oi, h));
                     newly += 1;
@@ -523,7 +524,8 @@ impl Fusion {
                 } else {
                     Some(RejectReason::Inconsistent)
                 };
-                let chi2 = frames[i].chi2(usize::from(h), &solution);
+                let chi2 = chi2_cache[i][usize::from(h)]
+                    .unwrap_or_else(|| frames[i].chi2(usize::from(h), &solution));
                 match &verdict {
                     Some(r) => rejected.add(r),
                     None => solve_stats.accepted += 1,
@@ -703,7 +705,7 @@ fn fuse_group(
         many => {
             let items: Vec<(Pose, Cov6)> =
                 many.iter().map(|c| (c.a_from_b, c.information)).collect();
-            consistency::fuse(&items)?
+            consistency::fuse_close(&items)?
         }
     };
     let f = &frames[members[0]];
@@ -711,7 +713,7 @@ fn fuse_group(
     let a_from_b = if f.observer < f.target {
         measured
     } else {
-        measured.inverse()
+        solver::invert(&measured)
     };
     Candidate::new(g, h, a_from_b.pose, a_from_b.covariance).map(|c| c.with_weight(hyp.len()))
 }
@@ -736,7 +738,7 @@ fn group_tracks(
     fuse: bool,
 ) -> Vec<Vec<usize>> {
     let consistent = |c: &Candidate, leader: &Candidate| {
-        let r = proto::geometry::difference(&c.a_from_b, &leader.a_from_b);
+        let r = solver::difference(&c.a_from_b, &leader.a_from_b);
         (r.transpose() * c.information * r)[0] <= gate_chi2
             || consistency::mahalanobis2(
                 &c.a_from_b,
@@ -746,8 +748,9 @@ fn group_tracks(
             ) <= gate_chi2
     };
     type Track = (VehicleId, u8, &'static str, u32);
-    // Per track: (group index, leader per hypothesis).
-    let mut open: BTreeMap<Track, Vec<(usize, [Option<usize>; 2])>> = BTreeMap::new();
+    /// A group of a track: its index and its leader per hypothesis.
+    type OpenGroup = (usize, [Option<usize>; 2]);
+    let mut open: BTreeMap<Track, Vec<OpenGroup>> = BTreeMap::new();
     let mut groups: Vec<Vec<usize>> = Vec::new();
     for (i, (key, _)) in entries.iter().enumerate() {
         let f = &frames[i];

@@ -82,13 +82,18 @@ impl Drop for FusionHandle {
 }
 
 /// Start fusion on `bus`, taking `now` from `clock`.
-pub fn spawn(bus: &Bus, cfg: FusionConfig, clock: Arc<dyn Clock>) -> Result<FusionHandle, BusError> {
+pub fn spawn(
+    bus: &Bus,
+    cfg: FusionConfig,
+    clock: Arc<dyn Clock>,
+) -> Result<FusionHandle, BusError> {
     let keys = cfg.fleet.keys();
     let (producer, map_key) = match cfg.placement {
         Placement::Central => ("central".to_string(), keys.map()),
         Placement::OnVehicle(v) => (v.to_string(), keys.map_of(&v.to_string())),
     };
-    let observations: Subscription<Observation> = bus.subscribe(&keys.all_observations(), cfg.queue_capacity)?;
+    let observations: Subscription<Observation> =
+        bus.subscribe(&keys.all_observations(), cfg.queue_capacity)?;
     let liveliness: DropOldestQueue<(String, bool)> = DropOldestQueue::new(1024);
     let l = liveliness.clone();
     let watch = bus.watch_liveliness(&keys.all_alive(), move |k, alive| {
@@ -198,8 +203,17 @@ impl MapClient {
 
     /// The newest map received so far (non-blocking).
     pub fn latest(&mut self) -> Option<&MapView> {
-        if let Some(m) = self.sub.drain().into_iter().map(|r| r.msg).max_by_key(|m| m.seq) {
-            let newer = self.latest.as_ref().is_none_or(|l| m.seq >= l.map().seq || m.stamp_ns >= l.map().stamp_ns);
+        if let Some(m) = self
+            .sub
+            .drain()
+            .into_iter()
+            .map(|r| r.msg)
+            .max_by_key(|m| m.seq)
+        {
+            let newer = self
+                .latest
+                .as_ref()
+                .is_none_or(|l| m.seq >= l.map().seq || m.stamp_ns >= l.map().stamp_ns);
             if newer {
                 self.latest = Some(MapView::new(m));
             }

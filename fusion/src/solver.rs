@@ -14,7 +14,9 @@
 //! measured a_from_b)`, expressed in frame `a` like the measurement's covariance.
 
 use nalgebra::{Matrix3, Matrix6, Vector3, Vector6};
-use proto::geometry::{compose_jacobians, difference, inverse_jacobian, perturb, skew, Cov6, Pose};
+use proto::geometry::{
+    compose_jacobians, inverse_jacobian, perturb, skew, Cov6, Pose, PoseWithCovariance,
+};
 use proto::VehicleId;
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
@@ -124,6 +126,40 @@ pub struct Solution {
     pub final_cost: f64,
 }
 
+/// [`proto::geometry::difference`] (the perturbation taking `reference` to
+/// `pose`), the same operations compiled in this crate: the per-observation
+/// loops (grouping, fusion, chi-square of every hypothesis) call it tens of
+/// thousands of times per solve, and `shoal-proto`, a workspace member, is
+/// built unoptimized in dev builds, where that call dominated the solve.
+/// `tests::local_difference_is_bit_identical_to_proto` pins the equality.
+#[inline]
+pub(crate) fn difference(pose: &Pose, reference: &Pose) -> Vector6<f64> {
+    let dt = pose.translation.vector - reference.translation.vector;
+    let dtheta = (pose.rotation * reference.rotation.inverse()).scaled_axis();
+    Vector6::new(dt.x, dt.y, dt.z, dtheta.x, dtheta.y, dtheta.z)
+}
+
+/// [`PoseWithCovariance::compose`], compiled here for the same reason as
+/// [`difference`] (the spanning tree composes along its paths per verified pair).
+#[inline]
+pub(crate) fn compose(x: &PoseWithCovariance, y: &PoseWithCovariance) -> PoseWithCovariance {
+    let (ja, jb) = compose_jacobians(&x.pose, &y.pose);
+    PoseWithCovariance {
+        pose: x.pose * y.pose,
+        covariance: ja * x.covariance * ja.transpose() + jb * y.covariance * jb.transpose(),
+    }
+}
+
+/// [`PoseWithCovariance::inverse`], compiled here (see [`compose`]).
+#[inline]
+pub(crate) fn invert(x: &PoseWithCovariance) -> PoseWithCovariance {
+    let j = inverse_jacobian(&x.pose);
+    PoseWithCovariance {
+        pose: x.pose.inverse(),
+        covariance: j * x.covariance * j.transpose(),
+    }
+}
+
 /// Inverse of the left Jacobian of SO(3), `J_l⁻¹(φ)`: `Log(Exp(δ)·Exp(φ)) ≈ φ + J_l⁻¹(φ)·δ`.
 pub fn so3_left_jacobian_inverse(phi: &Vector3<f64>) -> Matrix3<f64> {
     let theta = phi.norm();
@@ -163,6 +199,26 @@ pub fn edge_chi2(
 ) -> f64 {
     let r = difference(&(ref_from_a.inverse() * ref_from_b), measured_a_from_b);
     (r.transpose() * information * r)[0]
+}
+
+/// `Σ aᵢ·bᵢ` over the common length, in four interleaved partial sums: the
+/// inner loop of the profile factorization and of the marginals, which a
+/// single running sum keeps from vectorizing (floating-point addition is not
+/// reassociated by the compiler). The order is fixed, so results stay
+/// bit-reproducible.
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    let n = a.len().min(b.len());
+    let (a, b) = (&a[..n], &b[..n]);
+    let mut acc = [0.0f64; 4];
+    let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    for (x, y) in ca.zip(cb) {
+        for k in 0..4 {
+            acc[k] += x[k] * y[k];
+        }
+    }
+    let tail: f64 = ra.iter().zip(rb).map(|(x, y)| x * y).sum();
+    (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
 }
 
 /// A symmetric positive-definite matrix stored by its lower profile: row `i`
@@ -207,14 +263,10 @@ impl Profile {
             for j in fi..i {
                 let fj = self.first[j];
                 let k0 = fi.max(fj);
-                let dot: f64 = row[k0 - fi..j - fi]
-                    .iter()
-                    .zip(&self.rows[j][k0 - fj..j - fj])
-                    .map(|(a, b)| a * b)
-                    .sum();
-                row[j - fi] = (row[j - fi] - dot) / self.rows[j][j - fj];
+                let d = dot(&row[k0 - fi..j - fi], &self.rows[j][k0 - fj..j - fj]);
+                row[j - fi] = (row[j - fi] - d) / self.rows[j][j - fj];
             }
-            let d = row[i - fi] - row[..i - fi].iter().map(|v| v * v).sum::<f64>();
+            let d = row[i - fi] - dot(&row[..i - fi], &row[..i - fi]);
             if d.is_nan() || d <= 0.0 || !d.is_finite() {
                 return None;
             }
@@ -229,10 +281,7 @@ impl Profile {
         let mut y = b.to_vec();
         for i in 0..n {
             let fi = self.first[i];
-            let mut s = y[i];
-            for k in fi..i {
-                s -= self.rows[i][k - fi] * y[k];
-            }
+            let s = y[i] - dot(&self.rows[i][..i - fi], &y[fi..i]);
             y[i] = s / self.rows[i][i - fi];
         }
         // Backward with Lᵀ: column-oriented over the rows of L.
@@ -260,19 +309,15 @@ impl Profile {
             let lii = row[i - f];
             let lrow = &row[k0 - f..i - f];
             for (c, yc) in y.iter_mut().enumerate() {
-                let dot: f64 = lrow
-                    .iter()
-                    .zip(&yc[k0 - start..i - start])
-                    .map(|(a, b)| a * b)
-                    .sum();
+                let d = dot(lrow, &yc[k0 - start..i - start]);
                 let e = if i - start == c { 1.0 } else { 0.0 };
-                yc[i - start] = (e - dot) / lii;
+                yc[i - start] = (e - d) / lii;
             }
         }
         let mut cov = Cov6::zeros();
         for r in 0..6 {
             for c in r..6 {
-                let v: f64 = y[r].iter().zip(&y[c]).map(|(a, b)| a * b).sum();
+                let v = dot(&y[r], &y[c]);
                 cov[(r, c)] = v;
                 cov[(c, r)] = v;
             }
@@ -509,6 +554,26 @@ mod tests {
             j.set_column(k, &((f(&d) - f(&m)) / (2.0 * h)));
         }
         j
+    }
+
+    #[test]
+    fn local_difference_is_bit_identical_to_proto() {
+        let a = pose_from_xyz_rpy([1.0, -2.0, 0.5], [0.3, -0.2, 1.0]);
+        let b = pose_from_xyz_rpy([-0.5, 1.5, 2.0], [-0.4, 0.6, -2.0]);
+        let c = perturb(&a, &Vector6::new(1e-3, -2e-3, 5e-4, 1e-4, -3e-4, 2e-4));
+        for (x, y) in [(a, b), (b, a), (a, c), (c, a), (a, a)] {
+            let (ours, theirs) = (difference(&x, &y), proto::geometry::difference(&x, &y));
+            for k in 0..6 {
+                assert_eq!(ours[k].to_bits(), theirs[k].to_bits());
+            }
+            let cov = Cov6::from_fn(|r, c| if r == c { 1e-3 * (r + 1) as f64 } else { 1e-5 });
+            let (px, py) = (
+                PoseWithCovariance::new(x, cov),
+                PoseWithCovariance::new(y, cov * 2.0),
+            );
+            assert_eq!(compose(&px, &py), px.compose(&py));
+            assert_eq!(invert(&px), px.inverse());
+        }
     }
 
     #[test]

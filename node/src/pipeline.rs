@@ -102,14 +102,12 @@ impl CameraPipeline {
         let vehicle = fleet
             .vehicle(observer)
             .ok_or(PipelineError::UnknownVehicle(observer))?;
-        let camera = vehicle
-            .cameras
-            .get(camera_index as usize)
-            .cloned()
-            .ok_or(PipelineError::UnknownCamera {
+        let camera = vehicle.cameras.get(camera_index as usize).cloned().ok_or(
+            PipelineError::UnknownCamera {
                 vehicle: observer,
                 camera: camera_index,
-            })?;
+            },
+        )?;
         if let Some(e) = params.restore_params.problem() {
             return Err(e.into());
         }
@@ -193,9 +191,12 @@ impl CameraPipeline {
         frame_seq: u64,
         quality: ImageQuality,
     ) -> Result<Observation, String> {
-        let (side_m, owner) = self
-            .marker_geometry(det)
-            .ok_or_else(|| format!("{}#{}: no marker of this code set in the fleet, size unknown", det.codes, det.id))?;
+        let (side_m, owner) = self.marker_geometry(det).ok_or_else(|| {
+            format!(
+                "{}#{}: no marker of this code set in the fleet, size unknown",
+                det.codes, det.id
+            )
+        })?;
         let solution = estimate_pose(
             &self.camera.model,
             &det.object_points(side_m),
@@ -234,7 +235,11 @@ impl CameraPipeline {
                 }
             }),
             corner_count: det.corners_px.len() as u8,
-            corners_px: det.corners_px.iter().map(|c| [c[0] as f32, c[1] as f32]).collect(),
+            corners_px: det
+                .corners_px
+                .iter()
+                .map(|c| [c[0] as f32, c[1] as f32])
+                .collect(),
             quality,
             predicted: false,
         })
@@ -247,7 +252,12 @@ impl CameraPipeline {
         let params = self.params.track;
         match self.tracks.get_mut(&obs.target_marker) {
             Some(t) if t.bridges(obs.stamp_ns, &params) => {
-                t.update(&obs.observer_from_target, &obs.covariance, obs.stamp_ns, &params);
+                t.update(
+                    &obs.observer_from_target,
+                    &obs.covariance,
+                    obs.stamp_ns,
+                    &params,
+                );
             }
             _ => {
                 self.tracks.insert(
@@ -268,12 +278,14 @@ impl CameraPipeline {
         out: &mut Vec<Observation>,
     ) {
         let params = self.params.track;
-        self.tracks.retain(|_, t| t.bridges(stamp_ns, &params) || t.last_measured_ns() >= stamp_ns);
+        self.tracks
+            .retain(|_, t| t.bridges(stamp_ns, &params) || t.last_measured_ns() >= stamp_ns);
         for (&id, track) in &self.tracks {
             if seen.contains(&id) || !track.bridges(stamp_ns, &params) {
                 continue;
             }
-            let MarkerOwner::Vehicle(target) = self.fleet.marker_owner(self.params.codes, id) else {
+            let MarkerOwner::Vehicle(target) = self.fleet.marker_owner(self.params.codes, id)
+            else {
                 continue;
             };
             let (pose, cov) = track.predict(stamp_ns, &params);

@@ -4,12 +4,14 @@
 //! [`NodeStatus`] and holding the vehicle's liveliness token.
 
 use crate::mat::gray_as_mat;
-use opencv::prelude::*;
 use crate::pipeline::{CameraPipeline, PipelineError, PipelineParams};
+use opencv::prelude::*;
 use shoal_bus::{Bus, BusError, DropOldestQueue, Publisher, Subscription};
 use shoal_proto::config::Fleet;
 use shoal_proto::image::GrayImage;
-use shoal_proto::messages::{CameraFrame, CameraInfo, CameraStatus, NodeStatus, Observation, PixelFormat, VehicleId};
+use shoal_proto::messages::{
+    CameraFrame, CameraInfo, CameraStatus, NodeStatus, Observation, PixelFormat, VehicleId,
+};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -22,7 +24,11 @@ pub enum Source {
     /// Camera frames published on the fleet's Zenoh keys (the simulator, or camera drivers).
     Zenoh,
     /// A folder of images (sorted by name) played as one camera at `rate_hz`.
-    Images { dir: PathBuf, camera: u8, rate_hz: f64 },
+    Images {
+        dir: PathBuf,
+        camera: u8,
+        rate_hz: f64,
+    },
     /// A video file played as one camera at its own frame rate.
     Video { path: PathBuf, camera: u8 },
     /// A live camera through OpenCV's VideoCapture (device index).
@@ -86,7 +92,10 @@ impl NodeStats {
         self.latency.lock().map(|g| g.1).unwrap_or(0)
     }
     pub fn frames_dropped(&self) -> u64 {
-        self.cameras.iter().map(|c| c.2.frames_dropped.load(Ordering::Relaxed)).sum()
+        self.cameras
+            .iter()
+            .map(|c| c.2.frames_dropped.load(Ordering::Relaxed))
+            .sum()
     }
 }
 
@@ -99,7 +108,9 @@ pub struct NodeHandle {
 
 impl std::fmt::Debug for NodeHandle {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("NodeHandle").field("threads", &self.threads.len()).finish()
+        f.debug_struct("NodeHandle")
+            .field("threads", &self.threads.len())
+            .finish()
     }
 }
 
@@ -170,17 +181,21 @@ pub fn spawn(bus: &Bus, cfg: NodeConfig) -> Result<NodeHandle, NodeError> {
             .collect(),
         ..Default::default()
     });
-    let publisher: Arc<Publisher<Observation>> = Arc::new(bus.publisher(keys.observations(cfg.vehicle))?);
+    let publisher: Arc<Publisher<Observation>> =
+        Arc::new(bus.publisher(keys.observations(cfg.vehicle))?);
     let mut threads = Vec::new();
 
     // Inputs per camera.
     let mut inputs: Vec<Option<FrameInput>> = Vec::new();
     for cam in &vehicle.cameras {
         inputs.push(match &cfg.source {
-            Source::Zenoh => Some(FrameInput::Zenoh(
-                bus.subscribe::<CameraFrame>(&keys.frame(cfg.vehicle, cam.index), cfg.queue_capacity)?,
-            )),
-            Source::Images { camera, .. } | Source::Video { camera, .. } | Source::Live { camera, .. }
+            Source::Zenoh => Some(FrameInput::Zenoh(bus.subscribe::<CameraFrame>(
+                &keys.frame(cfg.vehicle, cam.index),
+                cfg.queue_capacity,
+            )?)),
+            Source::Images { camera, .. }
+            | Source::Video { camera, .. }
+            | Source::Live { camera, .. }
                 if *camera == cam.index =>
             {
                 Some(FrameInput::Local(DropOldestQueue::new(cfg.queue_capacity)))
@@ -211,10 +226,14 @@ pub fn spawn(bus: &Bus, cfg: NodeConfig) -> Result<NodeHandle, NodeError> {
 
     for (i, input) in inputs.into_iter().enumerate() {
         let Some(input) = input else { continue };
-        let mut pipeline = CameraPipeline::new(cfg.fleet.clone(), cfg.vehicle, i as u8, cfg.params.clone())?;
+        let mut pipeline =
+            CameraPipeline::new(cfg.fleet.clone(), cfg.vehicle, i as u8, cfg.params.clone())?;
         let (stop, stats, publisher) = (stop.clone(), stats.clone(), publisher.clone());
         let name = format!("cam-{}-{}", cfg.vehicle, pipeline.camera().name);
-        let expected = (pipeline.camera().model.width, pipeline.camera().model.height);
+        let expected = (
+            pipeline.camera().model.width,
+            pipeline.camera().model.height,
+        );
         threads.push(std::thread::Builder::new().name(name).spawn(move || {
             let counters = &stats.cameras[i].2;
             while !stop.load(Ordering::Relaxed) {
@@ -317,15 +336,29 @@ pub fn spawn(bus: &Bus, cfg: NodeConfig) -> Result<NodeHandle, NodeError> {
                 })?,
         );
     }
-    Ok(NodeHandle { stop, threads, stats })
+    Ok(NodeHandle {
+        stop,
+        threads,
+        stats,
+    })
 }
 
-fn status_report(vehicle: VehicleId, stats: &NodeStats, started: Instant, period_s: f64, stamp_ns: u64) -> NodeStatus {
+fn status_report(
+    vehicle: VehicleId,
+    stats: &NodeStats,
+    started: Instant,
+    period_s: f64,
+    stamp_ns: u64,
+) -> NodeStatus {
     let cameras = stats
         .cameras
         .iter()
         .map(|(index, name, c)| {
-            let (n, r, d, p) = c.period.lock().map(|mut g| std::mem::take(&mut *g)).unwrap_or_default();
+            let (n, r, d, p) = c
+                .period
+                .lock()
+                .map(|mut g| std::mem::take(&mut *g))
+                .unwrap_or_default();
             let mean = |x: f64| if n > 0 { (x / n as f64) as f32 } else { 0.0 };
             CameraStatus {
                 camera: *index,
@@ -354,6 +387,8 @@ fn status_report(vehicle: VehicleId, stats: &NodeStats, started: Instant, period
 fn local_camera(source: &Source) -> Option<u8> {
     match source {
         Source::Zenoh => None,
-        Source::Images { camera, .. } | Source::Video { camera, .. } | Source::Live { camera, .. } => Some(*camera),
+        Source::Images { camera, .. }
+        | Source::Video { camera, .. }
+        | Source::Live { camera, .. } => Some(*camera),
     }
 }

@@ -17,19 +17,26 @@ use std::time::{Duration, Instant};
 
 /// Image files in `dir`, sorted by name.
 pub fn image_files(dir: &Path) -> Result<Vec<PathBuf>, NodeError> {
-    let rd = std::fs::read_dir(dir).map_err(|e| NodeError::Source(dir.display().to_string(), e.to_string()))?;
+    let rd = std::fs::read_dir(dir)
+        .map_err(|e| NodeError::Source(dir.display().to_string(), e.to_string()))?;
     let mut files: Vec<PathBuf> = rd
         .filter_map(|e| e.ok().map(|e| e.path()))
         .filter(|p| {
             matches!(
-                p.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref(),
+                p.extension()
+                    .and_then(|e| e.to_str())
+                    .map(|e| e.to_ascii_lowercase())
+                    .as_deref(),
                 Some("png" | "jpg" | "jpeg" | "bmp" | "tif" | "tiff" | "pgm")
             )
         })
         .collect();
     files.sort();
     if files.is_empty() {
-        return Err(NodeError::Source(dir.display().to_string(), "no image files".into()));
+        return Err(NodeError::Source(
+            dir.display().to_string(),
+            "no image files".into(),
+        ));
     }
     Ok(files)
 }
@@ -39,7 +46,11 @@ fn to_gray(mat: &Mat) -> opencv::Result<Mat> {
         return mat.try_clone();
     }
     let mut g = Mat::default();
-    let code = if mat.channels() == 4 { imgproc::COLOR_BGRA2GRAY } else { imgproc::COLOR_BGR2GRAY };
+    let code = if mat.channels() == 4 {
+        imgproc::COLOR_BGRA2GRAY
+    } else {
+        imgproc::COLOR_BGR2GRAY
+    };
     imgproc::cvt_color(mat, &mut g, code, 0)?;
     Ok(g)
 }
@@ -54,8 +65,15 @@ pub fn spawn_reader(
 ) -> Result<JoinHandle<()>, NodeError> {
     let name = format!("source-{vehicle}");
     let camera = match &source {
-        Source::Images { camera, .. } | Source::Video { camera, .. } | Source::Live { camera, .. } => *camera,
-        Source::Zenoh => return Err(NodeError::Source("zenoh".into(), "not a local source".into())),
+        Source::Images { camera, .. }
+        | Source::Video { camera, .. }
+        | Source::Live { camera, .. } => *camera,
+        Source::Zenoh => {
+            return Err(NodeError::Source(
+                "zenoh".into(),
+                "not a local source".into(),
+            ))
+        }
     };
     // Open up front so a bad path is an error of `spawn`, not a log line.
     enum Opened {
@@ -68,7 +86,10 @@ pub fn spawn_reader(
             let cap = videoio::VideoCapture::from_file(&path.to_string_lossy(), videoio::CAP_ANY)
                 .map_err(|e| NodeError::Source(path.display().to_string(), e.to_string()))?;
             if !cap.is_opened().unwrap_or(false) {
-                return Err(NodeError::Source(path.display().to_string(), "cannot open video".into()));
+                return Err(NodeError::Source(
+                    path.display().to_string(),
+                    "cannot open video".into(),
+                ));
             }
             Opened::Capture(cap, false)
         }
@@ -76,7 +97,10 @@ pub fn spawn_reader(
             let cap = videoio::VideoCapture::new(*device, videoio::CAP_ANY)
                 .map_err(|e| NodeError::Source(format!("camera {device}"), e.to_string()))?;
             if !cap.is_opened().unwrap_or(false) {
-                return Err(NodeError::Source(format!("camera {device}"), "cannot open camera".into()));
+                return Err(NodeError::Source(
+                    format!("camera {device}"),
+                    "cannot open camera".into(),
+                ));
             }
             Opened::Capture(cap, true)
         }
@@ -106,7 +130,8 @@ pub fn spawn_reader(
                     if stop.load(Ordering::Relaxed) {
                         break;
                     }
-                    let img = imgcodecs::imread(&path.to_string_lossy(), imgcodecs::IMREAD_GRAYSCALE);
+                    let img =
+                        imgcodecs::imread(&path.to_string_lossy(), imgcodecs::IMREAD_GRAYSCALE);
                     match img {
                         Ok(m) if !m.empty() => {
                             let stamp = (seq as f64 * period.as_secs_f64() * 1e9) as u64;
@@ -134,7 +159,10 @@ pub fn spawn_reader(
                     } else {
                         (cap.get(videoio::CAP_PROP_POS_MSEC).unwrap_or(0.0) * 1e6) as u64
                     };
-                    if let Some(f) = to_gray(&frame).ok().and_then(|g| make_frame(&g, seq, stamp)) {
+                    if let Some(f) = to_gray(&frame)
+                        .ok()
+                        .and_then(|g| make_frame(&g, seq, stamp))
+                    {
                         queue.push(f);
                     }
                     seq += 1;

@@ -117,7 +117,8 @@ impl Track {
         };
         let k = p_pred.fixed_view::<12, 6>(0, 0).into_owned() * s_inv;
         let mut x = V12::zeros();
-        x.fixed_rows_mut::<6>(6).copy_from(&x_pred.fixed_rows::<6>(6));
+        x.fixed_rows_mut::<6>(6)
+            .copy_from(&x_pred.fixed_rows::<6>(6));
         let x = x + k * innovation;
         let mut h = SMatrix::<f64, 6, 12>::zeros();
         h.fixed_view_mut::<6, 6>(0, 0).copy_from(&Cov6::identity());
@@ -172,8 +173,16 @@ mod tests {
         // Occluded for 0.5 s: the prediction follows the motion.
         let (pred, pcov) = track.predict(2_500_000_000, &params);
         let err = difference(&pred, &truth(2.5));
-        assert!(err.fixed_rows::<3>(0).norm() < 0.01, "translation error {}", err.fixed_rows::<3>(0).norm());
-        assert!(err.fixed_rows::<3>(3).norm() < 0.005, "rotation error {}", err.fixed_rows::<3>(3).norm());
+        assert!(
+            err.fixed_rows::<3>(0).norm() < 0.01,
+            "translation error {}",
+            err.fixed_rows::<3>(0).norm()
+        );
+        assert!(
+            err.fixed_rows::<3>(3).norm() < 0.005,
+            "rotation error {}",
+            err.fixed_rows::<3>(3).norm()
+        );
         // And its uncertainty has grown beyond the measurements'.
         assert!(pcov[(0, 0)] > cov[(0, 0)]);
         assert!(track.bridges(2_500_000_000, &params));

@@ -110,7 +110,11 @@ impl CameraModel {
             ));
         }
         let all = [self.fx, self.fy, self.cx, self.cy];
-        if !all.iter().chain(self.distortion.iter()).all(|v| v.is_finite()) {
+        if !all
+            .iter()
+            .chain(self.distortion.iter())
+            .all(|v| v.is_finite())
+        {
             return Some("a parameter is not finite".into());
         }
         if self.fx <= 0.0 || self.fy <= 0.0 {

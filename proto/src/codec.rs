@@ -13,7 +13,7 @@
 //! [`DecodeError`] naming what was wrong (see the property tests).
 
 use crate::messages::{MessageKind, WireMessage};
-use bincode::config::{Configuration, Fixint, LittleEndian, Limit};
+use bincode::config::{Configuration, Fixint, Limit, LittleEndian};
 
 pub const MAGIC: [u8; 4] = *b"SHOL";
 /// Bumped on any incompatible change of a message layout.
@@ -43,7 +43,10 @@ pub enum DecodeError {
     #[error("unknown message kind {found}")]
     UnknownKind { found: u16 },
     #[error("expected a {expected:?} message, got {found:?}")]
-    WrongKind { expected: MessageKind, found: MessageKind },
+    WrongKind {
+        expected: MessageKind,
+        found: MessageKind,
+    },
     #[error("header says {declared} payload bytes, {actual} present")]
     LengthMismatch { declared: usize, actual: usize },
     #[error("payload of {len} bytes exceeds the {MAX_PAYLOAD}-byte limit")]
@@ -113,7 +116,8 @@ pub fn peek_header(bytes: &[u8]) -> Result<Header, DecodeError> {
         return Err(DecodeError::VersionMismatch { found: version });
     }
     let raw_kind = u16::from_le_bytes([bytes[6], bytes[7]]);
-    let kind = MessageKind::from_u16(raw_kind).ok_or(DecodeError::UnknownKind { found: raw_kind })?;
+    let kind =
+        MessageKind::from_u16(raw_kind).ok_or(DecodeError::UnknownKind { found: raw_kind })?;
     let declared = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize;
     if declared > MAX_PAYLOAD {
         return Err(DecodeError::Oversized { len: declared });
@@ -139,23 +143,25 @@ pub fn decode<M: WireMessage>(bytes: &[u8]) -> Result<M, DecodeError> {
         });
     }
     let payload = &bytes[HEADER_LEN..];
-    let (msg, used): (M, usize) = bincode::serde::decode_from_slice(payload, config()).map_err(|e| {
-        DecodeError::Malformed {
-            kind: M::KIND,
-            reason: e.to_string(),
-        }
-    })?;
+    let (msg, used): (M, usize) =
+        bincode::serde::decode_from_slice(payload, config()).map_err(|e| {
+            DecodeError::Malformed {
+                kind: M::KIND,
+                reason: e.to_string(),
+            }
+        })?;
     if used != payload.len() {
         return Err(DecodeError::TrailingBytes {
             kind: M::KIND,
             extra: payload.len() - used,
         });
     }
-    msg.validate().map_err(|(field, reason)| DecodeError::Invalid {
-        kind: M::KIND,
-        field,
-        reason,
-    })?;
+    msg.validate()
+        .map_err(|(field, reason)| DecodeError::Invalid {
+            kind: M::KIND,
+            field,
+            reason,
+        })?;
     Ok(msg)
 }
 
@@ -296,7 +302,10 @@ mod tests {
     #[test]
     fn header_errors_are_specific() {
         let bytes = encode(&sample_observation()).unwrap();
-        assert_eq!(decode::<Observation>(&bytes[..5]), Err(DecodeError::Truncated { len: 5 }));
+        assert_eq!(
+            decode::<Observation>(&bytes[..5]),
+            Err(DecodeError::Truncated { len: 5 })
+        );
         let mut wrong_version = bytes.clone();
         wrong_version[4] = 9;
         assert_eq!(
@@ -412,7 +421,10 @@ mod layout_tests {
         assert_eq!(&b[0..4], b"SHOL");
         assert_eq!(u16::from_le_bytes([b[4], b[5]]), SCHEMA_VERSION);
         assert_eq!(u16::from_le_bytes([b[6], b[7]]), 6);
-        assert_eq!(u32::from_le_bytes([b[8], b[9], b[10], b[11]]), 4 + 8 + 24 + 8);
+        assert_eq!(
+            u32::from_le_bytes([b[8], b[9], b[10], b[11]]),
+            4 + 8 + 24 + 8
+        );
         assert_eq!(u32::from_le_bytes([b[12], b[13], b[14], b[15]]), 15);
         assert_eq!(u64::from_le_bytes(b[16..24].try_into().unwrap()), 2);
         assert_eq!(f64::from_le_bytes(b[24..32].try_into().unwrap()), 0.5);
@@ -424,7 +436,13 @@ mod layout_tests {
         assert_eq!(payload_of(&Option::<u8>::None), vec![0]);
         assert_eq!(payload_of(&Some(3u8)), vec![1, 3]);
         assert_eq!(payload_of(&vec![9u8]), vec![1, 0, 0, 0, 0, 0, 0, 0, 9]);
-        assert_eq!(payload_of(&"ab".to_string()), vec![2, 0, 0, 0, 0, 0, 0, 0, b'a', b'b']);
-        assert_eq!(payload_of(&crate::CodeSet::AprilTag36h11), vec![14, 0, 0, 0]);
+        assert_eq!(
+            payload_of(&"ab".to_string()),
+            vec![2, 0, 0, 0, 0, 0, 0, 0, b'a', b'b']
+        );
+        assert_eq!(
+            payload_of(&crate::CodeSet::AprilTag36h11),
+            vec![14, 0, 0, 0]
+        );
     }
 }

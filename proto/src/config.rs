@@ -195,13 +195,19 @@ impl Fleet {
         };
         Keys::new(&file.fleet).map_err(|e| invalid("fleet".into(), e.to_string()))?;
         if file.vehicles.is_empty() {
-            return Err(invalid("vehicles".into(), "a fleet needs at least one vehicle".into()));
+            return Err(invalid(
+                "vehicles".into(),
+                "a fleet needs at least one vehicle".into(),
+            ));
         }
         let base = path.parent().unwrap_or(Path::new("."));
         let mut rigs: HashMap<&str, Vec<Camera>> = HashMap::new();
         for (rig_name, rig) in &file.rigs {
             if rig.cameras.len() > 255 {
-                return Err(invalid(format!("rigs.{rig_name}.cameras"), "at most 255 cameras".into()));
+                return Err(invalid(
+                    format!("rigs.{rig_name}.cameras"),
+                    "at most 255 cameras".into(),
+                ));
             }
             let mut cams = Vec::new();
             for (i, c) in rig.cameras.iter().enumerate() {
@@ -210,7 +216,8 @@ impl Fleet {
                 if let Some(p) = model.problem() {
                     return Err(invalid(field, p));
                 }
-                check_mount(&c.body_from_camera).map_err(|r| invalid(format!("{field}.body_from_camera"), r))?;
+                check_mount(&c.body_from_camera)
+                    .map_err(|r| invalid(format!("{field}.body_from_camera"), r))?;
                 cams.push(Camera {
                     index: i as u8,
                     name: c.name.clone(),
@@ -231,26 +238,31 @@ impl Fleet {
                 ));
             }
             let h = v.hull;
-            if !(h.diameter_m > 0.0 && h.length_m > 0.0 && h.diameter_m.is_finite() && h.length_m.is_finite()) {
-                return Err(invalid(format!("{field}.hull"), "diameter and length must be positive".into()));
+            if !(h.diameter_m > 0.0
+                && h.length_m > 0.0
+                && h.diameter_m.is_finite()
+                && h.length_m.is_finite())
+            {
+                return Err(invalid(
+                    format!("{field}.hull"),
+                    "diameter and length must be positive".into(),
+                ));
             }
-            let cameras = rigs
-                .get(v.rig.as_str())
-                .cloned()
-                .ok_or_else(|| {
-                    invalid(
-                        format!("{field}.rig"),
-                        format!(
-                            "no rig named {:?} (rigs: {})",
-                            v.rig,
-                            file.rigs.keys().cloned().collect::<Vec<_>>().join(", ")
-                        ),
-                    )
-                })?;
+            let cameras = rigs.get(v.rig.as_str()).cloned().ok_or_else(|| {
+                invalid(
+                    format!("{field}.rig"),
+                    format!(
+                        "no rig named {:?} (rigs: {})",
+                        v.rig,
+                        file.rigs.keys().cloned().collect::<Vec<_>>().join(", ")
+                    ),
+                )
+            })?;
             let mut markers = Vec::new();
             for (mi, m) in v.markers.iter().enumerate() {
                 let mfield = format!("{field}.markers[{mi}]");
-                let codes = CodeSet::from_name(&m.codes).map_err(|e| invalid(format!("{mfield}.codes"), e.to_string()))?;
+                let codes = CodeSet::from_name(&m.codes)
+                    .map_err(|e| invalid(format!("{mfield}.codes"), e.to_string()))?;
                 if (m.id as usize) >= codes.len() && !codes.table().codes.is_empty() {
                     return Err(invalid(
                         format!("{mfield}.id"),
@@ -258,9 +270,13 @@ impl Fleet {
                     ));
                 }
                 if !(m.side_m > 0.0 && m.side_m < 10.0) {
-                    return Err(invalid(format!("{mfield}.side_m"), format!("{} m is not a plausible marker side", m.side_m)));
+                    return Err(invalid(
+                        format!("{mfield}.side_m"),
+                        format!("{} m is not a plausible marker side", m.side_m),
+                    ));
                 }
-                check_mount(&m.body_from_marker).map_err(|r| invalid(format!("{mfield}.body_from_marker"), r))?;
+                check_mount(&m.body_from_marker)
+                    .map_err(|r| invalid(format!("{mfield}.body_from_marker"), r))?;
                 markers.push(Marker {
                     codes,
                     id: m.id,
@@ -331,7 +347,11 @@ impl Fleet {
             self.reference_vehicle
         );
         for v in &self.vehicles {
-            let markers: Vec<String> = v.markers.iter().map(|m| format!("{}#{} ({:.0} mm)", m.codes, m.id, m.side_m * 1e3)).collect();
+            let markers: Vec<String> = v
+                .markers
+                .iter()
+                .map(|m| format!("{}#{} ({:.0} mm)", m.codes, m.id, m.side_m * 1e3))
+                .collect();
             let cams: Vec<String> = v
                 .cameras
                 .iter()
@@ -350,7 +370,10 @@ impl Fleet {
         for v in &self.vehicles {
             for m in &v.markers {
                 if self.marker_owner(m.codes, m.id) == MarkerOwner::Ambiguous {
-                    s += &format!("  warning: {}#{} is carried by more than one vehicle\n", m.codes, m.id);
+                    s += &format!(
+                        "  warning: {}#{} is carried by more than one vehicle\n",
+                        m.codes, m.id
+                    );
                 }
             }
         }
@@ -359,7 +382,11 @@ impl Fleet {
 }
 
 fn check_mount(m: &MountSpec) -> Result<(), String> {
-    if m.xyz_m.iter().chain(m.rpy_deg.iter()).all(|v| v.is_finite()) {
+    if m.xyz_m
+        .iter()
+        .chain(m.rpy_deg.iter())
+        .all(|v| v.is_finite())
+    {
         Ok(())
     } else {
         Err("values must be finite".into())
@@ -371,8 +398,10 @@ fn resolve_camera(c: &CameraSpec, base: &Path) -> Result<CameraModel, String> {
         (Some(p), None, None) => camera_preset(p),
         (None, Some(file), None) => {
             let path = base.join(file);
-            let text = std::fs::read_to_string(&path).map_err(|e| format!("cannot read calibration {}: {e}", path.display()))?;
-            parse_calibration_yaml(&text).map_err(|e| format!("calibration {}: {e}", path.display()))
+            let text = std::fs::read_to_string(&path)
+                .map_err(|e| format!("cannot read calibration {}: {e}", path.display()))?;
+            parse_calibration_yaml(&text)
+                .map_err(|e| format!("calibration {}: {e}", path.display()))
         }
         (None, None, Some(i)) => Ok(CameraModel {
             width: i.width,
@@ -392,7 +421,9 @@ pub fn camera_preset(name: &str) -> Result<CameraModel, String> {
     match name {
         "vehicle_1440" => Ok(CameraModel::vehicle_1440()),
         "paper_eq3" => Ok(CameraModel::paper_eq3()),
-        other => Err(format!("unknown camera preset {other:?} (known: vehicle_1440, paper_eq3)")),
+        other => Err(format!(
+            "unknown camera preset {other:?} (known: vehicle_1440, paper_eq3)"
+        )),
     }
 }
 
@@ -449,9 +480,14 @@ pub fn parse_calibration_yaml(text: &str) -> Result<CameraModel, String> {
             .parse()
             .map_err(|e| format!("`{k}`: {e}"))
     };
-    let k = matrices.get("camera_matrix").ok_or("missing `camera_matrix`")?;
+    let k = matrices
+        .get("camera_matrix")
+        .ok_or("missing `camera_matrix`")?;
     if k.len() != 9 {
-        return Err(format!("`camera_matrix` has {} values, expected 9", k.len()));
+        return Err(format!(
+            "`camera_matrix` has {} values, expected 9",
+            k.len()
+        ));
     }
     let d = matrices
         .get("distortion_coefficients")
@@ -493,7 +529,10 @@ fn parse_list(s: &str) -> Result<Vec<f64>, String> {
         .split(',')
         .map(str::trim)
         .filter(|t| !t.is_empty())
-        .map(|t| t.parse::<f64>().map_err(|e| format!("bad number {t:?}: {e}")))
+        .map(|t| {
+            t.parse::<f64>()
+                .map_err(|e| format!("bad number {t:?}: {e}"))
+        })
         .collect()
 }
 
@@ -531,20 +570,28 @@ markers = [ { codes = "shoal", id = 7, side_m = 0.1, body_from_marker = { xyz_m 
     #[test]
     fn unknown_field_is_named() {
         let bad = MINI.replace("name = \"a\"", "name = \"a\"\nspeed = 3");
-        let e = Fleet::parse(&bad, Path::new("mini.toml")).unwrap_err().to_string();
+        let e = Fleet::parse(&bad, Path::new("mini.toml"))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("mini.toml") && e.contains("speed"), "{e}");
     }
 
     #[test]
     fn duplicate_vehicle_and_bad_rig_are_named() {
         let dup = MINI.replace("id = 2", "id = 1");
-        let e = Fleet::parse(&dup, Path::new("f.toml")).unwrap_err().to_string();
+        let e = Fleet::parse(&dup, Path::new("f.toml"))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("vehicles[1].id"), "{e}");
         let rig = MINI.replace("rig = \"one\"\nhull", "rig = \"two\"\nhull");
-        let e = Fleet::parse(&rig, Path::new("f.toml")).unwrap_err().to_string();
+        let e = Fleet::parse(&rig, Path::new("f.toml"))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("rig") && e.contains("two"), "{e}");
         let codes = MINI.replace("codes = \"shoal\"", "codes = \"qr\"");
-        let e = Fleet::parse(&codes, Path::new("f.toml")).unwrap_err().to_string();
+        let e = Fleet::parse(&codes, Path::new("f.toml"))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("markers[0].codes"), "{e}");
     }
 

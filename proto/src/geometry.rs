@@ -81,7 +81,11 @@ pub fn compose_jacobians(a_from_b: &Pose, b_from_c: &Pose) -> (Matrix6<f64>, Mat
 
 /// Jacobian of `b_from_a = a_from_b⁻¹` with respect to the perturbation of `a_from_b`.
 pub fn inverse_jacobian(a_from_b: &Pose) -> Matrix6<f64> {
-    let rt = a_from_b.rotation.to_rotation_matrix().into_inner().transpose();
+    let rt = a_from_b
+        .rotation
+        .to_rotation_matrix()
+        .into_inner()
+        .transpose();
     let t = a_from_b.translation.vector;
     let mut j = Matrix6::zeros();
     j.fixed_view_mut::<3, 3>(0, 0).copy_from(&(-rt));

@@ -23,7 +23,11 @@ impl GrayImage {
 
     /// Wrap pixels; `None` when the length does not match the size.
     pub fn from_vec(width: u32, height: u32, data: Vec<u8>) -> Option<GrayImage> {
-        (data.len() == width as usize * height as usize).then_some(GrayImage { width, height, data })
+        (data.len() == width as usize * height as usize).then_some(GrayImage {
+            width,
+            height,
+            data,
+        })
     }
 
     pub fn get(&self, x: u32, y: u32) -> u8 {

@@ -166,9 +166,15 @@ mod tests {
         );
         assert_eq!(
             k.parse(&k.frame(10, 3)).unwrap(),
-            KeyKind::Frame { vehicle: 10, camera: 3 }
+            KeyKind::Frame {
+                vehicle: 10,
+                camera: 3
+            }
         );
-        assert_eq!(k.parse(&k.alive(17)).unwrap(), KeyKind::Alive { vehicle: 17 });
+        assert_eq!(
+            k.parse(&k.alive(17)).unwrap(),
+            KeyKind::Alive { vehicle: 17 }
+        );
         assert_eq!(k.parse(&k.map()).unwrap(), KeyKind::Map { producer: None });
         assert_eq!(k.parse(&k.truth()).unwrap(), KeyKind::Truth);
         assert!(k.parse("shoal/other/15/obs").is_err());

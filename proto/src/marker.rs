@@ -72,7 +72,11 @@ pub enum MarkerError {
     #[error("unknown code set {name:?}; known: {known}")]
     UnknownCodeSet { name: String, known: String },
     #[error("marker ID {id} is not in code set {set} (IDs 0..{len})")]
-    IdOutOfRange { set: &'static str, id: MarkerId, len: usize },
+    IdOutOfRange {
+        set: &'static str,
+        id: MarkerId,
+        len: usize,
+    },
     #[error("code table for {set} is empty; run `cargo run -p shoal-node --example extract_code_tables`")]
     TableMissing { set: &'static str },
 }

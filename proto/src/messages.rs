@@ -126,17 +126,26 @@ impl WireMessage for Observation {
         }
         if let Some(alt) = &self.alternative {
             if !pose_is_finite(&alt.observer_from_target) {
-                return Err(("alternative.observer_from_target", "pose is not finite".into()));
+                return Err((
+                    "alternative.observer_from_target",
+                    "pose is not finite".into(),
+                ));
             }
             if let Some(p) = covariance_problem(&alt.covariance, 1e3) {
                 return Err(("alternative.covariance", p.into()));
             }
         }
         if !self.reprojection_rms_px.is_finite() || self.reprojection_rms_px < 0.0 {
-            return Err(("reprojection_rms_px", "must be finite and non-negative".into()));
+            return Err((
+                "reprojection_rms_px",
+                "must be finite and non-negative".into(),
+            ));
         }
         if self.corners_px.len() > 64 {
-            return Err(("corners_px", format!("{} corners is too many", self.corners_px.len())));
+            return Err((
+                "corners_px",
+                format!("{} corners is too many", self.corners_px.len()),
+            ));
         }
         Ok(())
     }
@@ -226,10 +235,16 @@ impl WireMessage for FleetMap {
     fn validate(&self) -> Result<(), (&'static str, String)> {
         for v in &self.vehicles {
             if !pose_is_finite(&v.reference_from_vehicle) {
-                return Err(("vehicles.reference_from_vehicle", format!("vehicle {} pose is not finite", v.vehicle)));
+                return Err((
+                    "vehicles.reference_from_vehicle",
+                    format!("vehicle {} pose is not finite", v.vehicle),
+                ));
             }
             if !v.covariance.iter().all(|x| x.is_finite()) {
-                return Err(("vehicles.covariance", format!("vehicle {} covariance is not finite", v.vehicle)));
+                return Err((
+                    "vehicles.covariance",
+                    format!("vehicle {} covariance is not finite", v.vehicle),
+                ));
             }
         }
         Ok(())
@@ -280,7 +295,9 @@ impl WireMessage for CameraFrame {
         if let Some(p) = self.info.model.problem() {
             return Err(("info.model", p));
         }
-        let want = self.info.model.width as usize * self.info.model.height as usize * self.format.channels();
+        let want = self.info.model.width as usize
+            * self.info.model.height as usize
+            * self.format.channels();
         if self.data.len() != want {
             return Err((
                 "data",
@@ -339,8 +356,15 @@ pub struct SimTruth {
 impl WireMessage for SimTruth {
     const KIND: MessageKind = MessageKind::SimTruth;
     fn validate(&self) -> Result<(), (&'static str, String)> {
-        if let Some(v) = self.vehicles.iter().find(|v| !pose_is_finite(&v.world_from_body)) {
-            return Err(("vehicles.world_from_body", format!("vehicle {} pose is not finite", v.vehicle)));
+        if let Some(v) = self
+            .vehicles
+            .iter()
+            .find(|v| !pose_is_finite(&v.world_from_body))
+        {
+            return Err((
+                "vehicles.world_from_body",
+                format!("vehicle {} pose is not finite", v.vehicle),
+            ));
         }
         Ok(())
     }
@@ -396,7 +420,12 @@ pub struct VehicleCommand {
 impl WireMessage for VehicleCommand {
     const KIND: MessageKind = MessageKind::VehicleCommand;
     fn validate(&self) -> Result<(), (&'static str, String)> {
-        if !self.velocity_body.iter().chain([&self.yaw_rate]).all(|v| v.is_finite()) {
+        if !self
+            .velocity_body
+            .iter()
+            .chain([&self.yaw_rate])
+            .all(|v| v.is_finite())
+        {
             return Err(("velocity_body", "command is not finite".into()));
         }
         Ok(())

@@ -17,7 +17,9 @@ use crate::water::WaterParams;
 use crate::world::{Formation, Mode, SwarmWorld};
 use shoal_bus::{Bus, BusError, ManualClock, Publisher, Subscription};
 use shoal_proto::config::Fleet;
-use shoal_proto::messages::{CameraFrame, CameraInfo, PixelFormat, SimTruth, VehicleCommand, VehicleId};
+use shoal_proto::messages::{
+    CameraFrame, CameraInfo, PixelFormat, SimTruth, VehicleCommand, VehicleId,
+};
 use shoal_proto::KeyKind;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
@@ -65,7 +67,9 @@ pub struct SimHandle {
 
 impl std::fmt::Debug for SimHandle {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("SimHandle").field("stats", &self.stats).finish()
+        f.debug_struct("SimHandle")
+            .field("stats", &self.stats)
+            .finish()
     }
 }
 
@@ -110,7 +114,10 @@ pub fn spawn(bus: &Bus, cfg: SimConfig, clock: Arc<ManualClock>) -> Result<SimHa
     let mut cams: Vec<(VehicleId, u8, Publisher<CameraFrame>)> = Vec::new();
     for v in &cfg.fleet.vehicles {
         for c in &v.cameras {
-            let selected = cfg.cameras.as_ref().is_none_or(|names| names.iter().any(|n| n == &c.name));
+            let selected = cfg
+                .cameras
+                .as_ref()
+                .is_none_or(|names| names.iter().any(|n| n == &c.name));
             if selected {
                 cams.push((v.id, c.index, bus.publisher(keys.frame(v.id, c.index))?));
             }

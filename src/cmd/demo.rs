@@ -33,13 +33,13 @@ pub struct DemoArgs {
     open_loop: bool,
     /// MCAP log of the run (opens in Foxglove; `shoal log info`, `shoal replay`, `shoal fuse` read it).
     #[arg(long, default_value = "out/demo.mcap")]
-    log: PathBuf,
+    mcap: PathBuf,
     /// Write no log.
     #[arg(long)]
-    no_log: bool,
+    no_mcap: bool,
     /// Include camera frames in the log (about 0.8 MB each).
     #[arg(long)]
-    log_frames: bool,
+    mcap_frames: bool,
     /// Also write the figures as JSON.
     #[arg(long)]
     summary_json: Option<PathBuf>,
@@ -57,8 +57,8 @@ pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
         time_scale: a.time_scale,
         progress: true,
         closed_loop: !a.open_loop,
-        log: (!a.no_log).then_some(a.log),
-        log_frames: a.log_frames,
+        log: (!a.no_mcap).then_some(a.mcap),
+        log_frames: a.mcap_frames,
     };
     let bar = ProgressBar::new((cfg.duration_s * 10.0) as u64);
     bar.set_style(
@@ -74,7 +74,9 @@ pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
         bar.set_message(msg.to_string());
     })?;
     bar.finish_and_clear();
-    println!("fused relative pose error against ground truth (mean over the second half of the run):");
+    println!(
+        "fused relative pose error against ground truth (mean over the second half of the run):"
+    );
     println!("  pair      position error   angle error   localized in");
     for p in &summary.pairs {
         println!(
@@ -98,6 +100,10 @@ pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
         summary.sim_ticks,
         summary.sim_ticks_skipped,
         summary.wall_time_s
+    );
+    println!(
+        "last map: {} hypotheses accepted, {} observations rejected, {} planar-flip twins rejected",
+        summary.edges_accepted, summary.edges_rejected, summary.flip_twins_rejected
     );
     if let Some(log) = &summary.log {
         println!(

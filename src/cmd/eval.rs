@@ -28,6 +28,9 @@ pub struct EvalArgs {
     /// No progress bar.
     #[arg(long)]
     no_progress: bool,
+    /// Water presets file (configs/water.toml format), e.g. OUT/water-calibrated.toml from `calibrate-water`.
+    #[arg(long)]
+    water: Option<PathBuf>,
     /// Also save the first frame of every condition, raw and restored, as PNG under OUT/frames/.
     #[arg(long)]
     save_frames: bool,
@@ -44,6 +47,7 @@ pub fn run_eval(a: EvalArgs) -> anyhow::Result<()> {
         restore,
         progress: !a.no_progress,
         save_frames: a.save_frames,
+        water: a.water.clone(),
     };
     let summary = eval::run(experiment, &opts).with_context(|| format!("eval {experiment}"))?;
     println!("{}", serde_json::to_string_pretty(&summary)?);

@@ -54,16 +54,31 @@ pub fn run_node(a: NodeArgs) -> anyhow::Result<()> {
     let fleet = fleet(&a.fleet)?;
     let source = match a.source.split_once(':') {
         None if a.source == "zenoh" => Source::Zenoh,
-        Some(("images", dir)) => Source::Images { dir: dir.into(), camera: a.camera_index, rate_hz: a.image_rate },
-        Some(("video", path)) => Source::Video { path: path.into(), camera: a.camera_index },
-        Some(("camera", dev)) => Source::Live {
-            device: dev.parse().with_context(|| format!("camera device {dev:?} is not a number"))?,
+        Some(("images", dir)) => Source::Images {
+            dir: dir.into(),
+            camera: a.camera_index,
+            rate_hz: a.image_rate,
+        },
+        Some(("video", path)) => Source::Video {
+            path: path.into(),
             camera: a.camera_index,
         },
-        _ => bail!("--source {:?}: expected zenoh, images:DIR, video:FILE or camera:DEVICE", a.source),
+        Some(("camera", dev)) => Source::Live {
+            device: dev
+                .parse()
+                .with_context(|| format!("camera device {dev:?} is not a number"))?,
+            camera: a.camera_index,
+        },
+        _ => bail!(
+            "--source {:?}: expected zenoh, images:DIR, video:FILE or camera:DEVICE",
+            a.source
+        ),
     };
     let method: Method = a.restore.parse()?;
-    let mut params = PipelineParams { restore: method, ..Default::default() };
+    let mut params = PipelineParams {
+        restore: method,
+        ..Default::default()
+    };
     params.restore_params.c_per_m = a.water;
     let bus = a.net.open()?;
     let node = shoal_node::service::spawn(
@@ -109,11 +124,13 @@ pub fn run_fusion(a: FusionArgs) -> anyhow::Result<()> {
             let clock = Arc::new(ManualClock::new(0));
             let sub = bus.subscribe::<SimTruth>(&fleet.keys().truth(), 16)?;
             let c = clock.clone();
-            let t = std::thread::Builder::new().name("sim-clock".into()).spawn(move || loop {
-                if let Some(r) = sub.recv_timeout(Duration::from_millis(200)) {
-                    c.advance_to(r.msg.stamp_ns);
-                }
-            })?;
+            let t = std::thread::Builder::new()
+                .name("sim-clock".into())
+                .spawn(move || loop {
+                    if let Some(r) = sub.recv_timeout(Duration::from_millis(200)) {
+                        c.advance_to(r.msg.stamp_ns);
+                    }
+                })?;
             (clock, Some(t))
         }
         other => bail!("--clock {other:?}: expected wall or sim"),
@@ -123,7 +140,9 @@ pub fn run_fusion(a: FusionArgs) -> anyhow::Result<()> {
         FusionConfig {
             fleet,
             params: FusionParams::default(),
-            placement: a.on_vehicle.map_or(Placement::Central, Placement::OnVehicle),
+            placement: a
+                .on_vehicle
+                .map_or(Placement::Central, Placement::OnVehicle),
             rate_hz: a.rate,
             queue_capacity: 4096,
         },
@@ -214,10 +233,22 @@ fn presets(path: &Option<PathBuf>) -> anyhow::Result<WaterPresets> {
 }
 
 pub fn run_sim(a: SimArgs) -> anyhow::Result<()> {
-    if let Some(SimCmd::Render { fleet: fp, water, vehicle, camera, formation: f, spacing, seed, out }) = a.cmd {
+    if let Some(SimCmd::Render {
+        fleet: fp,
+        water,
+        vehicle,
+        camera,
+        formation: f,
+        spacing,
+        seed,
+        out,
+    }) = a.cmd
+    {
         let fleet = fleet(&fp)?;
         let vehicle = vehicle.unwrap_or(fleet.reference_vehicle);
-        let v = fleet.vehicle(vehicle).with_context(|| format!("vehicle {vehicle} is not in the fleet"))?;
+        let v = fleet
+            .vehicle(vehicle)
+            .with_context(|| format!("vehicle {vehicle} is not in the fleet"))?;
         let cam = match camera.parse::<u8>() {
             Ok(i) => i,
             Err(_) => v
@@ -229,9 +260,20 @@ pub fn run_sim(a: SimArgs) -> anyhow::Result<()> {
         };
         let water = WaterPresets::builtin().get(water)?;
         let world = SwarmWorld::new(&fleet, formation(&f)?, spacing, seed);
-        let out_frame = render_fleet_view(&mut Renderer::new(), &fleet, &world.truth(), vehicle, cam, &water, 0.0, 0, seed)?;
+        let out_frame = render_fleet_view(
+            &mut Renderer::new(),
+            &fleet,
+            &world.truth(),
+            vehicle,
+            cam,
+            &water,
+            0.0,
+            0,
+            seed,
+        )?;
         if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+            std::fs::create_dir_all(dir)
+                .with_context(|| format!("cannot create {}", dir.display()))?;
         }
         let clean = write_frame_pair(&out_frame, &out)?;
         println!("wrote {} and {}", out.display(), clean.display());

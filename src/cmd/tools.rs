@@ -30,9 +30,19 @@ pub enum MarkerCmd {
 }
 
 pub fn run_marker(cmd: MarkerCmd) -> anyhow::Result<()> {
-    let MarkerCmd::Generate { id, size_mm, codes, out, dpi } = cmd;
+    let MarkerCmd::Generate {
+        id,
+        size_mm,
+        codes,
+        out,
+        dpi,
+    } = cmd;
     let codes: CodeSet = codes.parse()?;
-    let ext = out.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
+    let ext = out
+        .extension()
+        .and_then(|e| e.to_str())
+        .unwrap_or("")
+        .to_ascii_lowercase();
     let bytes = match ext.as_str() {
         "svg" => shoal_node::print::marker_svg(codes, id, size_mm)?.into_bytes(),
         "png" => shoal_node::print::marker_png(codes, id, size_mm, dpi)?,
@@ -63,8 +73,12 @@ pub fn run_detect(a: DetectArgs) -> anyhow::Result<()> {
     let codes: CodeSet = a.codes.parse()?;
     let camera = match &a.camera {
         Some(p) => {
-            let text = std::fs::read_to_string(p).with_context(|| format!("cannot read {}", p.display()))?;
-            Some(parse_calibration_yaml(&text).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?)
+            let text = std::fs::read_to_string(p)
+                .with_context(|| format!("cannot read {}", p.display()))?;
+            Some(
+                parse_calibration_yaml(&text)
+                    .map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?,
+            )
         }
         None => None,
     };
@@ -73,7 +87,13 @@ pub fn run_detect(a: DetectArgs) -> anyhow::Result<()> {
     }
     let stdout = std::io::stdout();
     let mut out = stdout.lock();
-    let summary = shoal_node::detect::detect_paths(&a.inputs, codes, camera, a.size_mm.map(|s| s / 1000.0), &mut out)?;
+    let summary = shoal_node::detect::detect_paths(
+        &a.inputs,
+        codes,
+        camera,
+        a.size_mm.map(|s| s / 1000.0),
+        &mut out,
+    )?;
     eprintln!(
         "{} files, {} frames, {} detections, {} unreadable",
         summary.files, summary.frames, summary.detections, summary.errors

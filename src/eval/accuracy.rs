@@ -19,7 +19,6 @@ use serde_json::{json, Map, Value};
 use shoal_proto::geometry::Pose;
 use shoal_proto::{CameraModel, CodeSet};
 use shoal_sim_bridge::render::Renderer;
-use shoal_sim_bridge::water::WaterPresets;
 use std::collections::BTreeMap;
 
 /// Figs. 11–14: the four waters of the accuracy test (1/m).
@@ -67,7 +66,7 @@ pub fn run_conditions(
     what: &str,
 ) -> Result<Vec<Record>, EvalError> {
     let cam = CameraModel::vehicle_1440();
-    let presets = WaterPresets::builtin();
+    let presets = opts.presets()?;
     let mut renderer = Renderer::new();
     let mut detectors = methods
         .iter()

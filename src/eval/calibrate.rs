@@ -17,7 +17,7 @@ use super::table::Csv;
 use super::{water_key, EvalError, EvalOptions};
 use serde_json::{json, Map, Value};
 use shoal_node::restore::Method;
-use shoal_sim_bridge::water::{WaterKnobs, WaterPresets};
+use shoal_sim_bridge::water::WaterKnobs;
 
 /// The acceptance band of issue #6 around the paper's CLAHE row.
 pub const TOLERANCE: f64 = 0.15;
@@ -108,7 +108,7 @@ pub fn water_toml_with_knobs(knobs: &WaterKnobs, note: &str) -> String {
 pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     let frames = opts.count(2, 20);
     let budget = if opts.quick { 3 } else { 40 };
-    let start = WaterPresets::builtin().knobs;
+    let start = opts.presets()?.knobs;
     let mut log = Csv::new(&[
         "evaluation",
         "backscatter_scale",
@@ -154,6 +154,11 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     let mut best = start;
     let (mut best_rates, mut best_loss) = evaluate(&best)?;
     let mut used = 1;
+    let mut tried = std::collections::BTreeSet::new();
+    tried.insert(format!(
+        "{:.4} {:.4} {:.4} {:.4}",
+        best.backscatter_scale, best.noise_scale, best.psf_width_scale, best.forward_scatter_scale
+    ));
     'search: for step in [4.0f64, 2.0, std::f64::consts::SQRT_2, 2f64.powf(0.25)] {
         let mut improved = true;
         while improved {
@@ -169,6 +174,18 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
                         continue;
                     }
                     let cand = with(best, name, v);
+                    // Each candidate once: the loss is deterministic, and a pass that
+                    // improved would otherwise re-try the moves already rejected.
+                    let key = format!(
+                        "{:.4} {:.4} {:.4} {:.4}",
+                        cand.backscatter_scale,
+                        cand.noise_scale,
+                        cand.psf_width_scale,
+                        cand.forward_scatter_scale
+                    );
+                    if !tried.insert(key) {
+                        continue;
+                    }
                     let (rates, l) = evaluate(&cand)?;
                     used += 1;
                     if better(l, best_loss) {

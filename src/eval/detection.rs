@@ -15,7 +15,7 @@ use shoal_node::detect::{DetectParams, ShoalDetector};
 use shoal_node::restore::Method;
 use shoal_proto::{CameraModel, CodeSet};
 use shoal_sim_bridge::render::Renderer;
-use shoal_sim_bridge::water::{WaterKnobs, WaterPresets};
+use shoal_sim_bridge::water::WaterKnobs;
 
 /// Table 5's waters (1/m).
 pub const WATERS: [f64; 6] = [5.16, 6.12, 8.22, 10.13, 12.20, 14.20];
@@ -58,7 +58,7 @@ pub fn success_rates(
     what: &str,
 ) -> Result<Rates, EvalError> {
     let cam = CameraModel::vehicle_1440();
-    let presets = WaterPresets::builtin();
+    let presets = opts.presets()?;
     let mut renderer = Renderer::new();
     let mut detector = ShoalDetector::new(CodeSet::Shoal, DetectParams::default());
     let mut successes = vec![vec![0usize; waters.len()]; methods.len()];
@@ -105,7 +105,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     let methods = Method::ALL;
     let rates = success_rates(
         opts,
-        &WaterPresets::builtin().knobs,
+        &opts.presets()?.knobs,
         &WATERS,
         frames,
         &methods,

@@ -33,6 +33,7 @@ pub mod table;
 
 use indicatif::{ProgressBar, ProgressStyle};
 use shoal_node::restore::Method;
+use shoal_sim_bridge::water::WaterPresets;
 use std::path::{Path, PathBuf};
 
 /// The experiments, in the order of issue #6's priorities.
@@ -115,6 +116,9 @@ pub struct EvalOptions {
     pub progress: bool,
     /// Save the first frame of every condition (raw and restored PNG) under `out/frames/`.
     pub save_frames: bool,
+    /// Water presets file (`configs/water.toml` format, e.g. the output of
+    /// `calibrate-water`); `None` = the built-in presets.
+    pub water: Option<PathBuf>,
 }
 
 impl EvalOptions {
@@ -128,6 +132,15 @@ impl EvalOptions {
             restore: Method::Hoirm,
             progress: true,
             save_frames: false,
+            water: None,
+        }
+    }
+
+    /// The water presets to render with: `water` if given, else the built-in ones.
+    pub fn presets(&self) -> Result<WaterPresets, EvalError> {
+        match &self.water {
+            Some(path) => Ok(WaterPresets::load(path)?),
+            None => Ok(WaterPresets::builtin()),
         }
     }
 
@@ -208,6 +221,15 @@ pub fn run(experiment: Experiment, opts: &EvalOptions) -> Result<serde_json::Val
         obj.insert(
             "elapsed_s".into(),
             ((started.elapsed().as_secs_f64() * 10.0).round() / 10.0).into(),
+        );
+        obj.insert(
+            "water_presets".into(),
+            opts.water
+                .as_ref()
+                .map_or("built-in (configs/water.toml)".to_string(), |p| {
+                    p.display().to_string()
+                })
+                .into(),
         );
         obj.insert(
             "build".into(),

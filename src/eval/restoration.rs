@@ -23,7 +23,6 @@ use shoal_node::metrics::{cnr, gray_from_mat, psnr, ssim};
 use shoal_node::restore::Method;
 use shoal_proto::{CameraModel, CodeSet, GrayImage};
 use shoal_sim_bridge::render::Renderer;
-use shoal_sim_bridge::water::WaterPresets;
 
 /// Tables 1–4's waters (1/m).
 pub const WATERS: [f64; 4] = [6.12, 8.22, 10.13, 12.20];
@@ -63,7 +62,7 @@ const MASK_INNER: f64 = 0.6;
 pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     let frames = opts.count(2, 10);
     let cam = CameraModel::vehicle_1440();
-    let presets = WaterPresets::builtin();
+    let presets = opts.presets()?;
     let methods = Method::ALL;
     let mut renderer = Renderer::new();
     let width = cam.width as usize;

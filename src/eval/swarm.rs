@@ -18,7 +18,6 @@ use shoal_node::pipeline::{CameraPipeline, PipelineParams};
 use shoal_proto::config::Fleet;
 use shoal_proto::{VehicleId, VehicleState, VehicleTruth};
 use shoal_sim_bridge::render::{render_fleet_view, Renderer};
-use shoal_sim_bridge::water::WaterPresets;
 use shoal_sim_bridge::world::{Formation, SwarmWorld};
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -61,7 +60,7 @@ fn run_trial(
     frames: usize,
     what: &str,
 ) -> Result<Trial, EvalError> {
-    let water = WaterPresets::builtin().get(WATER_C_PER_M)?;
+    let water = opts.presets()?.get(WATER_C_PER_M)?;
     let mut world = SwarmWorld::new(fleet, Formation::Line, spacing_m, opts.seed);
     let mut renderer = Renderer::new();
     let setup = |e: shoal_node::pipeline::PipelineError| EvalError::Setup(e.to_string());

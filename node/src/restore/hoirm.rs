@@ -101,19 +101,23 @@ impl Hoirm {
         &mut self,
         src: &(impl MatTraitConst + core::ToInputArray),
         clip: f64,
-        psf: &GgPsf,
+        psf: Option<&GgPsf>,
     ) -> Result<(Mat, Mat), RestoreError> {
         let tile = self.params.clahe_tile_px;
-        Ok(match self.params.order {
-            StageOrder::Paper => {
+        Ok(match (self.params.order, psf) {
+            (StageOrder::Paper, Some(psf)) => {
                 let deatt = clahe(src, clip, tile)?;
                 let deblurred = self.deconvolve(&deatt, psf)?;
                 (deatt, deblurred)
             }
-            StageOrder::Physical => {
+            (StageOrder::Physical, Some(psf)) => {
                 let deblurred = self.deconvolve(src, psf)?;
                 let deatt = clahe(&deblurred, clip, tile)?;
                 (deblurred, deatt)
+            }
+            (_, None) => {
+                let deatt = clahe(src, clip, tile)?;
+                (deatt.try_clone()?, deatt)
             }
         })
     }
@@ -315,7 +319,8 @@ impl Hoirm {
         };
         for &r in &rois {
             let view = Mat::roi(&global, r)?;
-            let (first, last) = self.restore_region(&view, clip, &psf)?;
+            let deblur = (c >= self.params.deconv_min_c_per_m).then_some(&psf);
+            let (first, last) = self.restore_region(&view, clip, deblur)?;
             feather_into(&mut image, &last, r, frame)?;
             if let Some(st) = first_stage.as_mut() {
                 feather_into(st, &first, r, frame)?;
