@@ -509,11 +509,17 @@ pub fn pair_errors(
     truths: &VecDeque<SimTruth>,
 ) -> Vec<PairError> {
     let ids: Vec<VehicleId> = fleet.vehicles.iter().map(|v| v.id).collect();
+    let views: Vec<shoal_fusion::MapView> = maps
+        .iter()
+        .cloned()
+        .map(shoal_fusion::MapView::new)
+        .collect();
     let mut out = Vec::new();
     for (i, &a) in ids.iter().enumerate() {
         for &b in &ids[i + 1..] {
             let (mut pos, mut ang, mut n) = (0.0, 0.0, 0usize);
-            for map in maps {
+            for view in &views {
+                let map = view.map();
                 let valid_at = map
                     .edges
                     .iter()
@@ -525,7 +531,6 @@ pub fn pair_errors(
                 else {
                     continue;
                 };
-                let view = shoal_fusion::MapView::new(map.clone());
                 let Some(rel) = view.relative(a, b) else {
                     continue;
                 };

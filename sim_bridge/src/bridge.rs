@@ -110,8 +110,8 @@ pub fn spawn(bus: &Bus, cfg: SimConfig, clock: Arc<ManualClock>) -> Result<SimHa
             tracing::warn!("simulator: {e}");
         }
     }
-    // (vehicle, camera index, publisher) for every selected camera.
-    let mut cams: Vec<(VehicleId, u8, Publisher<CameraFrame>)> = Vec::new();
+    // (vehicle, camera index, its calibration, publisher) for every selected camera.
+    let mut cams: Vec<(VehicleId, u8, CameraInfo, Publisher<CameraFrame>)> = Vec::new();
     for v in &cfg.fleet.vehicles {
         for c in &v.cameras {
             let selected = cfg
@@ -119,7 +119,16 @@ pub fn spawn(bus: &Bus, cfg: SimConfig, clock: Arc<ManualClock>) -> Result<SimHa
                 .as_ref()
                 .is_none_or(|names| names.iter().any(|n| n == &c.name));
             if selected {
-                cams.push((v.id, c.index, bus.publisher(keys.frame(v.id, c.index))?));
+                let info = CameraInfo {
+                    model: c.model,
+                    body_from_camera: c.body_from_camera,
+                };
+                cams.push((
+                    v.id,
+                    c.index,
+                    info,
+                    bus.publisher(keys.frame(v.id, c.index))?,
+                ));
             }
         }
     }
@@ -171,22 +180,18 @@ pub fn spawn(bus: &Bus, cfg: SimConfig, clock: Arc<ManualClock>) -> Result<SimHa
                 if behind {
                     stats2.ticks_skipped.fetch_add(1, Ordering::Relaxed);
                 } else {
-                    for (v, k, publisher) in &cams {
+                    for (v, k, info, publisher) in &cams {
                         let seed = cfg.seed ^ (tick << 20) ^ ((*v as u64) << 8) ^ *k as u64;
                         let t0 = Instant::now();
                         let out = render_fleet_view(&mut renderer, &cfg.fleet, &truth, *v, *k, &cfg.water, t_s, tick, seed)
                             .map_err(|e| format!("rendering vehicle {v} camera {k}: {e}"))?;
                         stats2.render_us.fetch_add(t0.elapsed().as_micros() as u64, Ordering::Relaxed);
-                        let cam = &cfg.fleet.vehicle(*v).map(|x| x.cameras[*k as usize].clone()).ok_or("vehicle vanished")?;
                         let frame = CameraFrame {
                             vehicle: *v,
                             camera: *k,
                             seq: tick,
                             stamp_ns,
-                            info: CameraInfo {
-                                model: cam.model,
-                                body_from_camera: cam.body_from_camera,
-                            },
+                            info: *info,
                             format: PixelFormat::Mono8,
                             data: out.image.data,
                         };
