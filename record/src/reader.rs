@@ -85,6 +85,23 @@ pub fn read_file(path: &Path) -> Result<Vec<u8>, RecordError> {
     })
 }
 
+/// [`scan`] restricted to the shoal wire messages (envelopes as received on
+/// Zenoh, one channel per key): `visit(channel, log_time, envelope bytes)`.
+pub fn scan_wire<E>(
+    buf: &[u8],
+    mut visit: impl FnMut(&ChannelInfo, u64, &[u8]) -> Result<(), E>,
+) -> Result<ScanOutcome, ScanError<E>> {
+    scan(buf, |item| match item {
+        Item::Message {
+            channel,
+            log_time,
+            data,
+            ..
+        } if channel.is_wire() => visit(channel, log_time, data),
+        _ => Ok(()),
+    })
+}
+
 /// Visit every schema, channel, message, metadata record and attachment of
 /// `buf` in file order. A visitor error stops the scan and is returned; damage
 /// to the file stops it and is reported in [`ScanOutcome::damage`].

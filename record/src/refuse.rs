@@ -7,7 +7,7 @@
 //! run's maps (or at a fixed rate of that clock). `solve_time_us` is not
 //! recorded, so the same file gives the same output, bit for bit.
 
-use crate::reader::{header, read_file, scan, Item, ScanError};
+use crate::reader::{header, read_file, scan_wire, ScanError};
 use crate::recorder::{Converter, RecordOptions, RecorderStats};
 use crate::writer::{LogWriter, WriterOptions};
 use crate::RecordError;
@@ -133,19 +133,7 @@ pub fn refuse(input: &Path, output: &Path, opts: &FuseOptions) -> Result<FuseSum
     let mut next_solve: Option<u64> = None;
     let mut cmp = CompareAcc::default();
     let map_key = keys.map();
-    let res = scan(&buf, |item| -> Result<(), RecordError> {
-        let Item::Message {
-            channel,
-            log_time,
-            data,
-            ..
-        } = item
-        else {
-            return Ok(());
-        };
-        if !channel.is_wire() {
-            return Ok(());
-        }
+    let res = scan_wire(&buf, |channel, log_time, data| -> Result<(), RecordError> {
         let key = channel.topic.as_str();
         let kind = crate::recorder::envelope_kind(data);
         match (kind, keys.parse(key)) {

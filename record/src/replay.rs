@@ -2,7 +2,7 @@
 //! for byte, with their original relative timing (log time), optionally
 //! faster or slower and within a time range.
 
-use crate::reader::{read_file, scan, Item, ScanError};
+use crate::reader::{read_file, scan_wire, ScanError};
 use crate::recorder::envelope_kind;
 use crate::RecordError;
 use proto::MessageKind;
@@ -116,19 +116,7 @@ pub fn replay(
         }
     }
     std::thread::sleep(opts.settle);
-    let res = scan(&buf, |item| -> Result<(), RecordError> {
-        let Item::Message {
-            channel,
-            log_time,
-            data,
-            ..
-        } = item
-        else {
-            return Ok(());
-        };
-        if !channel.is_wire() {
-            return Ok(());
-        }
+    let res = scan_wire(&buf, |channel, log_time, data| -> Result<(), RecordError> {
         if stop.load(Ordering::Relaxed) {
             return Err(RecordError::Interrupted);
         }
