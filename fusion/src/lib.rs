@@ -11,7 +11,12 @@
 //!    over every frame; then picks, per vehicle pair, the mutually consistent
 //!    candidates and between pairs the cycle-consistent ones, the planar-flip
 //!    twins being mutually exclusive candidates ([`consistency`], PCM-style).
-//!    Every observation inherits its group's verdict;
+//!    Every observation inherits its group's verdict. Groups are built from
+//!    each track's newest frame backwards; an older group that no longer
+//!    agrees with the newest frame is `Superseded` (the vehicles moved), and
+//!    a group whose frames show a significant relative velocity is brought to
+//!    its newest frame's time first ([`MotionModel`]), so that a manoeuvring
+//!    vehicle is followed rather than outvoted by where it has been;
 //! 3. solves the pose graph on SE(3) by Levenberg–Marquardt with a robust
 //!    kernel, the reference vehicle fixing the gauge, initialized by the
 //!    spanning tree of step 2 ([`solver`]);
@@ -105,6 +110,42 @@ pub struct FusionParams {
     pub max_pending_reports: usize,
     /// Fill [`FleetMap::solve_time_us`] from the wall clock (default true; off for bit-identical maps).
     pub record_solve_time: bool,
+    /// Constant-velocity compensation of each track's frames.
+    #[serde(default)]
+    pub motion: MotionModel,
+}
+
+/// How a track's frames taken at different times are brought to one instant.
+///
+/// Within a group of a track (frames of one camera seeing one marker that
+/// agree with its newest frame), the relative pose is fitted as
+/// `ξ(t) = x + v·(t − t_newest)` in the tangent space at the newest frame
+/// (weighted least squares with the frames' information and a zero-mean
+/// prior on `v`). When `v` is significant (its squared Mahalanobis norm above
+/// `significance_chi2`), every frame is moved to `t_newest` along `v` and its
+/// covariance grows by `Δt²·Σ_v`; otherwise the frames are fused as they are
+/// (a static pair loses no precision to a velocity it does not have).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct MotionModel {
+    /// Switch (default true; false: frames are fused as if nothing moved).
+    pub enabled: bool,
+    /// Prior standard deviation of the relative linear velocity, m/s (default 0.5).
+    pub velocity_prior_m_s: f64,
+    /// Prior standard deviation of the relative angular velocity, rad/s (default 0.3).
+    pub angular_velocity_prior_rad_s: f64,
+    /// Gate on `vᵀ Σ_v⁻¹ v` above which the velocity is used (default 16.81 = χ²₆ at 99%).
+    pub significance_chi2: f64,
+}
+
+impl Default for MotionModel {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            velocity_prior_m_s: 0.5,
+            angular_velocity_prior_rad_s: 0.3,
+            significance_chi2: 16.81,
+        }
+    }
 }
 
 impl Default for FusionParams {
@@ -122,13 +163,14 @@ impl Default for FusionParams {
             max_gate_rounds: 3,
             max_pending_reports: 4096,
             record_solve_time: true,
+            motion: MotionModel::default(),
         }
     }
 }
 
 /// Counts per [`RejectReason`].
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct ReasonCounts([u64; 11]);
+pub struct ReasonCounts([u64; 12]);
 
 impl ReasonCounts {
     fn index(reason: &RejectReason) -> usize {
@@ -145,6 +187,7 @@ impl ReasonCounts {
             Inconsistent => 8,
             Invalid => 9,
             Duplicate => 10,
+            Superseded => 11,
         }
     }
     pub fn get(&self, reason: &RejectReason) -> u64 {
@@ -162,6 +205,8 @@ impl ReasonCounts {
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct SolveStats {
     pub window_observations: usize,
+    /// Track groups whose frames were moved to their newest frame's time ([`MotionModel`]).
+    pub moving_groups: usize,
     /// Hypotheses accepted into the graph (at most one per observation).
     pub accepted: usize,
     /// Verdicts on hypotheses rejected by consistency or the gate.
@@ -326,7 +371,7 @@ impl Fusion {
         // not inverted: that is done once per fused group) with its
         // age-inflated covariance.
         let entries: Vec<(&ObservationKey, &window::Stored)> = self.window.entries.iter().collect();
-        let frames: Vec<Frame> = entries
+        let mut frames: Vec<Frame> = entries
             .iter()
             .enumerate()
             .map(|(i, (_, s))| {
@@ -336,6 +381,7 @@ impl Fusion {
                 Frame {
                     observer: o.observer,
                     target: s.target,
+                    stamp_ns: o.stamp_ns,
                     hyps: [
                         Candidate::new(i, 0, o.observer_from_target, inflate(&o.covariance)),
                         o.alternative.as_ref().and_then(|alt| {
@@ -347,14 +393,26 @@ impl Fusion {
             .collect();
         // Tracks (observer, camera, marker) cut into time-consistent groups,
         // each group's frames fused per hypothesis into one candidate.
-        let groups = group_tracks(
+        let (groups, superseded) = group_tracks(
             &entries,
             &frames,
             self.params.consistency.gate_chi2,
             self.params.consistency.fuse_tracks,
         );
+        let mut superseded_frame = vec![false; frames.len()];
+        for (g, members) in groups.iter().enumerate() {
+            if superseded[g] {
+                members.iter().for_each(|&i| superseded_frame[i] = true);
+            } else if self.params.motion.enabled {
+                solve_stats.moving_groups +=
+                    usize::from(compensate_motion(&mut frames, members, &self.params.motion));
+            }
+        }
         let mut by_pair: BTreeMap<(VehicleId, VehicleId), Vec<Candidate>> = BTreeMap::new();
         for (g, members) in groups.iter().enumerate() {
+            if superseded[g] {
+                continue;
+            }
             let f = &frames[members[0]];
             for h in 0..2u8 {
                 if let Some(c) = fuse_group(&frames, members, g, h, &[]) {
@@ -519,6 +577,8 @@ impl Fusion {
                     Some(RejectReason::ChiSquare)
                 } else if accepted.contains_key(&(i, h)) {
                     None
+                } else if superseded_frame[i] {
+                    Some(RejectReason::Superseded)
                 } else if any_accepted {
                     Some(RejectReason::FlippedHypothesis)
                 } else {
@@ -656,6 +716,7 @@ fn report_order(r: &EdgeReport) -> (u64, VehicleId, u8, u64, u32, Option<usize>,
 struct Frame {
     observer: VehicleId,
     target: VehicleId,
+    stamp_ns: u64,
     hyps: [Option<Candidate>; 2],
 }
 
@@ -731,12 +792,21 @@ fn fuse_group(
 /// unflipped ones, nor a misread ID with the true owner of the marker, and
 /// the two hypotheses of one group stay mutually exclusive exactly like those
 /// of one observation. `fuse = false` gives one group per observation.
+///
+/// Motion: the window spans seconds, and vehicles that manoeuvre change their
+/// relative pose by more than a frame's noise in that time. A track whose
+/// newest frame no longer agrees with an older group under any pairing of
+/// hypotheses (flips excepted: a group that matches with the hypotheses
+/// swapped is kept) has seen its target move: that older group is returned
+/// as *superseded* and must not outvote the present. Only frames of the same
+/// camera and marker can supersede each other, so a misread ID or a flip
+/// never erases another track's evidence.
 fn group_tracks(
     entries: &[(&ObservationKey, &window::Stored)],
     frames: &[Frame],
     gate_chi2: f64,
     fuse: bool,
-) -> Vec<Vec<usize>> {
+) -> (Vec<Vec<usize>>, Vec<bool>) {
     let consistent = |c: &Candidate, leader: &Candidate| {
         let r = solver::difference(&c.a_from_b, &leader.a_from_b);
         (r.transpose() * c.information * r)[0] <= gate_chi2
@@ -752,7 +822,11 @@ fn group_tracks(
     type OpenGroup = (usize, [Option<usize>; 2]);
     let mut open: BTreeMap<Track, Vec<OpenGroup>> = BTreeMap::new();
     let mut groups: Vec<Vec<usize>> = Vec::new();
-    for (i, (key, _)) in entries.iter().enumerate() {
+    // Each track's group holding its newest frame.
+    let mut newest: BTreeMap<Track, usize> = BTreeMap::new();
+    // Newest first (entries are in time order): a group's leaders are its
+    // most recent frames, so it describes the present.
+    for (i, (key, _)) in entries.iter().enumerate().rev() {
         let f = &frames[i];
         if f.hyps[0].is_none() {
             // Nothing to compare with: the observation stands alone.
@@ -773,7 +847,7 @@ fn group_tracks(
                 })
             })
             .flatten();
-        match home {
+        let g = match home {
             Some((g, leaders)) => {
                 groups[*g].push(i);
                 for h in 0..2 {
@@ -781,14 +855,124 @@ fn group_tracks(
                         leaders[h] = Some(i);
                     }
                 }
+                *g
             }
             None => {
                 list.push((groups.len(), [Some(i), f.hyps[1].as_ref().map(|_| i)]));
                 groups.push(vec![i]);
+                groups.len() - 1
             }
+        };
+        newest.entry(track).or_insert(g);
+    }
+    let mut superseded = vec![false; groups.len()];
+    for (track, list) in &open {
+        let now = newest[track];
+        // Members are still newest first.
+        let Some(&latest) = groups[now].first() else {
+            continue;
+        };
+        for &(g, _) in list {
+            let Some(&last) = groups[g].first() else {
+                continue;
+            };
+            if g == now {
+                continue;
+            }
+            let agrees = frames[last].hyps.iter().flatten().any(|old| {
+                frames[latest]
+                    .hyps
+                    .iter()
+                    .flatten()
+                    .any(|new| consistent(old, new))
+            });
+            superseded[g] = !agrees;
         }
     }
-    groups
+    // Groups in ascending order of their first frame, members ascending.
+    let mut order: Vec<usize> = (0..groups.len()).collect();
+    groups.iter_mut().for_each(|m| m.sort_unstable());
+    order.sort_by_key(|&g| groups[g][0]);
+    let sorted = order.iter().map(|&g| groups[g].clone()).collect();
+    let flags = order.iter().map(|&g| superseded[g]).collect();
+    (sorted, flags)
+}
+
+/// [`MotionModel`] on one group (`members` ascending in time): fits the
+/// relative velocity of each hypothesis and, when it is significant, moves
+/// every member to the newest member's time. Returns whether any hypothesis
+/// was moved.
+fn compensate_motion(frames: &mut [Frame], members: &[usize], model: &MotionModel) -> bool {
+    use nalgebra::{SMatrix, SVector};
+    let Some(&newest) = members.last() else {
+        return false;
+    };
+    if members.len() < 2 {
+        return false;
+    }
+    let t_n = frames[newest].stamp_ns;
+    let mut moved = false;
+    for h in 0..2 {
+        let Some(anchor) = frames[newest].hyps[h].map(|c| c.a_from_b) else {
+            continue;
+        };
+        // Normal equations of [x; v] (12 unknowns).
+        let mut a = SMatrix::<f64, 12, 12>::zeros();
+        let mut b = SVector::<f64, 12>::zeros();
+        let mut used = 0;
+        for &i in members {
+            let Some(c) = &frames[i].hyps[h] else {
+                continue;
+            };
+            let d = -((t_n - frames[i].stamp_ns) as f64) * 1e-9;
+            let r = proto::geometry::difference(&c.a_from_b, &anchor);
+            let w = c.information;
+            let wr = w * r;
+            let mut block = |r0: usize, c0: usize, m: Cov6| {
+                let mut view = a.fixed_view_mut::<6, 6>(r0, c0);
+                view += m;
+            };
+            block(0, 0, w);
+            block(0, 6, w * d);
+            block(6, 0, w * d);
+            block(6, 6, w * (d * d));
+            let mut top = b.fixed_rows_mut::<6>(0);
+            top += wr;
+            let mut bottom = b.fixed_rows_mut::<6>(6);
+            bottom += wr * d;
+            used += 1;
+        }
+        if used < 2 {
+            continue;
+        }
+        for k in 0..3 {
+            a[(6 + k, 6 + k)] += model.velocity_prior_m_s.powi(-2);
+            a[(9 + k, 9 + k)] += model.angular_velocity_prior_rad_s.powi(-2);
+        }
+        let Some(ch) = a.cholesky() else {
+            continue;
+        };
+        let sol = ch.solve(&b);
+        let cov = ch.inverse();
+        let v: SVector<f64, 6> = sol.fixed_rows::<6>(6).into_owned();
+        let cov_v: Cov6 = cov.fixed_view::<6, 6>(6, 6).into_owned();
+        let significance = cov_v.cholesky().map_or(0.0, |c| v.dot(&c.solve(&v)));
+        if !(significance > model.significance_chi2) {
+            continue;
+        }
+        for &i in members {
+            let Some(c) = frames[i].hyps[h] else {
+                continue;
+            };
+            let d = -((t_n - frames[i].stamp_ns) as f64) * 1e-9;
+            let r = proto::geometry::difference(&c.a_from_b, &anchor);
+            let pose = proto::geometry::perturb(&anchor, &(r - v * d));
+            let grown = c.covariance + cov_v * (d * d);
+            frames[i].hyps[h] = Candidate::new(c.observation, c.hypothesis, pose, grown);
+        }
+        moved = true;
+    }
+    moved
 }
 
 /// Vehicles reachable from `root` through `constraints`.

@@ -386,3 +386,58 @@ fn hundred_vehicles_localize_in_one_map() {
     let s = score(&map, &obs);
     assert!(s.recall() > 0.99 && s.precision() > 0.99, "{s:?}");
 }
+
+/// Vehicle 17 slides away from the line at `speed_m_s` (a formation
+/// correction) while the window fills with 2 s of 10 Hz frames; returns the
+/// map's largest translation error against the truth at the last frame.
+fn manoeuvring_error(params: FusionParams, speed_m_s: f64) -> f64 {
+    let fleet = paper_fleet();
+    let start = paper_line_abreast();
+    let mut synth =
+        shoal_sim_bridge::obs_synth::ObsSynth::new(&fleet, ObsSynthParams::default(), 11);
+    let mut fusion = Fusion::new(&fleet, params, "central");
+    let mut now = T0_NS;
+    let mut truth = start.clone();
+    for k in 0..20 {
+        now = T0_NS + k * FRAME_NS;
+        let t_s = (now - T0_NS) as f64 * 1e-9;
+        truth = start.clone();
+        for v in truth.iter_mut().filter(|v| v.vehicle == 17) {
+            // Body y is starboard: 17 drifts outwards, away from the line.
+            let out =
+                v.world_from_body.rotation * nalgebra::Vector3::new(0.0, speed_m_s * t_s, 0.0);
+            v.world_from_body.translation.vector += out;
+        }
+        for s in synth.observe(&truth, now) {
+            let _ = fusion.ingest(s.obs.clone(), s.obs.observer, now);
+        }
+    }
+    let map = fusion.solve(now);
+    let (t_err, _, live) = map_error(&map, &truth_poses(&fleet, &truth));
+    assert_eq!(live, 3, "{:?}", map.vehicles);
+    t_err
+}
+
+#[test]
+fn a_manoeuvring_vehicle_is_followed_not_outvoted_by_its_past() {
+    // 17 moves 19 cm during the window: the map describes where it is now,
+    // not the average of where it has been.
+    let followed = manoeuvring_error(FusionParams::default(), 0.10);
+    assert!(followed < 0.01, "translation error {followed} m");
+    // Without the motion model the window's past outvotes the present.
+    let mut frozen = FusionParams::default();
+    frozen.motion.enabled = false;
+    let averaged = manoeuvring_error(frozen, 0.10);
+    eprintln!("moving at 10 cm/s: {followed} m with the motion model, {averaged} m without");
+    assert!(averaged > 3.0 * followed, "{averaged} m vs {followed} m");
+    // A vehicle holding still loses nothing to the velocity fit.
+    let still = manoeuvring_error(FusionParams::default(), 0.0);
+    let mut static_params = FusionParams::default();
+    static_params.motion.enabled = false;
+    let still_without = manoeuvring_error(static_params, 0.0);
+    eprintln!("holding still: {still} m with the motion model, {still_without} m without");
+    assert!(
+        still < 0.006 && still <= 1.5 * still_without,
+        "{still} m vs {still_without} m without the motion model"
+    );
+}

@@ -198,6 +198,10 @@ pub enum RejectReason {
     Invalid,
     /// Same observer, camera, frame and marker already seen.
     Duplicate,
+    /// An older frame of a track (same observer, camera and marker) that no
+    /// longer agrees with the track's newest frame: the vehicles have moved
+    /// since, so it describes a past relative pose, not a wrong one.
+    Superseded,
 }
 
 /// Verdict on one edge (an observation between two vehicles).
