@@ -957,7 +957,7 @@ fn compensate_motion(frames: &mut [Frame], members: &[usize], model: &MotionMode
         let v: SVector<f64, 6> = sol.fixed_rows::<6>(6).into_owned();
         let cov_v: Cov6 = cov.fixed_view::<6, 6>(6, 6).into_owned();
         let significance = cov_v.cholesky().map_or(0.0, |c| v.dot(&c.solve(&v)));
-        if !(significance > model.significance_chi2) {
+        if significance.is_nan() || significance <= model.significance_chi2 {
             continue;
         }
         for &i in members {
