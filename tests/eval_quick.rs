@@ -179,6 +179,35 @@ fn restoration_quick_hoirm_raises_marker_cnr_over_the_raw_frame() {
 }
 
 #[test]
+fn fit_noise_quick_agrees_with_the_synthesizers_noise_model() {
+    let (dir, s) = run_quick(Experiment::FitNoise);
+    assert_files(&dir, &["noise.csv", "noise-model.json"]);
+    // The observation-level synthesizer's defaults are the pipeline's
+    // noise: at the demo's 1.75 m spacing the freshly fitted σ and the
+    // shipped one agree within a factor of 2.5 (few frames in --quick).
+    let shipped = shoal_sim_bridge::obs_synth::NoiseModel::default().camera_covariance(1.75);
+    let at = s["results"]["ranges"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|r| (num(&r["range_m"]) - 1.75).abs() < 1e-9)
+        .expect("1.75 m measured")
+        .clone();
+    assert!(num(&at["detection_rate"]) > 0.9, "{at}");
+    for (measured, var) in [
+        (num(&at["depth_mm"]) * 1e-3, shipped[(2, 2)]),
+        (num(&at["tilt_deg"]).to_radians(), shipped[(3, 3)]),
+    ] {
+        let ratio = measured / var.sqrt();
+        assert!(
+            ratio > 0.4 && ratio < 2.5,
+            "measured {measured} vs shipped σ {}: {at}",
+            var.sqrt()
+        );
+    }
+}
+
+#[test]
 fn calibrate_water_quick_writes_a_loadable_presets_file() {
     let (dir, s) = run_quick(Experiment::CalibrateWater);
     assert_files(&dir, &["calibration.csv", "water-calibrated.toml"]);

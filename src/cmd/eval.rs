@@ -8,7 +8,7 @@ use std::path::PathBuf;
 
 #[derive(Debug, Args)]
 pub struct EvalArgs {
-    /// features | accuracy | accuracy-yaw | accuracy-rmse | detection | restoration | calibrate-water | fusion | swarm
+    /// features | accuracy | accuracy-yaw | accuracy-rmse | detection | restoration | calibrate-water | fit-noise | fusion | swarm
     experiment: String,
     /// Output directory: CSV of every trial, plots (PNG, SVG), summary.json.
     #[arg(long)]

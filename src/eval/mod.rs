@@ -25,6 +25,7 @@ pub mod calibrate;
 pub mod detection;
 pub mod features;
 pub mod fusion;
+pub mod noise;
 pub mod plot;
 pub mod restoration;
 pub mod scene;
@@ -46,12 +47,13 @@ pub enum Experiment {
     Detection,
     Restoration,
     CalibrateWater,
+    FitNoise,
     Fusion,
     Swarm,
 }
 
 impl Experiment {
-    pub const ALL: [Experiment; 9] = [
+    pub const ALL: [Experiment; 10] = [
         Experiment::Features,
         Experiment::Accuracy,
         Experiment::AccuracyYaw,
@@ -59,6 +61,7 @@ impl Experiment {
         Experiment::Detection,
         Experiment::Restoration,
         Experiment::CalibrateWater,
+        Experiment::FitNoise,
         Experiment::Fusion,
         Experiment::Swarm,
     ];
@@ -72,6 +75,7 @@ impl Experiment {
             Experiment::Detection => "detection",
             Experiment::Restoration => "restoration",
             Experiment::CalibrateWater => "calibrate-water",
+            Experiment::FitNoise => "fit-noise",
             Experiment::Fusion => "fusion",
             Experiment::Swarm => "swarm",
         }
@@ -211,6 +215,7 @@ pub fn run(experiment: Experiment, opts: &EvalOptions) -> Result<serde_json::Val
         Experiment::Detection => detection::run(opts)?,
         Experiment::Restoration => restoration::run(opts)?,
         Experiment::CalibrateWater => calibrate::run(opts)?,
+        Experiment::FitNoise => noise::run(opts)?,
         Experiment::Fusion => fusion::run(opts)?,
         Experiment::Swarm => swarm::run(opts)?,
     };
