@@ -97,6 +97,11 @@ impl Keys {
     pub fn all_frames_of(&self, v: VehicleId) -> String {
         self.vehicle(v, "cam/*/frame")
     }
+    /// The literal prefix every camera key of `v` starts with (for filtering
+    /// recorded topics, which are plain strings, not key expressions).
+    pub fn camera_prefix(&self, v: VehicleId) -> String {
+        self.vehicle(v, "cam/")
+    }
     pub fn all_frames(&self) -> String {
         self.vehicle_wild("cam/*/frame")
     }

@@ -21,6 +21,9 @@ pub struct ReplayOptions {
     pub to_s: Option<f64>,
     /// Which message kinds to republish (`None`: all).
     pub kinds: Option<Vec<MessageKind>>,
+    /// Only keys starting with this (e.g. one vehicle's cameras,
+    /// `shoal/<fleet>/<vehicle>/cam/`); `None`: every key.
+    pub key_prefix: Option<String>,
     /// Pause between declaring the publishers (from the file's summary) and
     /// the first message, so subscribers' routes are in place and the first
     /// messages are not lost.
@@ -34,6 +37,7 @@ impl Default for ReplayOptions {
             from_s: None,
             to_s: None,
             kinds: None,
+            key_prefix: None,
             settle: Duration::from_millis(300),
         }
     }
@@ -109,7 +113,12 @@ pub fn replay(
                 .and_then(|k| k.parse::<u16>().ok())
                 .and_then(MessageKind::from_u16);
             if let (Some(kind), true) = (kind, c.message_encoding == crate::writer::WIRE_ENCODING) {
-                if opts.kinds.as_ref().is_none_or(|ks| ks.contains(&kind)) {
+                if opts.kinds.as_ref().is_none_or(|ks| ks.contains(&kind))
+                    && opts
+                        .key_prefix
+                        .as_ref()
+                        .is_none_or(|p| c.topic.starts_with(p.as_str()))
+                {
                     publishers.insert(c.topic.clone(), AnyPublisher::declare(bus, &c.topic, kind)?);
                 }
             }
@@ -131,7 +140,12 @@ pub fn replay(
         let Some(kind) = envelope_kind(data) else {
             return Ok(());
         };
-        if opts.kinds.as_ref().is_some_and(|ks| !ks.contains(&kind)) {
+        if opts.kinds.as_ref().is_some_and(|ks| !ks.contains(&kind))
+            || opts
+                .key_prefix
+                .as_ref()
+                .is_some_and(|p| !channel.topic.starts_with(p.as_str()))
+        {
             return Ok(());
         }
         let (wall0, log0) = *start.get_or_insert((Instant::now(), log_time));

@@ -31,9 +31,15 @@ pub struct NodeArgs {
     /// This vehicle's ID in the fleet file.
     #[arg(long)]
     vehicle: u32,
-    /// Frames from: `zenoh` (simulator or camera drivers), `images:DIR`, `video:FILE`, `camera:DEVICE`.
+    /// Frames from: `zenoh` (simulator or camera drivers), `images:DIR`,
+    /// `video:FILE`, `camera:DEVICE`, or `mcap:FILE` — re-run detection on
+    /// this vehicle's frames of a recorded trial (`shoal record --frames`)
+    /// and exit when they are done.
     #[arg(long, default_value = "zenoh")]
     source: String,
+    /// Pace of an `mcap:FILE` source: 1 = as recorded, 4 = four times faster.
+    #[arg(long, default_value_t = 1.0)]
+    replay_rate: f64,
     /// Which of the vehicle's cameras a non-Zenoh source is (index in the fleet file).
     #[arg(long, default_value_t = 0)]
     camera_index: u8,
@@ -52,8 +58,23 @@ pub struct NodeArgs {
 
 pub fn run_node(a: NodeArgs) -> anyhow::Result<()> {
     let fleet = fleet(&a.fleet)?;
+    let mut log: Option<PathBuf> = None;
     let source = match a.source.split_once(':') {
         None if a.source == "zenoh" => Source::Zenoh,
+        Some(("mcap", path)) => {
+            let path = PathBuf::from(path);
+            if !path.is_file() {
+                bail!("--source mcap:{}: no such file", path.display());
+            }
+            if !(a.replay_rate > 0.0 && a.replay_rate.is_finite()) {
+                bail!(
+                    "--replay-rate {}: expected a positive number",
+                    a.replay_rate
+                );
+            }
+            log = Some(path);
+            Source::Zenoh
+        }
         Some(("images", dir)) => Source::Images {
             dir: dir.into(),
             camera: a.camera_index,
@@ -70,7 +91,7 @@ pub fn run_node(a: NodeArgs) -> anyhow::Result<()> {
             camera: a.camera_index,
         },
         _ => bail!(
-            "--source {:?}: expected zenoh, images:DIR, video:FILE or camera:DEVICE",
+            "--source {:?}: expected zenoh, images:DIR, video:FILE, camera:DEVICE or mcap:FILE",
             a.source
         ),
     };
@@ -81,17 +102,39 @@ pub fn run_node(a: NodeArgs) -> anyhow::Result<()> {
     };
     params.restore_params.c_per_m = a.water;
     let bus = a.net.open()?;
-    let node = shoal_node::service::spawn(
-        &bus,
-        NodeConfig {
-            fleet,
-            vehicle: a.vehicle,
-            params,
-            source,
-            queue_capacity: 2,
-            status_period: Duration::from_secs(1),
-        },
-    )?;
+    let cfg = NodeConfig {
+        fleet,
+        vehicle: a.vehicle,
+        params,
+        source,
+        queue_capacity: 2,
+        status_period: Duration::from_secs(1),
+    };
+    if let Some(path) = log {
+        let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+            let _ = signal_hook::flag::register(sig, stop.clone());
+        }
+        tracing::info!(
+            "node {}: re-running detection on the frames of {}",
+            a.vehicle,
+            path.display()
+        );
+        let s = shoal::rerun::rerun_node(&bus, cfg, &path, a.replay_rate, &stop)?;
+        println!(
+            "vehicle {}: {} frames replayed, {} processed, {} dropped, {} observations published; mean pipeline {} in {:.1} s",
+            a.vehicle,
+            s.frames_replayed,
+            s.frames_processed,
+            s.frames_dropped,
+            s.observations_sent,
+            s.mean_latency_ms
+                .map_or("n/a".to_string(), |m| format!("{m:.1} ms/frame")),
+            s.wall_time_s
+        );
+        return Ok(());
+    }
+    let node = shoal_node::service::spawn(&bus, cfg)?;
     tracing::info!("node {} running; Ctrl-C to stop", a.vehicle);
     wait_for_ctrl_c(|| false);
     node.stop();
