@@ -54,6 +54,12 @@ pub fn dist(a: Px, b: Px) -> f64 {
 }
 
 /// Mean side length of a quad.
+/// Mean of the four corners.
+pub fn centre(q: &[Px; 4]) -> Px {
+    let s = q.iter().fold([0.0, 0.0], |a, c| [a[0] + c[0], a[1] + c[1]]);
+    [s[0] / 4.0, s[1] / 4.0]
+}
+
 pub fn mean_side(q: &[Px; 4]) -> f64 {
     (0..4).map(|i| dist(q[i], q[(i + 1) % 4])).sum::<f64>() / 4.0
 }
