@@ -127,6 +127,9 @@ fn recording() -> &'static Recorded {
         let truth_pub = bus.publisher::<SimTruth>(keys.truth()).unwrap();
         let cmd_pub = bus.publisher::<VehicleCommand>(keys.command(15)).unwrap();
         let frame_pub = bus.publisher::<CameraFrame>(keys.frame(10, 4)).unwrap();
+        // A node outside the fleet (fusion ignores it, so the maps are not
+        // affected) is alive for the first half of the trial.
+        let mut token = Some(bus.liveliness_token(keys.alive(99)).unwrap());
         std::thread::sleep(Duration::from_millis(600));
 
         let mut synth = ObsSynth::new(&fleet, ObsSynthParams::default(), 11);
@@ -134,6 +137,9 @@ fn recording() -> &'static Recorded {
         let mut count = |k: MessageKind| *published.entry(k).or_insert(0u64) += 1;
         let ticks = (TRIAL_S * TICK_HZ) as u64;
         for tick in 0..ticks {
+            if tick == ticks / 2 {
+                token.take();
+            }
             let stamp = (tick as f64 / TICK_HZ * 1e9) as u64;
             // The formation drifts ahead slowly, so the log has motion.
             let mut truth = line_abreast(&ids, 1.75);
@@ -269,6 +275,7 @@ fn live_recording_keeps_every_kind_byte_for_byte_without_drops() {
         "/truth/tf",
         "/v10/status",
         "/v10/cam/starboard/image",
+        "/liveliness",
     ] {
         assert!(
             count(topic) > 0,
@@ -276,6 +283,8 @@ fn live_recording_keeps_every_kind_byte_for_byte_without_drops() {
             s.channels.keys().collect::<Vec<_>>()
         );
     }
+    // Node 99 appeared, then went away.
+    assert!(count("/liveliness") >= 2, "{:?}", s.channels.get("/liveliness"));
     // Bytes on the raw channels are the envelopes as published.
     let truths: Vec<SimTruth> = wire_messages(&r.path, &keys.truth());
     assert_eq!(truths.len() as u64, r.published[&MessageKind::SimTruth]);

@@ -542,6 +542,28 @@ pub fn fleet_map(fleet: &Fleet, m: &FleetMap) -> Vec<FoxgloveMessage> {
     ]
 }
 
+/// A node's liveliness token appearing or going away, as a `foxglove.Log`
+/// line on `/liveliness` (the token is Zenoh's, not a wire message: the
+/// recorder's clock stamps it).
+pub fn liveliness_message(
+    key: &str,
+    vehicle: Option<VehicleId>,
+    alive: bool,
+    stamp_ns: u64,
+) -> FoxgloveMessage {
+    let who = vehicle.map_or(key.to_string(), |v| format!("vehicle {v}"));
+    let text = if alive {
+        format!("{who}: node alive ({key})")
+    } else {
+        format!("{who}: node gone — liveliness token withdrawn ({key})")
+    };
+    msg(
+        "/liveliness".to_string(),
+        FoxgloveSchema::Log,
+        log_value(stamp_ns, if alive { 2 } else { 3 }, &text, "liveliness"),
+    )
+}
+
 fn log_value(stamp_ns: u64, level: u8, message: &str, name: &str) -> Value {
     json!({"timestamp": t(stamp_ns), "level": level, "message": message, "name": name, "file": "", "line": 0})
 }

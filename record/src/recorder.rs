@@ -248,6 +248,15 @@ impl Recorder {
         }
         let mut queues = Vec::new();
         let mut declarations = Vec::new();
+        // Nodes appearing and going away (their liveliness tokens), with the
+        // wall time the recorder heard it.
+        let liveliness: DropOldestQueue<(String, bool, u64)> = DropOldestQueue::new(1024);
+        if opts.foxglove {
+            let l = liveliness.clone();
+            declarations.push(bus.watch_liveliness(&keys.all_alive(), move |key, alive| {
+                l.push((key.to_string(), alive, WallClock.now_ns()));
+            })?);
+        }
         for (e, capacity) in &exprs {
             let (q, d) = bus.subscribe_raw(e, *capacity)?;
             queues.push(q);
@@ -256,6 +265,7 @@ impl Recorder {
         let stop = Arc::new(AtomicBool::new(false));
         let stats = Arc::new(RecorderStats::default());
         let (stop2, stats2, qs) = (stop.clone(), stats.clone(), queues.clone());
+        let (liveliness2, keys2) = (liveliness.clone(), keys.clone());
         let path_buf = path.to_path_buf();
         let thread = std::thread::Builder::new()
             .name("recorder".into())
@@ -303,6 +313,14 @@ impl Recorder {
                     let now = WallClock.now_ns();
                     for (key, bytes) in batch {
                         conv.write(&mut writer, &key, &bytes, now, &stats2)?;
+                    }
+                    for (key, alive, heard_ns) in liveliness2.drain() {
+                        let vehicle = match keys2.parse(&key) {
+                            Ok(KeyKind::Alive { vehicle }) => Some(vehicle),
+                            _ => None,
+                        };
+                        let m = crate::foxglove::liveliness_message(&key, vehicle, alive, heard_ns);
+                        writer.write_foxglove(&m.topic, m.schema, &m.value, heard_ns, heard_ns)?;
                     }
                     write_images(&mut writer)?;
                     if last_flush.elapsed() >= opts.flush_interval {
