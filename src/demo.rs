@@ -54,6 +54,8 @@ pub struct DemoConfig {
     pub log: Option<PathBuf>,
     /// Include camera frames in the log (they dominate its size).
     pub log_frames: bool,
+    /// Ground-station page and Foxglove live server (`shoal-station`); `None`: none.
+    pub station: Option<shoal_station::StationConfig>,
 }
 
 impl Default for DemoConfig {
@@ -71,6 +73,7 @@ impl Default for DemoConfig {
             closed_loop: true,
             log: Some(PathBuf::from("out/demo.mcap")),
             log_frames: false,
+            station: None,
         }
     }
 }
@@ -139,6 +142,7 @@ pub struct SimulatedSwarm {
     fusion: Option<shoal_fusion::service::FusionHandle>,
     nodes: BTreeMap<VehicleId, NodeHandle>,
     sim: Option<shoal_sim_bridge::bridge::SimHandle>,
+    station: Option<shoal_station::StationHandle>,
 }
 
 impl std::fmt::Debug for SimulatedSwarm {
@@ -177,6 +181,7 @@ impl SimulatedSwarm {
             fusion: None,
             nodes: BTreeMap::new(),
             sim: None,
+            station: None,
         };
         // Fusion first, so it hears everything.
         swarm.fusion = Some(shoal_fusion::service::spawn(
@@ -192,6 +197,11 @@ impl SimulatedSwarm {
         )?);
         for v in fleet.vehicles.iter().map(|v| v.id).collect::<Vec<_>>() {
             swarm.start_node(v)?;
+        }
+        if let Some(sc) = &cfg.station {
+            let station = shoal_station::spawn(&swarm.session()?, fleet.clone(), sc.clone())?;
+            tracing::info!("ground station at {}", station.url());
+            swarm.station = Some(station);
         }
         before_sim(&swarm)?;
         // Let subscriptions propagate before the first frame.
@@ -248,6 +258,11 @@ impl SimulatedSwarm {
         self.nodes.values()
     }
 
+    /// The ground station, when [`DemoConfig::station`] asked for one.
+    pub fn station(&self) -> Option<&shoal_station::StationHandle> {
+        self.station.as_ref()
+    }
+
     pub fn sim_finished(&self) -> bool {
         self.sim.as_ref().is_none_or(|s| s.finished())
     }
@@ -269,6 +284,9 @@ impl SimulatedSwarm {
         }
         if let Some(f) = self.fusion.take() {
             f.stop();
+        }
+        if let Some(s) = self.station.take() {
+            s.stop();
         }
         Ok(counts)
     }

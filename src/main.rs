@@ -56,6 +56,12 @@ enum Command {
     /// Inspect or repair MCAP logs.
     #[command(subcommand)]
     Log(cmd::log::LogCmd),
+    /// Serve the ground-station page (live swarm view) and Foxglove's live protocol, fed from Zenoh.
+    Station(cmd::station::StationArgs),
+    /// A fault-injecting TCP relay between two Zenoh routers (delay, jitter, stalls, cuts; SIGUSR1 cut, SIGUSR2 heal).
+    Relay(cmd::relay::RelayArgs),
+    /// A Zenoh router from a config file (one per network side, where there is no zenohd).
+    Router(cmd::relay::RouterArgs),
     /// Validate configuration files.
     #[command(subcommand)]
     Config(cmd::config::ConfigCmd),
@@ -82,7 +88,10 @@ fn main() -> std::process::ExitCode {
         Command::Replay(a) => cmd::log::run_replay(a),
         Command::Fuse(a) => cmd::log::run_fuse(a),
         Command::Log(c) => cmd::log::run_log(c),
+        Command::Station(a) => cmd::station::run_station(a),
         Command::Eval(a) => cmd::eval::run_eval(a),
+        Command::Relay(a) => cmd::relay::run_relay(a),
+        Command::Router(a) => cmd::relay::run_router(a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

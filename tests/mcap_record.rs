@@ -284,7 +284,11 @@ fn live_recording_keeps_every_kind_byte_for_byte_without_drops() {
         );
     }
     // Node 99 appeared, then went away.
-    assert!(count("/liveliness") >= 2, "{:?}", s.channels.get("/liveliness"));
+    assert!(
+        count("/liveliness") >= 2,
+        "{:?}",
+        s.channels.get("/liveliness")
+    );
     // Bytes on the raw channels are the envelopes as published.
     let truths: Vec<SimTruth> = wire_messages(&r.path, &keys.truth());
     assert_eq!(truths.len() as u64, r.published[&MessageKind::SimTruth]);

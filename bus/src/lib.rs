@@ -13,6 +13,7 @@
 
 pub mod clock;
 pub mod queue;
+pub mod relay;
 
 pub use clock::{Clock, ManualClock, WallClock};
 

@@ -671,7 +671,43 @@ pub struct Selection {
 }
 
 /// Step 3: grow spanning trees and choose one cluster per pair (module docs).
+/// The previous map's relative pose of a pair `(a, b)`, `a < b`, and how far
+/// (radians of attitude) the pair may have turned since.
+pub type Prior = BTreeMap<(VehicleId, VehicleId), (Pose, f64)>;
+
+/// Hysteresis against planar flips: when the tree grows by a pair whose best
+/// cluster contradicts the previous map's attitude (a planar flip is tens of
+/// degrees off), and a cluster with as many cycle votes agrees with it, that
+/// one is taken — unless the evidence against the prior is overwhelming (the
+/// best cluster's primary hypotheses outnumber the other's 3 to 1, at least
+/// 3), so that a wrong prior cannot lock the map in.
+fn prior_pick(p: &PairCandidates, ranked: &[usize], prior: &Prior) -> Option<usize> {
+    let (prev, tol) = prior.get(&(p.a, p.b))?;
+    let off = |c: usize| (p.clusters[c].a_from_b.rotation.inverse() * prev.rotation).angle();
+    let top = *ranked.first()?;
+    if off(top) <= *tol {
+        return None;
+    }
+    let t = &p.clusters[top];
+    ranked[1..].iter().copied().find(|&c| {
+        let cl = &p.clusters[c];
+        cl.votes == t.votes
+            && off(c) <= *tol
+            && !(t.primaries >= 3 && t.primaries >= 3 * cl.primaries)
+    })
+}
+
 pub fn select(pairs: &[PairCandidates], reference: VehicleId, gate_chi2: f64) -> Selection {
+    select_with_prior(pairs, reference, gate_chi2, &Prior::new())
+}
+
+/// [`select`] with the previous map's attitudes as a tie-breaker ([`Prior`]).
+pub fn select_with_prior(
+    pairs: &[PairCandidates],
+    reference: VehicleId,
+    gate_chi2: f64,
+    prior: &Prior,
+) -> Selection {
     let ranked: Vec<Vec<usize>> = pairs.iter().map(PairCandidates::ranked).collect();
     let mut choice = vec![None; pairs.len()];
     let mut decided = vec![false; pairs.len()];
@@ -735,7 +771,7 @@ pub fn select(pairs: &[PairCandidates], reference: VehicleId, gate_chi2: f64) ->
             });
             let Some((pi, p)) = best else { break };
             decided[pi] = true;
-            let c = ranked[pi][0];
+            let c = prior_pick(p, &ranked[pi], prior).unwrap_or(ranked[pi][0]);
             choice[pi] = Some(c);
             let cl = &p.clusters[c];
             let a_from_b = PoseWithCovariance::new(cl.a_from_b, cl.covariance);
@@ -766,6 +802,57 @@ mod tests {
 
     fn cand(obs: usize, hyp: u8, p: Pose) -> Candidate {
         Candidate::new(obs, hyp, p, Cov6::identity() * 1e-4).unwrap()
+    }
+
+    /// One pair seen by `n` frames, `flipped` of them with the planar flip as
+    /// their primary: two clusters of equal support and no cycle votes.
+    fn flip_pair(n: usize, flipped: usize) -> (PairCandidates, Pose, Pose) {
+        let truth = pose_from_xyz_rpy([1.7, 0.2, 0.0], [0.0, 0.0, 0.1]);
+        let flip = pose_from_xyz_rpy([1.7, 0.2, 0.0], [0.0, 0.9, 0.1]);
+        let mut candidates = Vec::new();
+        for i in 0..n {
+            let (h0, h1) = if i < flipped {
+                (flip, truth)
+            } else {
+                (truth, flip)
+            };
+            candidates.push(cand(i, 0, h0));
+            candidates.push(cand(i, 1, h1));
+        }
+        let clusters = cluster_pair(&candidates, &ConsistencyParams::default());
+        (
+            PairCandidates {
+                a: 1,
+                b: 2,
+                candidates,
+                clusters,
+            },
+            truth,
+            flip,
+        )
+    }
+
+    fn chosen(sel: &Selection, pairs: &[PairCandidates]) -> Pose {
+        pairs[0].clusters[sel.choice[0].expect("a choice")].a_from_b
+    }
+
+    #[test]
+    fn the_previous_attitude_breaks_a_flip_tie_but_not_overwhelming_evidence() {
+        let angle = |a: &Pose, b: &Pose| (a.rotation.inverse() * b.rotation).angle();
+        // Two of three frames flipped: alone, the primaries' majority picks the flip…
+        let (pair, truth, flip) = flip_pair(3, 2);
+        let pairs = [pair];
+        let alone = select(&pairs, 1, 27.86);
+        assert!(angle(&chosen(&alone, &pairs), &flip) < 1e-6);
+        // …the previous map's attitude keeps the truth.
+        let prior = Prior::from([((1, 2), (truth, 8f64.to_radians()))]);
+        let held = select_with_prior(&pairs, 1, 27.86, &prior);
+        assert!(angle(&chosen(&held, &pairs), &truth) < 1e-6);
+        // Seven of eight flipped (7 primaries against 1): the evidence wins over the prior.
+        let (pair, _, flip) = flip_pair(8, 7);
+        let pairs = [pair];
+        let overruled = select_with_prior(&pairs, 1, 27.86, &prior);
+        assert!(angle(&chosen(&overruled, &pairs), &flip) < 1e-6);
     }
 
     #[test]

@@ -51,7 +51,7 @@
 //! (November 2026): `factrs` 0.3 and `tiny-solver` 0.18 are built on nalgebra
 //! 0.34 and faer (the workspace is on nalgebra 0.33; two nalgebra versions and
 //! faer's build on a shared 2-core machine), `factrs` needs Rust 1.87 and
-//! `apex-solver` 1.5 Rust 1.93 (the workspace promises 1.85), and none exposes
+//! `apex-solver` 1.5 Rust 1.93 (the workspace promises 1.88), and none exposes
 //! marginal covariances in shoal's perturbation convention
 //! ([`proto::geometry`]). The problem is small (≤ a few hundred vehicles ×
 //! 6 DoF, sparse), so a profile Cholesky on the normal equations is ~300
@@ -351,6 +351,29 @@ impl Fusion {
         self.stats.clone()
     }
 
+    /// The previous solution's relative attitude of every pair in `pairs`
+    /// whose two vehicles were fused within the window, with the turn
+    /// allowed since: 8° plus 30°/s of age, at most 30° (planar-flip twins
+    /// of a marker seen obliquely are tens of degrees apart).
+    fn attitude_prior(&self, pairs: &[PairCandidates], now_ns: u64) -> consistency::Prior {
+        let window_ns = seconds_to_ns(self.params.window_s);
+        let mut prior = consistency::Prior::new();
+        for p in pairs {
+            let (Some(a), Some(b)) = (self.last_estimate.get(&p.a), self.last_estimate.get(&p.b))
+            else {
+                continue;
+            };
+            let seen = a.2.min(b.2);
+            let age_ns = now_ns.saturating_sub(seen);
+            if age_ns > window_ns {
+                continue;
+            }
+            let tol = (8.0 + 30.0 * age_ns as f64 * 1e-9).min(30.0).to_radians();
+            prior.insert((p.a, p.b), (a.0.inverse() * b.0, tol));
+        }
+        prior
+    }
+
     /// Observations currently in the window.
     pub fn window_len(&self) -> usize {
         self.window.entries.len()
@@ -433,7 +456,13 @@ impl Fusion {
             })
             .collect();
         consistency::vote_triangles(&mut pairs, self.params.consistency.gate_chi2);
-        let selection = consistency::select(&pairs, reference, self.params.consistency.gate_chi2);
+        let prior = self.attitude_prior(&pairs, now_ns);
+        let selection = consistency::select_with_prior(
+            &pairs,
+            reference,
+            self.params.consistency.gate_chi2,
+            &prior,
+        );
         solve_stats.pairs = pairs.len();
         solve_stats.clusters = pairs.iter().map(|p| p.clusters.len()).sum();
 

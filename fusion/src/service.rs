@@ -39,6 +39,7 @@ pub struct FusionHandle {
     latest: Arc<Mutex<Option<FleetMap>>>,
     stats: Arc<Mutex<FusionStats>>,
     dropped: Arc<AtomicU64>,
+    rejected: Arc<AtomicU64>,
     maps: Arc<AtomicU64>,
 }
 
@@ -59,6 +60,11 @@ impl FusionHandle {
     /// Observations dropped because fusion fell behind (its queue overflowed).
     pub fn observations_dropped(&self) -> u64 {
         self.dropped.load(Ordering::Relaxed)
+    }
+    /// Observations refused before fusion saw them (undecodable, wrong
+    /// schema version, invalid content), as the subscription counted them.
+    pub fn observations_rejected(&self) -> u64 {
+        self.rejected.load(Ordering::Relaxed)
     }
     /// Maps published so far.
     pub fn maps_published(&self) -> u64 {
@@ -109,6 +115,8 @@ pub fn spawn(
     let (stop2, latest2, stats2) = (stop.clone(), latest.clone(), stats.clone());
     let (dropped, maps) = (Arc::new(AtomicU64::new(0)), Arc::new(AtomicU64::new(0)));
     let (dropped2, maps2) = (dropped.clone(), maps.clone());
+    let rejected = Arc::new(AtomicU64::new(0));
+    let rejected2 = rejected.clone();
     let mut fusion = Fusion::new(&cfg.fleet, cfg.params, &producer);
     let period = Duration::from_secs_f64(1.0 / cfg.rate_hz.max(0.1));
     let bus = bus.clone();
@@ -125,6 +133,7 @@ pub fn spawn(
                     }
                 }
                 dropped2.store(observations.dropped(), Ordering::Relaxed);
+                rejected2.store(observations.stats().rejected(), Ordering::Relaxed);
                 for r in observations.drain() {
                     match keys.parse(&r.key) {
                         Ok(KeyKind::Observations { vehicle }) => {
@@ -173,6 +182,7 @@ pub fn spawn(
         latest,
         stats,
         dropped,
+        rejected,
         maps,
     })
 }

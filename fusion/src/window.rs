@@ -65,17 +65,23 @@ impl ObservationKey {
             marker: obs.target_marker,
         }
     }
-    /// What makes two observations the same detection.
-    pub fn duplicate_key(&self) -> (VehicleId, u8, u64, &'static str, u32) {
+    /// What makes two observations the same detection. The capture stamp is
+    /// part of it: a restarted node numbers its frames from 0 again, and its
+    /// new frames are not the old ones.
+    pub fn duplicate_key(&self) -> DuplicateKey {
         (
             self.observer,
             self.camera,
             self.frame_seq,
+            self.stamp_ns,
             self.codes,
             self.marker,
         )
     }
 }
+
+/// Observer, camera, frame number, capture stamp, code set, marker.
+pub(crate) type DuplicateKey = (VehicleId, u8, u64, u64, &'static str, u32);
 
 /// An admitted observation.
 #[derive(Debug, Clone, PartialEq)]
@@ -97,7 +103,7 @@ pub(crate) struct Admission {
 #[derive(Debug, Clone, Default)]
 pub(crate) struct Window {
     pub entries: BTreeMap<ObservationKey, Stored>,
-    duplicates: BTreeSet<(VehicleId, u8, u64, &'static str, u32)>,
+    duplicates: BTreeSet<DuplicateKey>,
 }
 
 impl Window {

@@ -252,6 +252,11 @@ fn duplicates_are_not_double_counted() {
             .get(&RejectReason::Duplicate),
         obs.len() as u64
     );
+    // A node restarted within the window numbers its frames from 0 again:
+    // the same frame number with a new capture stamp is a new frame.
+    let mut again = obs[0].obs.clone();
+    again.stamp_ns += 50_000_000;
+    assert_eq!(twice.ingest(again, obs[0].obs.observer, now), Ok(()));
 }
 
 #[test]

@@ -97,6 +97,21 @@ impl NodeStats {
             .map(|c| c.2.frames_dropped.load(Ordering::Relaxed))
             .sum()
     }
+    /// Frames received by the camera threads, all cameras.
+    pub fn frames_in(&self) -> u64 {
+        self.cameras
+            .iter()
+            .map(|c| c.2.frames_in.load(Ordering::Relaxed))
+            .sum()
+    }
+    /// Frames refused as malformed (undecodable envelopes or images, wrong
+    /// size or format, pipeline errors), all cameras.
+    pub fn frames_invalid(&self) -> u64 {
+        self.cameras
+            .iter()
+            .map(|c| c.2.frames_invalid.load(Ordering::Relaxed))
+            .sum()
+    }
 }
 
 /// A running node; stops its threads when dropped or on [`NodeHandle::stop`].
@@ -140,26 +155,36 @@ impl Drop for NodeHandle {
 
 enum FrameInput {
     Zenoh(Subscription<CameraFrame>),
-    Local(DropOldestQueue<CameraFrame>),
+    /// A local source's queue and its count of frames it could not decode.
+    Local(DropOldestQueue<CameraFrame>, Arc<AtomicU64>),
 }
 
 impl FrameInput {
     fn next(&self, timeout: Duration) -> Option<CameraFrame> {
         match self {
             FrameInput::Zenoh(s) => s.recv_timeout(timeout).map(|r| r.msg),
-            FrameInput::Local(q) => q.pop_timeout(timeout).ok(),
+            FrameInput::Local(q, _) => q.pop_timeout(timeout).ok(),
         }
     }
     fn dropped(&self) -> u64 {
         match self {
             FrameInput::Zenoh(s) => s.dropped(),
-            FrameInput::Local(q) => q.dropped(),
+            FrameInput::Local(q, _) => q.dropped(),
         }
     }
+    /// Frames refused before reaching the pipeline: undecodable or invalid
+    /// envelopes (Zenoh), unreadable images or video frames (local).
     fn rejected(&self) -> u64 {
         match self {
             FrameInput::Zenoh(s) => s.stats().rejected(),
-            FrameInput::Local(_) => 0,
+            FrameInput::Local(_, unreadable) => unreadable.load(Ordering::Relaxed),
+        }
+    }
+    /// Envelopes that failed decoding or validation (counted in `messages_rejected`).
+    fn messages_rejected(&self) -> u64 {
+        match self {
+            FrameInput::Zenoh(s) => s.stats().rejected(),
+            FrameInput::Local(..) => 0,
         }
     }
 }
@@ -198,13 +223,16 @@ pub fn spawn(bus: &Bus, cfg: NodeConfig) -> Result<NodeHandle, NodeError> {
             | Source::Live { camera, .. }
                 if *camera == cam.index =>
             {
-                Some(FrameInput::Local(DropOldestQueue::new(cfg.queue_capacity)))
+                Some(FrameInput::Local(
+                    DropOldestQueue::new(cfg.queue_capacity),
+                    Arc::default(),
+                ))
             }
             _ => None,
         });
     }
     if let Some(cam_index) = local_camera(&cfg.source) {
-        let Some(Some(FrameInput::Local(q))) = inputs.get(cam_index as usize) else {
+        let Some(Some(FrameInput::Local(q, unreadable))) = inputs.get(cam_index as usize) else {
             return Err(NodeError::Source(
                 format!("{:?}", cfg.source),
                 format!("vehicle {} has no camera {cam_index}", cfg.vehicle),
@@ -220,6 +248,7 @@ pub fn spawn(bus: &Bus, cfg: NodeConfig) -> Result<NodeHandle, NodeError> {
             cfg.vehicle,
             info,
             q.clone(),
+            unreadable.clone(),
             stop.clone(),
         )?);
     }
@@ -236,10 +265,24 @@ pub fn spawn(bus: &Bus, cfg: NodeConfig) -> Result<NodeHandle, NodeError> {
         );
         threads.push(std::thread::Builder::new().name(name).spawn(move || {
             let counters = &stats.cameras[i].2;
+            // Frames this thread refused (wrong format or size, pipeline
+            // errors); `frames_invalid` reports them plus those the input
+            // refused before they got here.
+            let mut refused_here = 0u64;
+            let mut rejected_seen = 0u64;
             while !stop.load(Ordering::Relaxed) {
                 counters.frames_dropped.store(input.dropped(), Ordering::Relaxed);
+                counters
+                    .frames_invalid
+                    .store(refused_here + input.rejected(), Ordering::Relaxed);
+                let rejected = input.messages_rejected();
+                if rejected > rejected_seen {
+                    stats
+                        .messages_rejected
+                        .fetch_add(rejected - rejected_seen, Ordering::Relaxed);
+                    rejected_seen = rejected;
+                }
                 let Some(frame) = input.next(Duration::from_millis(100)) else {
-                    counters.frames_invalid.store(input.rejected(), Ordering::Relaxed);
                     continue;
                 };
                 counters.frames_in.fetch_add(1, Ordering::Relaxed);
@@ -248,6 +291,7 @@ pub fn spawn(bus: &Bus, cfg: NodeConfig) -> Result<NodeHandle, NodeError> {
                     || (frame.info.model.width, frame.info.model.height) != expected
                     || frame.camera as usize != i
                 {
+                    refused_here += 1;
                     counters.frames_invalid.fetch_add(1, Ordering::Relaxed);
                     tracing::warn!(
                         "camera {i}: frame {} is {:?} {}x{} for camera {}, expected Mono8 {}x{} — dropped",
@@ -296,6 +340,7 @@ pub fn spawn(bus: &Bus, cfg: NodeConfig) -> Result<NodeHandle, NodeError> {
                         }
                     }
                     Err(e) => {
+                        refused_here += 1;
                         counters.frames_invalid.fetch_add(1, Ordering::Relaxed);
                         tracing::warn!("camera {i}: frame {} failed: {e}", frame.seq);
                     }

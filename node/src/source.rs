@@ -8,9 +8,10 @@ use opencv::core::Mat;
 use opencv::prelude::*;
 use opencv::{imgcodecs, imgproc, videoio};
 use shoal_bus::DropOldestQueue;
+use shoal_proto::image::GrayImage;
 use shoal_proto::messages::{CameraFrame, CameraInfo, PixelFormat, VehicleId};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
@@ -41,6 +42,21 @@ pub fn image_files(dir: &Path) -> Result<Vec<PathBuf>, NodeError> {
     Ok(files)
 }
 
+/// Read one image file as 8-bit grey, as the image-folder source does. A
+/// missing, truncated or undecodable file is an error naming it, never a panic.
+pub fn read_image_gray(path: &Path) -> Result<GrayImage, NodeError> {
+    let name = path.display().to_string();
+    let mat = imgcodecs::imread(&path.to_string_lossy(), imgcodecs::IMREAD_GRAYSCALE)
+        .map_err(|e| NodeError::Source(name.clone(), format!("cannot decode: {e}")))?;
+    if mat.empty() {
+        return Err(NodeError::Source(
+            name,
+            "unreadable image (missing, truncated or not an image)".into(),
+        ));
+    }
+    mat_to_gray(&mat).map_err(|e| NodeError::Source(name, e.to_string()))
+}
+
 fn to_gray(mat: &Mat) -> opencv::Result<Mat> {
     if mat.channels() == 1 {
         return mat.try_clone();
@@ -55,12 +71,14 @@ fn to_gray(mat: &Mat) -> opencv::Result<Mat> {
     Ok(g)
 }
 
-/// Start the reader thread of a non-Zenoh source.
+/// Start the reader thread of a non-Zenoh source. Images or video frames it
+/// cannot decode are skipped and counted in `unreadable`.
 pub fn spawn_reader(
     source: Source,
     vehicle: VehicleId,
     info: CameraInfo,
     queue: DropOldestQueue<CameraFrame>,
+    unreadable: Arc<AtomicU64>,
     stop: Arc<AtomicBool>,
 ) -> Result<JoinHandle<()>, NodeError> {
     let name = format!("source-{vehicle}");
@@ -106,12 +124,11 @@ pub fn spawn_reader(
         }
         Source::Zenoh => unreachable!("checked above"),
     };
-    let make_frame = move |gray: &Mat, seq: u64, stamp_ns: u64| -> Option<CameraFrame> {
-        let g = mat_to_gray(gray).ok()?;
+    let make_frame = move |g: GrayImage, seq: u64, stamp_ns: u64| -> CameraFrame {
         let mut info = info;
         info.model.width = g.width;
         info.model.height = g.height;
-        Some(CameraFrame {
+        CameraFrame {
             vehicle,
             camera,
             seq,
@@ -119,7 +136,7 @@ pub fn spawn_reader(
             info,
             format: PixelFormat::Mono8,
             data: g.data,
-        })
+        }
     };
     Ok(std::thread::Builder::new().name(name).spawn(move || {
         let started = Instant::now();
@@ -130,16 +147,15 @@ pub fn spawn_reader(
                     if stop.load(Ordering::Relaxed) {
                         break;
                     }
-                    let img =
-                        imgcodecs::imread(&path.to_string_lossy(), imgcodecs::IMREAD_GRAYSCALE);
-                    match img {
-                        Ok(m) if !m.empty() => {
+                    match read_image_gray(path) {
+                        Ok(g) => {
                             let stamp = (seq as f64 * period.as_secs_f64() * 1e9) as u64;
-                            if let Some(f) = make_frame(&m, seq as u64, stamp) {
-                                queue.push(f);
-                            }
+                            queue.push(make_frame(g, seq as u64, stamp));
                         }
-                        _ => tracing::warn!("{}: unreadable image, skipped", path.display()),
+                        Err(e) => {
+                            unreadable.fetch_add(1, Ordering::Relaxed);
+                            tracing::warn!("{e}, skipped");
+                        }
                     }
                     std::thread::sleep(period);
                 }
@@ -159,11 +175,17 @@ pub fn spawn_reader(
                     } else {
                         (cap.get(videoio::CAP_PROP_POS_MSEC).unwrap_or(0.0) * 1e6) as u64
                     };
-                    if let Some(f) = to_gray(&frame)
-                        .ok()
-                        .and_then(|g| make_frame(&g, seq, stamp))
+                    match to_gray(&frame)
+                        .map_err(|e| e.to_string())
+                        .and_then(|g| mat_to_gray(&g).map_err(|e| e.to_string()))
                     {
-                        queue.push(f);
+                        Ok(g) => {
+                            queue.push(make_frame(g, seq, stamp));
+                        }
+                        Err(e) => {
+                            unreadable.fetch_add(1, Ordering::Relaxed);
+                            tracing::warn!("vehicle {vehicle} camera {camera}: frame {seq}: {e}");
+                        }
                     }
                     seq += 1;
                     if !live {

@@ -445,7 +445,7 @@ pub fn parse_calibration_yaml(text: &str) -> Result<CameraModel, String> {
             buf.push_str(line);
             if line.contains(']') {
                 let key = current.clone().unwrap_or_default();
-                let data = parse_list(buf)?;
+                let data = parse_list(buf).map_err(|e| format!("`{key}`: {e}"))?;
                 matrices.insert(key, data);
                 collecting = None;
             }
@@ -464,7 +464,8 @@ pub fn parse_calibration_yaml(text: &str) -> Result<CameraModel, String> {
         } else if k == "data" {
             let key = current.clone().ok_or("`data` outside a matrix")?;
             if v.contains(']') {
-                matrices.insert(key, parse_list(v)?);
+                let data = parse_list(v).map_err(|e| format!("`{key}`: {e}"))?;
+                matrices.insert(key, data);
             } else {
                 collecting = Some(v.to_string());
             }

@@ -8,10 +8,17 @@
 
 use crate::writer::{FLEET_ATTACHMENT, METADATA_NAME, WIRE_ENCODING};
 use crate::RecordError;
-use mcap::read::{ChunkReader, LinearReader, Options};
+use mcap::read::{LinearReader, Options};
 use mcap::records::Record;
 use std::collections::BTreeMap;
 use std::path::Path;
+
+/// Largest uncompressed chunk a reader accepts. shoal's recorder closes a
+/// chunk after about 4 MiB ([`crate::WriterOptions::chunk_size`]); one record
+/// can exceed that by a whole message (at most 64 MiB,
+/// `proto::codec::MAX_PAYLOAD`) plus its Foxglove copy (base64, 4/3 larger),
+/// so 256 MiB leaves room for any file shoal writes.
+pub const MAX_CHUNK_UNCOMPRESSED: u64 = 256 << 20;
 
 /// A channel as declared in the file.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -127,26 +134,13 @@ pub fn scan<E>(
         match record {
             Record::Chunk { header, data } => {
                 // Decode the chunk fully first: a damaged chunk contributes nothing.
-                let mut records = Vec::new();
-                let mut bad = None;
-                match ChunkReader::new(header, &data) {
-                    Ok(cr) => {
-                        for r in cr {
-                            match r {
-                                Ok(r) => records.push(r.into_owned()),
-                                Err(e) => {
-                                    bad = Some(e.to_string());
-                                    break;
-                                }
-                            }
-                        }
+                let records = match chunk_records(&header, &data) {
+                    Ok(records) => records,
+                    Err(e) => {
+                        out.damage = Some(format!("chunk {} is damaged: {e}", out.chunks + 1));
+                        break;
                     }
-                    Err(e) => bad = Some(e.to_string()),
-                }
-                if let Some(e) = bad {
-                    out.damage = Some(format!("chunk {} is damaged: {e}", out.chunks + 1));
-                    break;
-                }
+                };
                 out.chunks += 1;
                 for r in records {
                     handle(r, &mut out, &mut visit)?;
@@ -162,6 +156,69 @@ pub fn scan<E>(
         out.damage = Some("the file ends without a footer (recording interrupted)".into());
     }
     Ok(out)
+}
+
+/// The records of one chunk, or why it is unusable. Decompressed here rather
+/// than by `mcap::read::ChunkReader`, which allocates whatever sizes a
+/// damaged chunk declares (found by `record/tests/fuzz_mcap.rs`): the size is
+/// bounded by [`MAX_CHUNK_UNCOMPRESSED`], the CRC checked before any record
+/// is parsed, and every record length checked against the bytes present.
+fn chunk_records(
+    header: &mcap::records::ChunkHeader,
+    data: &[u8],
+) -> Result<Vec<Record<'static>>, String> {
+    if header.uncompressed_size > MAX_CHUNK_UNCOMPRESSED {
+        return Err(format!(
+            "declares {} uncompressed bytes, over the {MAX_CHUNK_UNCOMPRESSED}-byte limit",
+            header.uncompressed_size
+        ));
+    }
+    let size = header.uncompressed_size as usize;
+    let plain: std::borrow::Cow<'_, [u8]> = match header.compression.as_str() {
+        "" => std::borrow::Cow::Borrowed(data),
+        "zstd" => std::borrow::Cow::Owned(
+            zstd::bulk::decompress(data, size).map_err(|e| format!("zstd: {e}"))?,
+        ),
+        other => return Err(format!("unsupported compression {other:?}")),
+    };
+    if plain.len() != size {
+        return Err(format!(
+            "{} bytes uncompressed, the header says {size}",
+            plain.len()
+        ));
+    }
+    if header.uncompressed_crc != 0 {
+        let calculated = crc32fast::hash(&plain);
+        if calculated != header.uncompressed_crc {
+            return Err(format!(
+                "CRC {calculated:08x}, the header says {:08x}",
+                header.uncompressed_crc
+            ));
+        }
+    }
+    let mut records = Vec::new();
+    let mut rest: &[u8] = &plain;
+    while !rest.is_empty() {
+        if rest.len() < 9 {
+            return Err(format!("{} stray bytes at the end", rest.len()));
+        }
+        let opcode = rest[0];
+        let len = u64::from_le_bytes(rest[1..9].try_into().unwrap_or([0xff; 8]));
+        if len > (rest.len() - 9) as u64 {
+            return Err(format!(
+                "record (opcode {opcode:#04x}) of {len} bytes, {} left",
+                rest.len() - 9
+            ));
+        }
+        let (body, next) = rest[9..].split_at(len as usize);
+        records.push(
+            mcap::parse_record(opcode, body)
+                .map_err(|e| e.to_string())?
+                .into_owned(),
+        );
+        rest = next;
+    }
+    Ok(records)
 }
 
 /// A visitor's request to end a scan early.

@@ -401,6 +401,23 @@ impl WaterPresets {
                 )));
             }
         }
+        // Knobs that are fine alone can still break a preset (a huge
+        // noise_scale zeroes the gain): check every preset with them applied.
+        for p in &presets {
+            (*p).with_knobs(&k).validate().map_err(|e| {
+                perr(format!(
+                    "preset c_per_m = {} with [knobs] applied (backscatter_scale = {}, \
+                     forward_scatter_scale = {}, psf_width_scale = {}, noise_scale = {}, \
+                     exposure_scale = {}): {e}",
+                    p.c_per_m,
+                    k.backscatter_scale,
+                    k.forward_scatter_scale,
+                    k.psf_width_scale,
+                    k.noise_scale,
+                    k.exposure_scale
+                ))
+            })?;
+        }
         Ok(WaterPresets { presets, knobs: k })
     }
 

@@ -43,6 +43,15 @@ pub struct DemoArgs {
     /// Also write the figures as JSON.
     #[arg(long)]
     summary_json: Option<PathBuf>,
+    /// Port of the ground-station page (http://127.0.0.1:PORT/ during the run).
+    #[arg(long, default_value_t = 8080)]
+    station_port: u16,
+    /// Port of the station's Foxglove live server.
+    #[arg(long, default_value_t = 8765)]
+    foxglove_port: u16,
+    /// Start no ground station.
+    #[arg(long)]
+    no_station: bool,
 }
 
 pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
@@ -59,6 +68,11 @@ pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
         closed_loop: !a.open_loop,
         log: (!a.no_mcap).then_some(a.mcap),
         log_frames: a.mcap_frames,
+        station: (!a.no_station).then(|| shoal_station::StationConfig {
+            http_port: a.station_port,
+            foxglove_port: Some(a.foxglove_port),
+            ..Default::default()
+        }),
     };
     let bar = ProgressBar::new((cfg.duration_s * 10.0) as u64);
     bar.set_style(
@@ -69,6 +83,15 @@ pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
         "shoal demo: 3 vehicles, water {} /m, {} s simulated at {} frames/s per camera",
         cfg.water_c_per_m, cfg.duration_s, cfg.frame_rate_hz
     );
+    if let Some(st) = &cfg.station {
+        eprintln!(
+            "ground station: open http://{}:{}/ in a browser (Foxglove: ws://{}:{}); --no-station to skip",
+            st.bind,
+            st.http_port,
+            st.bind,
+            st.foxglove_port.unwrap_or_default()
+        );
+    }
     let summary = run(&cfg, |t, _total, msg| {
         bar.set_position((t * 10.0) as u64);
         bar.set_message(msg.to_string());

@@ -5,5 +5,7 @@ pub mod demo;
 pub mod eval;
 pub mod log;
 pub mod net;
+pub mod relay;
 pub mod services;
+pub mod station;
 pub mod tools;

@@ -353,7 +353,7 @@ mod tests {
         for y in 0..96 {
             let row = sharp.at_row_mut::<u8>(y).unwrap();
             for x in 0..96usize {
-                if ((x / 8) + (y as usize / 16)) % 2 == 0 {
+                if ((x / 8) + (y as usize / 16)).is_multiple_of(2) {
                     row[x] = 190;
                 }
             }

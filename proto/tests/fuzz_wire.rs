@@ -1,0 +1,408 @@
+//! Fuzzing the wire decoder (issue #10, "hostile and broken input") with
+//! proptest, for every message kind. `proto/src/codec.rs` already throws
+//! arbitrary bytes and corrupted observations at the decoder; this adds the
+//! other five kinds, headers that lie, payloads of random bytes under a
+//! correct header, and the property that anything the decoder accepts is a
+//! message it would itself have sent (it re-encodes to the same bytes and
+//! passes validation), so nothing is misread.
+//!
+//! Cases per property: `SHOAL_FUZZ_CASES` (default 1000, well under a second).
+//! Longer on demand: `SHOAL_FUZZ_CASES=100000 cargo test -p shoal-proto --test fuzz_wire`.
+
+use proptest::prelude::*;
+use proptest::test_runner::Config as ProptestConfig;
+use shoal_proto::codec::{decode, encode, peek_header, DecodeError, HEADER_LEN, MAX_PAYLOAD};
+use shoal_proto::geometry::{pose_from_xyz_rpy, Cov6};
+use shoal_proto::messages::*;
+use shoal_proto::{CameraModel, CodeSet};
+
+fn fuzz_config(default_cases: u32) -> ProptestConfig {
+    let cases = std::env::var("SHOAL_FUZZ_CASES")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(default_cases);
+    ProptestConfig {
+        cases,
+        // Failures print the minimal input; no regression files in the source tree.
+        failure_persistence: None,
+        ..ProptestConfig::default()
+    }
+}
+
+fn observation() -> Observation {
+    let pose = pose_from_xyz_rpy([0.1, 1.0, 0.2], [0.0, 0.1, -0.2]);
+    Observation {
+        observer: 10,
+        camera: 4,
+        codes: CodeSet::Shoal,
+        target_marker: 15,
+        target_vehicle: Some(15),
+        stamp_ns: 123_456_789,
+        frame_seq: 42,
+        observer_from_target: pose,
+        covariance: Cov6::identity() * 1e-4,
+        reprojection_rms_px: 0.2,
+        alternative: Some(PoseHypothesis {
+            observer_from_target: pose_from_xyz_rpy([0.1, 1.0, 0.2], [0.0, -0.1, -0.2]),
+            covariance: Cov6::identity() * 2e-4,
+            reprojection_rms_px: 0.9,
+        }),
+        corner_count: 12,
+        corners_px: vec![[1.0, 2.0]; 12],
+        quality: ImageQuality {
+            marker_contrast: 0.5,
+            cnr: 12.0,
+            backscatter: 0.1,
+            estimated_c_per_m: 0.5,
+        },
+        predicted: false,
+    }
+}
+
+fn fleet_map() -> FleetMap {
+    FleetMap {
+        fleet: "paper".into(),
+        producer: "central".into(),
+        seq: 3,
+        stamp_ns: 77,
+        reference: 10,
+        vehicles: vec![VehicleEstimate {
+            vehicle: 15,
+            state: VehicleState::Live,
+            reference_from_vehicle: pose_from_xyz_rpy([0.0, 1.0, 0.0], [0.0; 3]),
+            covariance: Cov6::identity(),
+            last_seen_ns: 70,
+        }],
+        edges: vec![EdgeReport {
+            observer: 10,
+            camera: 4,
+            target_marker: 99,
+            target_vehicle: None,
+            stamp_ns: 70,
+            frame_seq: 1,
+            rejected: Some(RejectReason::ObserverMismatch),
+            chi2: 1.5,
+        }],
+        solve_time_us: 12,
+    }
+}
+
+fn camera_frame() -> CameraFrame {
+    let mut model = CameraModel::vehicle_1440();
+    model.width = 8;
+    model.height = 4;
+    CameraFrame {
+        vehicle: 17,
+        camera: 0,
+        seq: 9,
+        stamp_ns: 5,
+        info: CameraInfo {
+            model,
+            body_from_camera: pose_from_xyz_rpy([0.7, 0.0, 0.0], [1.0, 0.0, 1.0]),
+        },
+        format: PixelFormat::Mono8,
+        data: (0..32).collect(),
+    }
+}
+
+fn sim_truth() -> SimTruth {
+    SimTruth {
+        stamp_ns: 1,
+        tick: 2,
+        water_c_per_m: 0.5,
+        vehicles: vec![VehicleTruth {
+            vehicle: 10,
+            world_from_body: pose_from_xyz_rpy([1.0, 2.0, 3.0], [0.0; 3]),
+            velocity_body: [0.5, 0.0, 0.0],
+        }],
+        visible: vec![VisibleMarker {
+            observer: 10,
+            camera: 3,
+            frame_seq: 2,
+            codes: CodeSet::AprilTag36h11,
+            marker: 15,
+            target_vehicle: 15,
+            corners_px: vec![[1.0, 2.0]; 4],
+            visible_fraction: 1.0,
+            range_m: 1.2,
+        }],
+    }
+}
+
+fn node_status() -> NodeStatus {
+    NodeStatus {
+        vehicle: 10,
+        stamp_ns: 4,
+        uptime_s: 1.5,
+        cameras: vec![CameraStatus {
+            camera: 0,
+            name: "forward".into(),
+            frames_in: 10,
+            ..Default::default()
+        }],
+        observations_sent: 3,
+        messages_rejected: 1,
+    }
+}
+
+fn vehicle_command() -> VehicleCommand {
+    VehicleCommand {
+        vehicle: 10,
+        stamp_ns: 1,
+        velocity_body: [0.5, 0.0, 0.0],
+        yaw_rate: 0.01,
+    }
+}
+
+/// A valid envelope of each kind, in `MessageKind::ALL` order.
+fn samples() -> Vec<Vec<u8>> {
+    vec![
+        encode(&observation()).unwrap(),
+        encode(&fleet_map()).unwrap(),
+        encode(&camera_frame()).unwrap(),
+        encode(&sim_truth()).unwrap(),
+        encode(&node_status()).unwrap(),
+        encode(&vehicle_command()).unwrap(),
+    ]
+}
+
+/// Decode as `M`; an accepted message must be one this build would send:
+/// valid, and re-encoding to exactly the bytes received.
+fn accepted_means_canonical<M: WireMessage + std::fmt::Debug>(
+    bytes: &[u8],
+) -> Result<(), DecodeError> {
+    let msg = decode::<M>(bytes)?;
+    assert!(
+        msg.validate().is_ok(),
+        "decoder accepted an invalid {:?}: {msg:?}",
+        M::KIND
+    );
+    let again = encode(&msg).expect("an accepted message re-encodes");
+    assert_eq!(
+        again,
+        bytes,
+        "accepted {:?} does not re-encode to the bytes received",
+        M::KIND
+    );
+    Ok(())
+}
+
+/// Decode `bytes` as every kind; returns how many kinds accepted it.
+fn decode_as_every_kind(bytes: &[u8]) -> usize {
+    [
+        accepted_means_canonical::<Observation>(bytes).is_ok(),
+        accepted_means_canonical::<FleetMap>(bytes).is_ok(),
+        accepted_means_canonical::<CameraFrame>(bytes).is_ok(),
+        accepted_means_canonical::<SimTruth>(bytes).is_ok(),
+        accepted_means_canonical::<NodeStatus>(bytes).is_ok(),
+        accepted_means_canonical::<VehicleCommand>(bytes).is_ok(),
+    ]
+    .iter()
+    .filter(|ok| **ok)
+    .count()
+}
+
+fn with_header(version: u16, kind: u16, declared: u32, payload: &[u8]) -> Vec<u8> {
+    let mut b = Vec::with_capacity(HEADER_LEN + payload.len());
+    b.extend_from_slice(b"SHOL");
+    b.extend_from_slice(&version.to_le_bytes());
+    b.extend_from_slice(&kind.to_le_bytes());
+    b.extend_from_slice(&declared.to_le_bytes());
+    b.extend_from_slice(payload);
+    b
+}
+
+#[test]
+fn every_sample_is_accepted_by_exactly_its_own_kind() {
+    for bytes in samples() {
+        assert_eq!(decode_as_every_kind(&bytes), 1);
+    }
+}
+
+#[test]
+fn oversized_declared_length_is_refused_before_reading_the_payload() {
+    let b = with_header(1, 1, (MAX_PAYLOAD + 1) as u32, &[0; 16]);
+    assert_eq!(
+        decode::<Observation>(&b),
+        Err(DecodeError::Oversized {
+            len: MAX_PAYLOAD + 1
+        })
+    );
+    let b = with_header(1, 3, u32::MAX, &[]);
+    assert!(matches!(
+        decode::<CameraFrame>(&b),
+        Err(DecodeError::Oversized { .. })
+    ));
+}
+
+#[test]
+fn vec_length_prefix_larger_than_the_message_is_refused_without_allocating() {
+    // A CameraFrame whose `data` length prefix claims 2^60 bytes: bincode's
+    // limit must refuse it before trying to allocate.
+    let mut bytes = encode(&camera_frame()).unwrap();
+    let data_len_at = bytes.len() - 32 - 8;
+    assert_eq!(
+        u64::from_le_bytes(bytes[data_len_at..data_len_at + 8].try_into().unwrap()),
+        32
+    );
+    bytes[data_len_at..data_len_at + 8].copy_from_slice(&(1u64 << 60).to_le_bytes());
+    assert!(matches!(
+        decode::<CameraFrame>(&bytes),
+        Err(DecodeError::Malformed { .. })
+    ));
+}
+
+proptest! {
+    #![proptest_config(fuzz_config(1000))]
+
+    /// A correct header of any kind over random payload bytes.
+    #[test]
+    fn random_payload_under_a_valid_header_never_panics(
+        kind in 1u16..=6,
+        payload in proptest::collection::vec(any::<u8>(), 0..2048),
+    ) {
+        let b = with_header(1, kind, payload.len() as u32, &payload);
+        prop_assert!(decode_as_every_kind(&b) <= 1);
+    }
+
+    /// Every kind's valid message with bytes flipped, cut, or extended.
+    #[test]
+    fn corrupted_messages_of_every_kind_are_rejected_or_read_exactly(
+        which in 0usize..6,
+        flips in proptest::collection::vec((any::<usize>(), any::<u8>()), 0..6),
+        cut in proptest::option::of(any::<usize>()),
+        extra in proptest::collection::vec(any::<u8>(), 0..8),
+        fix_length in any::<bool>(),
+    ) {
+        let mut b = samples().swap_remove(which);
+        for (at, v) in flips {
+            let i = HEADER_LEN + at % (b.len() - HEADER_LEN);
+            b[i] ^= v;
+        }
+        if let Some(c) = cut {
+            b.truncate(HEADER_LEN + c % (b.len() - HEADER_LEN + 1));
+        }
+        b.extend_from_slice(&extra);
+        if fix_length {
+            let n = (b.len() - HEADER_LEN) as u32;
+            b[8..12].copy_from_slice(&n.to_le_bytes());
+        }
+        prop_assert!(decode_as_every_kind(&b) <= 1);
+    }
+
+    /// Headers that lie: any version, kind or length in front of a valid payload.
+    #[test]
+    fn lying_headers_are_rejected_with_the_matching_error(
+        which in 0usize..6,
+        version in any::<u16>(),
+        kind in any::<u16>(),
+        declared in any::<u32>(),
+    ) {
+        let sample = samples().swap_remove(which);
+        let payload = &sample[HEADER_LEN..];
+        let b = with_header(version, kind, declared, payload);
+        let accepted = decode_as_every_kind(&b);
+        match peek_header(&b) {
+            Ok(h) => {
+                prop_assert_eq!(h.version, 1);
+                prop_assert_eq!(h.payload_len, payload.len());
+                prop_assert!(accepted <= 1);
+            }
+            Err(DecodeError::VersionMismatch { found }) => {
+                prop_assert_ne!(found, 1);
+                prop_assert_eq!(accepted, 0);
+            }
+            Err(DecodeError::UnknownKind { found }) => {
+                prop_assert!(MessageKind::from_u16(found).is_none());
+                prop_assert_eq!(accepted, 0);
+            }
+            Err(DecodeError::Oversized { len }) => {
+                prop_assert!(len > MAX_PAYLOAD);
+                prop_assert_eq!(accepted, 0);
+            }
+            Err(DecodeError::LengthMismatch { declared: d, actual }) => {
+                prop_assert_eq!(d, declared as usize);
+                prop_assert_eq!(actual, payload.len());
+                prop_assert_eq!(accepted, 0);
+            }
+            Err(other) => prop_assert!(false, "unexpected header error {other:?}"),
+        }
+    }
+
+    /// Observations with NaN / infinite / non-unit poses and absurd covariances
+    /// are refused by validation, naming the field.
+    #[test]
+    fn non_finite_poses_and_absurd_covariances_name_the_field(
+        slot in 0usize..7,
+        bad in prop_oneof![
+            Just(f64::NAN), Just(f64::INFINITY), Just(f64::NEG_INFINITY), Just(1e300), Just(-2.0)
+        ],
+        cov_scale in prop_oneof![Just(-1.0), Just(0.0), Just(1e7), Just(f64::INFINITY), Just(f64::NAN)],
+        which in 0usize..3,
+    ) {
+        let mut obs = observation();
+        let field = match which {
+            0 => {
+                if slot < 4 {
+                    obs.observer_from_target.rotation.as_mut_unchecked().coords[slot] = bad;
+                } else {
+                    obs.observer_from_target.translation.vector[slot - 4] = bad;
+                }
+                "observer_from_target"
+            }
+            1 => {
+                obs.covariance[(slot % 6, slot % 6)] *= cov_scale;
+                "covariance"
+            }
+            _ => {
+                obs.reprojection_rms_px = if bad == 1e300 { -1.0 } else { bad };
+                "reprojection_rms_px"
+            }
+        };
+        // Finite but far translations, and a 31 m standard deviation, are
+        // well-formed on the wire: fusion judges those (`RejectReason::Invalid`
+        // above its `max_std`), see tests/hostile_input.rs.
+        let well_formed = (which == 0 && slot >= 4 && bad.is_finite())
+            || (which == 1 && cov_scale == 1e7);
+        let b = encode(&obs).unwrap();
+        match decode::<Observation>(&b) {
+            Err(DecodeError::Invalid { field: f, .. }) => {
+                prop_assert!(!well_formed);
+                prop_assert_eq!(f, field);
+            }
+            Ok(_) => {
+                prop_assert!(well_formed, "accepted a bad {}: slot {}, value {}, scale {}", field, slot, bad, cov_scale);
+                accepted_means_canonical::<Observation>(&b).unwrap();
+            }
+            Err(other) => prop_assert!(false, "expected Invalid {field}, got {other:?}"),
+        }
+    }
+
+    /// Camera frames whose pixel buffer disagrees with width x height x channels.
+    #[test]
+    fn frames_of_the_wrong_size_or_format_are_refused(
+        width in 0u32..40,
+        height in 0u32..40,
+        rgb in any::<bool>(),
+        len in 0usize..5000,
+    ) {
+        let mut f = camera_frame();
+        f.info.model.width = width;
+        f.info.model.height = height;
+        f.format = if rgb { PixelFormat::Rgb8 } else { PixelFormat::Mono8 };
+        f.data = vec![7; len];
+        let want = width as usize * height as usize * if rgb { 3 } else { 1 };
+        let b = encode(&f).unwrap();
+        match decode::<CameraFrame>(&b) {
+            Ok(back) => {
+                prop_assert!(width > 0 && height > 0 && len == want);
+                prop_assert_eq!(back, f);
+            }
+            Err(DecodeError::Invalid { field, .. }) => {
+                prop_assert!(width == 0 || height == 0 || len != want);
+                prop_assert!(field == "data" || field == "info.model", "{}", field);
+            }
+            Err(other) => prop_assert!(false, "unexpected {other:?}"),
+        }
+    }
+}
