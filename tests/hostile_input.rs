@@ -27,26 +27,15 @@ use shoal_proto::Cov6;
 use shoal_sim_bridge::obs_synth::{line_abreast, ObsSynth, ObsSynthParams};
 use std::path::Path;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
+
+#[path = "common/wait.rs"]
+mod wait;
+use wait::wait_for;
 
 fn fleet() -> Arc<Fleet> {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     Arc::new(Fleet::load(&root.join("configs/fleets/paper.toml")).expect("paper fleet"))
-}
-
-/// Poll `check` until it returns `Some` or `timeout` passes; panics naming `what`.
-fn wait_for<T>(what: &str, timeout: Duration, mut check: impl FnMut() -> Option<T>) -> T {
-    let deadline = Instant::now() + timeout;
-    loop {
-        if let Some(v) = check() {
-            return v;
-        }
-        assert!(
-            Instant::now() < deadline,
-            "timed out after {timeout:?} waiting for {what}"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    }
 }
 
 /// Envelope bytes with the header rewritten.

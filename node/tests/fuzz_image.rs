@@ -22,15 +22,11 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, OnceLock};
 
+/// Failures print the minimal input; no regression files in the source tree.
 fn fuzz_config(default_cases: u32) -> ProptestConfig {
-    let cases = std::env::var("SHOAL_FUZZ_CASES")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(default_cases);
     ProptestConfig {
-        cases,
         failure_persistence: None,
-        ..ProptestConfig::default()
+        ..ProptestConfig::with_cases(shoal_proto::samples::fuzz_cases(default_cases))
     }
 }
 

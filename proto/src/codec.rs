@@ -168,59 +168,9 @@ pub fn decode<M: WireMessage>(bytes: &[u8]) -> Result<M, DecodeError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::camera::CameraModel;
-    use crate::geometry::{pose_from_xyz_rpy, Cov6};
-    use crate::marker::CodeSet;
     use crate::messages::*;
+    use crate::samples;
     use proptest::prelude::*;
-
-    pub(crate) fn sample_observation() -> Observation {
-        let pose = pose_from_xyz_rpy([0.1, 1.0, 0.2], [0.0, 0.1, -0.2]);
-        Observation {
-            observer: 10,
-            camera: 4,
-            codes: CodeSet::Shoal,
-            target_marker: 15,
-            target_vehicle: Some(15),
-            stamp_ns: 123_456_789,
-            frame_seq: 42,
-            observer_from_target: pose,
-            covariance: Cov6::identity() * 1e-4,
-            reprojection_rms_px: 0.2,
-            alternative: Some(PoseHypothesis {
-                observer_from_target: pose_from_xyz_rpy([0.1, 1.0, 0.2], [0.0, -0.1, -0.2]),
-                covariance: Cov6::identity() * 2e-4,
-                reprojection_rms_px: 0.9,
-            }),
-            corner_count: 12,
-            corners_px: vec![[1.0, 2.0]; 12],
-            quality: ImageQuality {
-                marker_contrast: 0.5,
-                cnr: 12.0,
-                backscatter: 0.1,
-                estimated_c_per_m: 0.5,
-            },
-            predicted: false,
-        }
-    }
-
-    fn sample_frame() -> CameraFrame {
-        let mut model = CameraModel::vehicle_1440();
-        model.width = 8;
-        model.height = 4;
-        CameraFrame {
-            vehicle: 17,
-            camera: 0,
-            seq: 9,
-            stamp_ns: 5,
-            info: CameraInfo {
-                model,
-                body_from_camera: pose_from_xyz_rpy([0.7, 0.0, 0.0], [1.0, 0.0, 1.0]),
-            },
-            format: PixelFormat::Mono8,
-            data: (0..32).collect(),
-        }
-    }
 
     fn round_trip<M: WireMessage + PartialEq + std::fmt::Debug>(m: &M) {
         let bytes = encode(m).unwrap();
@@ -230,78 +180,22 @@ mod tests {
 
     #[test]
     fn every_message_kind_round_trips() {
-        round_trip(&sample_observation());
-        round_trip(&sample_frame());
-        round_trip(&FleetMap {
-            fleet: "paper".into(),
-            producer: "central".into(),
-            seq: 3,
-            stamp_ns: 77,
-            reference: 10,
-            vehicles: vec![VehicleEstimate {
-                vehicle: 15,
-                state: VehicleState::Live,
-                reference_from_vehicle: pose_from_xyz_rpy([0.0, 1.0, 0.0], [0.0; 3]),
-                covariance: Cov6::identity(),
-                last_seen_ns: 70,
-            }],
-            edges: vec![EdgeReport {
-                observer: 10,
-                camera: 4,
-                target_marker: 99,
-                target_vehicle: None,
-                stamp_ns: 70,
-                frame_seq: 1,
-                rejected: Some(RejectReason::UnknownMarker),
-                chi2: f64::NAN.min(1.0),
-            }],
-            solve_time_us: 12,
-        });
-        round_trip(&SimTruth {
-            stamp_ns: 1,
-            tick: 2,
-            water_c_per_m: 0.5,
-            vehicles: vec![VehicleTruth {
-                vehicle: 10,
-                world_from_body: pose_from_xyz_rpy([1.0, 2.0, 3.0], [0.0; 3]),
-                velocity_body: [0.5, 0.0, 0.0],
-            }],
-            visible: vec![VisibleMarker {
-                observer: 10,
-                camera: 3,
-                frame_seq: 2,
-                codes: CodeSet::Shoal,
-                marker: 15,
-                target_vehicle: 15,
-                corners_px: vec![[1.0, 2.0]; 12],
-                visible_fraction: 1.0,
-                range_m: 1.2,
-            }],
-        });
-        round_trip(&NodeStatus {
-            vehicle: 10,
-            stamp_ns: 4,
-            uptime_s: 1.5,
-            cameras: vec![CameraStatus {
-                camera: 0,
-                name: "forward".into(),
-                frames_in: 10,
-                ..Default::default()
-            }],
-            observations_sent: 3,
-            messages_rejected: 0,
-        });
-        round_trip(&VehicleCommand {
-            vehicle: 10,
-            stamp_ns: 1,
-            velocity_body: [0.5, 0.0, 0.0],
-            yaw_rate: 0.01,
-        });
+        round_trip(&samples::observation());
+        round_trip(&samples::camera_frame());
+        round_trip(&samples::fleet_map());
+        round_trip(&samples::sim_truth());
+        round_trip(&samples::node_status());
+        round_trip(&samples::vehicle_command());
+        // A NaN chi2 (not computed) survives the trip.
+        let mut map = samples::fleet_map();
+        map.edges[0].chi2 = f64::NAN;
+        let back: FleetMap = decode(&encode(&map).unwrap()).unwrap();
+        assert!(back.edges[0].chi2.is_nan());
     }
 
     #[test]
     fn header_errors_are_specific() {
-        let bytes = encode(&sample_observation()).unwrap();
+        let bytes = encode(&samples::observation()).unwrap();
         assert_eq!(
             decode::<Observation>(&bytes[..5]),
             Err(DecodeError::Truncated { len: 5 })
@@ -324,7 +218,7 @@ mod tests {
 
     #[test]
     fn nan_pose_is_rejected_with_field_name() {
-        let mut obs = sample_observation();
+        let mut obs = samples::observation();
         obs.observer_from_target.translation.vector.x = f64::NAN;
         let bytes = encode(&obs).unwrap();
         match decode::<Observation>(&bytes) {
@@ -335,7 +229,7 @@ mod tests {
 
     #[test]
     fn frame_of_wrong_size_is_rejected() {
-        let mut f = sample_frame();
+        let mut f = samples::camera_frame();
         f.data.pop();
         let bytes = encode(&f).unwrap();
         assert!(matches!(
@@ -362,7 +256,7 @@ mod tests {
             flips in proptest::collection::vec((any::<usize>(), any::<u8>()), 1..8),
             cut in any::<usize>(),
         ) {
-            let mut bytes = encode(&sample_observation()).unwrap();
+            let mut bytes = encode(&samples::observation()).unwrap();
             for (at, v) in flips {
                 let i = HEADER_LEN + at % (bytes.len() - HEADER_LEN);
                 bytes[i] ^= v;

@@ -21,6 +21,7 @@ pub mod image;
 pub mod keys;
 pub mod marker;
 pub mod messages;
+pub mod samples;
 
 pub use camera::CameraModel;
 pub use codec::{decode, encode, DecodeError, EncodeError};
