@@ -177,10 +177,6 @@ pub fn spawn(bus: &Bus, cfg: SimConfig, clock: Arc<ManualClock>) -> Result<SimHa
                 // The frames of this tick are captured now: time has reached their stamp.
                 clock.advance_to(stamp_ns);
                 let mut visible = Vec::new();
-                // The tick's frames are published after its truth: a
-                // `--clock sim` fusion follows the truth, and a frame that
-                // arrived first would be an observation from its future.
-                let mut rendered: Vec<(&Publisher<CameraFrame>, CameraFrame)> = Vec::new();
                 if behind {
                     stats2.ticks_skipped.fetch_add(1, Ordering::Relaxed);
                 } else {
@@ -199,7 +195,12 @@ pub fn spawn(bus: &Bus, cfg: SimConfig, clock: Arc<ManualClock>) -> Result<SimHa
                             format: PixelFormat::Mono8,
                             data: out.image.data,
                         };
-                        rendered.push((publisher, frame));
+                        match publisher.put(&frame) {
+                            Ok(()) => {
+                                stats2.frames_published.fetch_add(1, Ordering::Relaxed);
+                            }
+                            Err(e) => tracing::warn!("simulator: {e}"),
+                        }
                         visible.extend(out.visible);
                     }
                 }
@@ -212,14 +213,6 @@ pub fn spawn(bus: &Bus, cfg: SimConfig, clock: Arc<ManualClock>) -> Result<SimHa
                 };
                 if let Err(e) = truth_pub.put(&msg) {
                     tracing::warn!("simulator: {e}");
-                }
-                for (publisher, frame) in rendered {
-                    match publisher.put(&frame) {
-                        Ok(()) => {
-                            stats2.frames_published.fetch_add(1, Ordering::Relaxed);
-                        }
-                        Err(e) => tracing::warn!("simulator: {e}"),
-                    }
                 }
                 stats2.ticks.fetch_add(1, Ordering::Relaxed);
                 tick += 1;

@@ -167,11 +167,23 @@ pub fn run_fusion(a: FusionArgs) -> anyhow::Result<()> {
             let clock = Arc::new(ManualClock::new(0));
             let sub = bus.subscribe::<SimTruth>(&fleet.keys().truth(), 16)?;
             let c = clock.clone();
+            // The simulator publishes a tick's truth after streaming its
+            // frames, so observations of tick k+1 can arrive while the last
+            // truth is tick k's: the clock is the latest truth plus one tick
+            // period (the sim has reached at least that), never less.
             let t = std::thread::Builder::new()
                 .name("sim-clock".into())
-                .spawn(move || loop {
-                    if let Some(r) = sub.recv_timeout(Duration::from_millis(200)) {
-                        c.advance_to(r.msg.stamp_ns);
+                .spawn(move || {
+                    let mut previous: Option<u64> = None;
+                    loop {
+                        if let Some(r) = sub.recv_timeout(Duration::from_millis(200)) {
+                            let stamp = r.msg.stamp_ns;
+                            let tick_ns = previous
+                                .map_or(0, |p| stamp.saturating_sub(p))
+                                .min(2_000_000_000);
+                            previous = Some(stamp);
+                            c.advance_to(stamp.saturating_add(tick_ns));
+                        }
                     }
                 })?;
             (clock, Some(t))
