@@ -250,3 +250,15 @@ fn pyramid_level_image_matches_the_chosen_level() {
         }
     }
 }
+
+#[test]
+fn hoirm_passes_clear_water_through_and_restores_turbid_water() {
+    for (c, passed) in [(0.126, true), (1.38, true), (6.12, false)] {
+        let f = frame(c, 5);
+        let out = restorer(Method::Hoirm, &RestoreParams::default())
+            .restore(&f.degraded, 0)
+            .unwrap();
+        let same = out.image.data_bytes().unwrap() == f.degraded.data_bytes().unwrap();
+        assert_eq!(same, passed, "c = {c}: estimate {}", out.estimated_c_per_m);
+    }
+}

@@ -273,6 +273,34 @@ impl Hoirm {
         };
         let mut bl_coarse = Mat::default();
         set_mean.convert_to(&mut bl_coarse, CV_8U, alpha, 0.0)?;
+        if c < self.params.passthrough_below_c_per_m {
+            // Clear water: nothing to restore (the ambient state above is
+            // still updated, so it is current when the water turns).
+            if keep {
+                stages.push((
+                    "input (clear water: passed through)".to_string(),
+                    snapshot(gray)?,
+                ));
+            }
+            let restored = Restored {
+                image: gray.try_clone()?,
+                pyramid_level: 0,
+                level_image: None,
+                estimated_c_per_m: c,
+                backscatter: water.backscatter,
+                rois: Vec::new(),
+                stages: keep.then_some(stages),
+            };
+            let frame_params = HoirmFrameParams {
+                water,
+                c_per_m: c,
+                alpha,
+                gain: 1.0,
+                clahe_clip: clip,
+                psf,
+            };
+            return Ok((restored, frame_params));
+        }
         let mut bl = Mat::default();
         imgproc::resize(&bl_coarse, &mut bl, full, 0.0, 0.0, imgproc::INTER_LINEAR)?;
 
