@@ -9,7 +9,8 @@
 //!    no code at that level are searched again at full resolution in a window
 //!    around them, where the code square separates from its frame
 //!    (`full_res_quads`; at 2.75 m and 0.5 /m this doubles the reads of the
-//!    100 mm marker, 5 → 12 of 60, at no measurable cost per frame).
+//!    100 mm marker, 5 → 12 of 60; the detect bench's ratio to OpenCV's
+//!    detector stayed at 0.42–0.45 across runs before and after).
 //! 2. **Contours.** Adaptive mean threshold(s) (dark = foreground), all
 //!    contours, polygon approximation; kept when they are convex
 //!    quadrilaterals of sufficient size, clear of the image border (paper §5,
