@@ -1,5 +1,5 @@
 //! Issue #5 end to end: ten vehicles publish synthetic observations over
-//! Zenoh with wrong IDs, unknown IDs and planar flips injected at ~20 %; the
+//! Zenoh with wrong IDs and planar flips injected at ~24 % (at least 17 %); the
 //! fusion service must reject every false hypothesis and no true one.
 
 use shoal_bus::{client_of, free_port, Bus, Connect, ManualClock, Publisher};
@@ -56,7 +56,7 @@ fn over_zenoh_injected_outliers_are_rejected_and_no_true_edge_is() {
         .collect();
     std::thread::sleep(Duration::from_millis(300));
 
-    let rate = 0.1;
+    let rate = 0.12;
     let params = ObsSynthParams {
         outliers: OutlierModel {
             wrong_id_rate: rate,
@@ -94,7 +94,7 @@ fn over_zenoh_injected_outliers_are_rejected_and_no_true_edge_is() {
         .count();
     let share = outliers as f64 / sent.len() as f64;
     assert!(
-        share > 0.12 && share < 0.25,
+        share > 0.17 && share < 0.3,
         "outlier share {share} of {}",
         sent.len()
     );
