@@ -1,14 +1,16 @@
 //! Central fusion (ground station) and decentralized fusion (running on a
 //! vehicle) agree when every message reaches both.
 
-use shoal_bus::{client_of, free_port, Bus, Connect, ManualClock, Publisher};
-use shoal_fusion::service::{FusionConfig, Placement};
+#[path = "common/fusion_rig.rs"]
+mod fusion_rig;
+
+use fusion_rig::Rig;
+use shoal_fusion::service::Placement;
 use shoal_fusion::{FusionParams, MapView};
 use shoal_proto::config::Fleet;
 use shoal_proto::geometry::difference;
-use shoal_proto::messages::{FleetMap, Observation, VehicleState};
+use shoal_proto::messages::{FleetMap, VehicleState};
 use shoal_sim_bridge::obs_synth::{line_abreast, ObsSynth, ObsSynthParams};
-use std::collections::BTreeMap;
 use std::path::Path;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -19,35 +21,17 @@ fn central_and_on_vehicle_fusion_agree_when_all_messages_arrive() {
     let fleet = Arc::new(Fleet::load(&root.join("configs/fleets/paper.toml")).unwrap());
     let ids: Vec<u32> = fleet.vehicles.iter().map(|v| v.id).collect();
     let truth = line_abreast(&ids, 1.75);
-    let port = free_port().unwrap();
-    let _router = Bus::open(&Connect::Router { port }).unwrap();
-    let clock = Arc::new(ManualClock::new(0));
+    let rig = Rig::new(fleet.clone());
+    let clock = rig.clock.clone();
     let params = FusionParams {
         record_solve_time: false,
         ..FusionParams::default()
     };
-    let spawn = |placement| {
-        shoal_fusion::service::spawn(
-            &Bus::open(&client_of(port)).unwrap(),
-            FusionConfig {
-                fleet: fleet.clone(),
-                params,
-                placement,
-                rate_hz: 10.0,
-                queue_capacity: 10_000,
-            },
-            clock.clone(),
-        )
-        .unwrap()
-    };
-    let central = spawn(Placement::Central);
-    let on_vehicle = spawn(Placement::OnVehicle(15));
-    let bus = Bus::open(&client_of(port)).unwrap();
+    let central = rig.fusion(Placement::Central, params, 10_000);
+    let on_vehicle = rig.fusion(Placement::OnVehicle(15), params, 10_000);
+    let bus = rig.session();
     let keys = fleet.keys();
-    let pubs: BTreeMap<u32, Publisher<Observation>> = ids
-        .iter()
-        .map(|&v| (v, bus.publisher(keys.observations(v)).unwrap()))
-        .collect();
+    let pubs = rig.observation_publishers(&bus);
     let decentral = bus.subscribe::<FleetMap>(&keys.map_of("15"), 64).unwrap();
     std::thread::sleep(Duration::from_millis(300));
 

@@ -2,10 +2,13 @@
 //! Zenoh with wrong IDs and planar flips injected at ~24 % (at least 17 %); the
 //! fusion service must reject every false hypothesis and no true one.
 
-use shoal_bus::{client_of, free_port, Bus, Connect, ManualClock, Publisher};
-use shoal_fusion::service::{FusionConfig, Placement};
+#[path = "common/fusion_rig.rs"]
+mod fusion_rig;
+
+use fusion_rig::Rig;
+use shoal_fusion::service::Placement;
 use shoal_fusion::FusionParams;
-use shoal_proto::messages::{EdgeReport, FleetMap, Observation};
+use shoal_proto::messages::{EdgeReport, FleetMap};
 use shoal_proto::{CodeSet, VehicleId};
 use shoal_sim_bridge::obs_synth::{
     grid_formation, synthetic_fleet, FormationJitter, ObsSynth, ObsSynthParams, OutlierKind,
@@ -32,28 +35,14 @@ fn over_zenoh_injected_outliers_are_rejected_and_no_true_edge_is() {
     let fleet = Arc::new(synthetic_fleet(10, CodeSet::Aruco4x4_1000).unwrap());
     let ids: Vec<VehicleId> = fleet.vehicles.iter().map(|v| v.id).collect();
     let truth = grid_formation(&ids, 5, 1.5, FormationJitter::default(), 42);
-    let port = free_port().unwrap();
-    let _router = Bus::open(&Connect::Router { port }).unwrap();
-    let clock = Arc::new(ManualClock::new(0));
-    let fusion = shoal_fusion::service::spawn(
-        &Bus::open(&client_of(port)).unwrap(),
-        FusionConfig {
-            fleet: fleet.clone(),
-            params: FusionParams::default(),
-            placement: Placement::Central,
-            rate_hz: 10.0,
-            queue_capacity: 10_000,
-        },
-        clock.clone(),
-    )
-    .unwrap();
-    let bus = Bus::open(&client_of(port)).unwrap();
-    let keys = fleet.keys();
-    let maps = bus.subscribe::<FleetMap>(&keys.map(), 1024).unwrap();
-    let pubs: BTreeMap<VehicleId, Publisher<Observation>> = ids
-        .iter()
-        .map(|&v| (v, bus.publisher(keys.observations(v)).unwrap()))
-        .collect();
+    let rig = Rig::new(fleet.clone());
+    let clock = rig.clock.clone();
+    let fusion = rig.fusion(Placement::Central, FusionParams::default(), 10_000);
+    let bus = rig.session();
+    let maps = bus
+        .subscribe::<FleetMap>(&fleet.keys().map(), 1024)
+        .unwrap();
+    let pubs = rig.observation_publishers(&bus);
     std::thread::sleep(Duration::from_millis(300));
 
     let rate = 0.12;

@@ -2,15 +2,17 @@
 //! (Four markers per vehicle need 400 IDs: the enhanced set has 50, so the
 //! synthetic fleet carries AprilTag 36h11 IDs; fusion does not care which.)
 
-use shoal_bus::{client_of, free_port, Bus, Connect, ManualClock, Publisher};
-use shoal_fusion::service::{FusionConfig, Placement};
+#[path = "common/fusion_rig.rs"]
+mod fusion_rig;
+
+use fusion_rig::Rig;
+use shoal_fusion::service::Placement;
 use shoal_fusion::FusionParams;
-use shoal_proto::messages::{FleetMap, Observation, VehicleState};
+use shoal_proto::messages::{FleetMap, VehicleState};
 use shoal_proto::CodeSet;
 use shoal_sim_bridge::obs_synth::{
     grid_formation, synthetic_fleet, FormationJitter, ObsSynth, ObsSynthParams,
 };
-use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -19,28 +21,13 @@ fn fusion_of_100_vehicles_keeps_up_at_10_hz() {
     let fleet = Arc::new(synthetic_fleet(100, CodeSet::AprilTag36h11).unwrap());
     let ids: Vec<u32> = fleet.vehicles.iter().map(|v| v.id).collect();
     let truth = grid_formation(&ids, 10, 1.5, FormationJitter::default(), 3);
-    let port = free_port().unwrap();
-    let _router = Bus::open(&Connect::Router { port }).unwrap();
-    let clock = Arc::new(ManualClock::new(0));
-    let fusion = shoal_fusion::service::spawn(
-        &Bus::open(&client_of(port)).unwrap(),
-        FusionConfig {
-            fleet: fleet.clone(),
-            params: FusionParams::default(),
-            placement: Placement::Central,
-            rate_hz: 10.0,
-            queue_capacity: 100_000,
-        },
-        clock.clone(),
-    )
-    .unwrap();
-    let vehicles_bus = Bus::open(&client_of(port)).unwrap();
+    let rig = Rig::new(fleet.clone());
+    let clock = rig.clock.clone();
+    let fusion = rig.fusion(Placement::Central, FusionParams::default(), 100_000);
+    let vehicles_bus = rig.session();
     let keys = fleet.keys();
-    let pubs: BTreeMap<u32, Publisher<Observation>> = ids
-        .iter()
-        .map(|&v| (v, vehicles_bus.publisher(keys.observations(v)).unwrap()))
-        .collect();
-    let observer = Bus::open(&client_of(port)).unwrap();
+    let pubs = rig.observation_publishers(&vehicles_bus);
+    let observer = rig.session();
     let maps = observer.subscribe::<FleetMap>(&keys.map(), 1024).unwrap();
     std::thread::sleep(Duration::from_millis(300));
 
