@@ -905,7 +905,10 @@ fn group_tracks(
             let Some(&last) = groups[g].first() else {
                 continue;
             };
-            if g == now {
+            // Only the past is superseded: two frames of one instant (a
+            // misread ID beside the marker itself) are for the consistency
+            // checks to judge, not for the motion rule.
+            if g == now || frames[last].stamp_ns >= frames[latest].stamp_ns {
                 continue;
             }
             let agrees = frames[last].hyps.iter().flatten().any(|old| {

@@ -52,6 +52,10 @@ pub(crate) struct ObservationKey {
     pub frame_seq: u64,
     pub codes: &'static str,
     pub marker: u32,
+    /// Bits of the measured pose: a re-sent message repeats them exactly;
+    /// two detections of one ID in one frame (a misread colliding with the
+    /// marker itself) do not, and both must reach the consistency checks.
+    pub pose_bits: u64,
 }
 
 impl ObservationKey {
@@ -63,6 +67,7 @@ impl ObservationKey {
             frame_seq: obs.frame_seq,
             codes: obs.codes.name(),
             marker: obs.target_marker,
+            pose_bits: pose_fingerprint(obs),
         }
     }
     /// What makes two observations the same detection. The capture stamp is
@@ -76,12 +81,26 @@ impl ObservationKey {
             self.stamp_ns,
             self.codes,
             self.marker,
+            self.pose_bits,
         )
     }
 }
 
-/// Observer, camera, frame number, capture stamp, code set, marker.
-pub(crate) type DuplicateKey = (VehicleId, u8, u64, u64, &'static str, u32);
+/// Observer, camera, frame number, capture stamp, code set, marker, pose bits.
+pub(crate) type DuplicateKey = (VehicleId, u8, u64, u64, &'static str, u32, u64);
+
+/// FNV-1a over the bit patterns of the primary pose (translation, quaternion).
+fn pose_fingerprint(obs: &Observation) -> u64 {
+    let p = &obs.observer_from_target;
+    let t = p.translation.vector;
+    let q = p.rotation.coords;
+    [t.x, t.y, t.z, q.x, q.y, q.z, q.w]
+        .iter()
+        .flat_map(|v| v.to_bits().to_le_bytes())
+        .fold(0xcbf2_9ce4_8422_2325u64, |h, byte| {
+            (h ^ u64::from(byte)).wrapping_mul(0x0100_0000_01b3)
+        })
+}
 
 /// An admitted observation.
 #[derive(Debug, Clone, PartialEq)]

@@ -260,6 +260,94 @@ fn duplicates_are_not_double_counted() {
 }
 
 #[test]
+fn a_misread_in_the_same_frame_as_the_marker_is_judged_not_dropped_as_a_duplicate() {
+    let fleet = paper_fleet();
+    let truth = paper_line_abreast();
+    let params = FusionParams {
+        record_solve_time: false,
+        ..FusionParams::default()
+    };
+    let (_, obs, now) = run_frames(
+        &fleet,
+        &truth,
+        ObsSynthParams::default(),
+        params.clone(),
+        4,
+        3,
+    );
+    // The newest observation, and a second detection of the same ID in the
+    // same frame 40 cm away (another marker misread as this one).
+    let genuine = obs
+        .iter()
+        .max_by_key(|s| s.obs.stamp_ns)
+        .unwrap()
+        .obs
+        .clone();
+    let mut misread = genuine.clone();
+    misread.observer_from_target.translation.vector.y += 0.4;
+    misread.alternative = None;
+    let mut f = Fusion::new(&fleet, params, "central");
+    for s in &obs {
+        f.ingest(s.obs.clone(), s.obs.observer, s.obs.stamp_ns)
+            .unwrap();
+    }
+    assert_eq!(
+        f.ingest(misread.clone(), misread.observer, now),
+        Ok(()),
+        "same key, different pose: not a duplicate"
+    );
+    // A re-sent copy of either is still a duplicate.
+    assert_eq!(
+        f.ingest(misread.clone(), misread.observer, now),
+        Err(RejectReason::Duplicate)
+    );
+    assert_eq!(
+        f.ingest(genuine.clone(), genuine.observer, now),
+        Err(RejectReason::Duplicate)
+    );
+    let map = f.solve(now);
+    let of_that_frame: Vec<_> = map
+        .edges
+        .iter()
+        .filter(|e| {
+            e.stamp_ns == genuine.stamp_ns
+                && e.observer == genuine.observer
+                && e.camera == genuine.camera
+                && e.target_marker == genuine.target_marker
+        })
+        .collect();
+    // The genuine hypotheses, the misread, and the two re-sent copies.
+    let duplicates = of_that_frame
+        .iter()
+        .filter(|e| e.rejected == Some(RejectReason::Duplicate))
+        .count();
+    assert_eq!(duplicates, 2, "{of_that_frame:?}");
+    let genuine_hypotheses = 1 + usize::from(genuine.alternative.is_some());
+    assert_eq!(
+        of_that_frame.len(),
+        genuine_hypotheses + 1 + duplicates,
+        "{of_that_frame:?}"
+    );
+    assert_eq!(
+        of_that_frame
+            .iter()
+            .filter(|e| e.rejected.is_none())
+            .count(),
+        1,
+        "{of_that_frame:?}"
+    );
+    assert!(
+        of_that_frame
+            .iter()
+            .all(|e| e.rejected != Some(RejectReason::Superseded)),
+        "one instant cannot supersede itself: {of_that_frame:?}"
+    );
+    let (t_err, _, live) = map_error(&map, &truth_poses(&fleet, &truth));
+    assert_eq!(live, 3);
+    assert!(t_err < 0.01, "translation error {t_err} m");
+}
+
+#[test]
 fn observer_mismatch_and_unknown_markers_are_rejected() {
     let fleet = paper_fleet();
     let truth = paper_line_abreast();

@@ -16,6 +16,7 @@ use super::table::{cell, median, quantile, rmse, Csv};
 use super::{water_key, EvalError, EvalOptions};
 use rand::Rng;
 use serde_json::{json, Map, Value};
+use shoal_node::restore::Method;
 use shoal_proto::geometry::Pose;
 use shoal_proto::{CameraModel, CodeSet};
 use shoal_sim_bridge::render::Renderer;
@@ -126,6 +127,7 @@ pub fn run_conditions(
                             ),
                             &frame.image,
                             &r,
+                            opts.restore,
                         )?;
                     }
                     restored.insert(codes.name(), r);
@@ -166,6 +168,7 @@ pub fn save_frame_pair(
     name: &str,
     raw: &shoal_proto::GrayImage,
     restored: &opencv::core::Mat,
+    restoration: Method,
 ) -> Result<(), EvalError> {
     let dir = opts.out.join("frames");
     std::fs::create_dir_all(&dir).map_err(|source| EvalError::Io {
@@ -176,7 +179,7 @@ pub fn save_frame_pair(
     let img = shoal_node::metrics::gray_from_mat(restored)?;
     shoal_sim_bridge::render::write_png(
         &img,
-        &dir.join(format!("{name}_{}.png", opts.restore.name())),
+        &dir.join(format!("{name}_{}.png", restoration.name())),
     )?;
     Ok(())
 }

@@ -2,6 +2,7 @@
 //! (the right ID decoded) after each restoration method — none, CLAHE, DCP,
 //! UDCP, HOIRM — at 5.16 … 14.20 /m, the enhanced marker at 600 mm.
 
+use super::accuracy::save_frame_pair;
 use super::features::plot_or_warn;
 use super::plot::{self, Grouped};
 use super::scene::{
@@ -83,6 +84,15 @@ pub fn success_rates(
             )?;
             for (mi, r) in restorers.iter_mut().enumerate() {
                 let img = restore(r.as_mut(), &frame.image, (time_s * 1e9) as u64)?;
+                if opts.save_frames && k == 0 {
+                    save_frame_pair(
+                        opts,
+                        &format!("c{}", water_key(c)),
+                        &frame.image,
+                        &img,
+                        methods[mi],
+                    )?;
+                }
                 let dets = detector.detect_in(&img)?;
                 let decoded = dets.iter().any(|d| d.id == MARKER_ID);
                 let wrong = dets.iter().filter(|d| d.id != MARKER_ID).count();
