@@ -271,7 +271,7 @@ fn a_misread_in_the_same_frame_as_the_marker_is_judged_not_dropped_as_a_duplicat
         &fleet,
         &truth,
         ObsSynthParams::default(),
-        params.clone(),
+        params,
         4,
         3,
     );
