@@ -11,6 +11,7 @@
 //!
 //! It uses Zenoh's synchronous API (`Wait`), so services are plain threads.
 
+pub mod acl;
 pub mod clock;
 pub mod queue;
 pub mod relay;

@@ -117,6 +117,10 @@ impl Keys {
     pub fn all_maps(&self) -> String {
         format!("shoal/{}/map/**", self.fleet)
     }
+    /// Everything under vehicle `v`'s own keys (what its access rule allows it to publish).
+    pub fn vehicle_all(&self, v: VehicleId) -> String {
+        self.vehicle(v, "**")
+    }
     /// Everything of this fleet (the recorder's subscription).
     pub fn everything(&self) -> String {
         format!("shoal/{}/**", self.fleet)

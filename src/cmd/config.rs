@@ -10,6 +10,21 @@ pub enum ConfigCmd {
         /// `configs/fleets/paper.toml`, `configs/cameras/vehicle_1440.yaml`, …
         file: PathBuf,
     },
+    /// Write the Zenoh router configuration (mutual TLS + access control) for a fleet:
+    /// each `vehicle-<id>` certificate may publish only under its own ID (docs/deploy.md).
+    RouterAcl {
+        #[arg(long, default_value = "configs/fleets/paper.toml")]
+        fleet: PathBuf,
+        /// The router's listening endpoint.
+        #[arg(long, default_value = "tls/0.0.0.0:7447")]
+        listen: String,
+        /// Directory with the fleet CA (`ca.pem`) and the router's `router.pem` / `router.key`.
+        #[arg(long, default_value = "/etc/shoal/tls")]
+        tls_dir: PathBuf,
+        /// Output file (default: standard output).
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
 }
 
 pub fn run(cmd: ConfigCmd) -> anyhow::Result<()> {
@@ -36,6 +51,32 @@ pub fn run(cmd: ConfigCmd) -> anyhow::Result<()> {
                 let fleet = Fleet::load(&file)?;
                 print!("{}", fleet.summary());
                 println!("ok");
+            }
+            Ok(())
+        }
+        ConfigCmd::RouterAcl {
+            fleet,
+            listen,
+            tls_dir,
+            out,
+        } => {
+            let fleet = Fleet::load(&fleet)?;
+            let text = shoal_bus::acl::router_config(
+                &fleet,
+                &listen,
+                &shoal_bus::acl::TlsFiles::in_dir(tls_dir),
+            )?;
+            match out {
+                Some(path) => {
+                    std::fs::write(&path, &text)
+                        .with_context(|| format!("cannot write {}", path.display()))?;
+                    eprintln!(
+                        "wrote {} ({} vehicles)",
+                        path.display(),
+                        fleet.vehicles.len()
+                    );
+                }
+                None => print!("{text}"),
             }
             Ok(())
         }
