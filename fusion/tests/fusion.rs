@@ -267,14 +267,7 @@ fn a_misread_in_the_same_frame_as_the_marker_is_judged_not_dropped_as_a_duplicat
         record_solve_time: false,
         ..FusionParams::default()
     };
-    let (_, obs, now) = run_frames(
-        &fleet,
-        &truth,
-        ObsSynthParams::default(),
-        params,
-        4,
-        3,
-    );
+    let (_, obs, now) = run_frames(&fleet, &truth, ObsSynthParams::default(), params, 4, 3);
     // The newest observation, and a second detection of the same ID in the
     // same frame 40 cm away (another marker misread as this one).
     let genuine = obs
