@@ -4,7 +4,7 @@
 //!
 //! Prints wall time and the thread's CPU time (robust to other load on the machine).
 //!
-//! `cargo run --release -p shoal-node --example restore_timing`
+//! `cargo run --release -p shoal-node --example restore_timing [frame.png ...]`
 
 use opencv::core::{self, Mat, Rect, Size, CV_8U};
 use opencv::imgproc;
@@ -52,6 +52,36 @@ fn main() {
         k += 1;
         h.restore_with_params(&f, k * 33_000_000).unwrap()
     });
+    // Frames given on the command line (e.g. simulator frames saved by
+    // `shoal eval detection --save-frames`): HOIRM ROI-limited on each.
+    for path in std::env::args().skip(1) {
+        let g = opencv::imgcodecs::imread(&path, opencv::imgcodecs::IMREAD_GRAYSCALE).unwrap();
+        if g.empty() {
+            println!("{path}: not an image");
+            continue;
+        }
+        // SHOAL_PSF_SIGMA_FROM_IMAGE=0: Eq. (14)'s σ only (to time the estimate).
+        let params = RestoreParams {
+            psf_sigma_from_image: std::env::var("SHOAL_PSF_SIGMA_FROM_IMAGE")
+                .map_or(true, |v| v != "0"),
+            ..RestoreParams::default()
+        };
+        let mut h = Hoirm::new(params);
+        let (r, p) = h.restore_with_params(&g, 0).unwrap();
+        let area: i32 = r.rois.iter().map(|r| r.area()).sum();
+        println!(
+            "{path}: est c {:.2}, denoise σ {:.2}, ROIs {} ({} kpx)",
+            p.c_per_m,
+            p.denoise_sigma_px,
+            r.rois.len(),
+            area / 1000
+        );
+        let mut k = 0;
+        time("  hoirm_roi (this frame)", n, || {
+            k += 1;
+            h.restore_with_params(&g, k * 33_000_000).unwrap()
+        });
+    }
     let coarse = {
         let mut c = Mat::default();
         imgproc::resize(

@@ -7,7 +7,7 @@
 //! | `Clahe`    | CLAHE alone (clip 2, 8x8 tiles)                                               |
 //! | `Dcp`      | dark channel prior (He et al. 2010), grey version, guided-filter refinement   |
 //! | `Udcp`     | underwater DCP (Drews et al. 2013), adapted to one grey channel               |
-//! | `Hoirm`    | ambient-light subtraction (Eq. 11–13) → CLAHE → generalized-Gaussian Wiener deconvolution (Eq. 14) → pyramid level |
+//! | `Hoirm`    | ambient-light subtraction (Eq. 11–13) → [denoising when the edges are at the noise] → CLAHE → generalized-Gaussian Wiener deconvolution (Eq. 14) → pyramid level |
 //!
 //! HOIRM estimates the water from the image itself ([`water::WaterEstimate`]:
 //! backscatter from the darkest coarse pixels, contrast, noise) so its
@@ -124,6 +124,16 @@ pub struct RestoreParams {
     pub psf_c_half_per_m: f64,
     /// Pixels per unit of Eq. (14)'s σ = 1/(2√p) (the paper states no unit).
     pub psf_px_per_unit: f64,
+    /// Measure the PSF's σ on each region's edges (`psf::edge_blur_sigma_px`)
+    /// and use it (at least `psf_min_sigma_px`) instead of Eq. (14)'s σ,
+    /// which is fitted to one water's blur. Off by default: the estimate reads
+    /// a sharp core under a wide halo as a narrow PSF (docs/restoration.md,
+    /// "Turbid water").
+    pub psf_sigma_from_image: bool,
+    pub psf_min_sigma_px: f64,
+    /// …but only when it is below this fraction of Eq. (14)'s σ (the
+    /// estimate reads a sharp core under a wide halo as narrow).
+    pub psf_trust_ratio: f64,
     /// Below this attenuation (1/m) HOIRM does not deconvolve: forward-scatter
     /// blur grows with optical depth and is negligible in clear water, where
     /// deconvolving a sharp image with Eq. (14)'s PSF only rings edges (it cut
@@ -135,6 +145,10 @@ pub struct RestoreParams {
     /// 0.51 mm through HOIRM; docs/results.md). HOIRM's estimate reads 0 up
     /// to 1.38 /m, 0.76 at 2 /m and 2.75 at 3.92 /m on simulated frames.
     pub passthrough_below_c_per_m: f64,
+    /// Deconvolve denoised regions too (with the NSR of the region before smoothing)…
+    pub deconv_when_denoised: bool,
+    /// …at this pyramid level when smoothed by σ ≥ 2 px (at least `deconv_level`).
+    pub denoised_deconv_level: u32,
     /// Pyramid level at which the Wiener deconvolution runs (0 = full
     /// resolution; 1 = half, its correction up-sampled), see `docs/restoration.md`.
     pub deconv_level: u32,
@@ -160,10 +174,30 @@ pub struct RestoreParams {
     pub level_blur_px: f64,
     /// The largest region of interest (pixels) must keep this side at the chosen level.
     pub min_roi_side_at_level_px: i32,
-    /// Region of interest search: local contrast threshold in coarse-noise units,
-    /// and as a fraction of the strongest local contrast.
+    /// Denoising before the local stretch: the detector wants edge step /
+    /// noise ≥ this at full resolution; when the frame's (estimated local
+    /// contrast / noise σ) is lower, the regions are smoothed with a Gaussian
+    /// of σ = `denoise_edge_snr / (2√π · contrast/noise)` (a Gaussian of σ
+    /// divides white noise by 2√π·σ), from `denoise_min_sigma_px` up to
+    /// `denoise_max_sigma_px` (0 disables). See docs/restoration.md.
+    pub denoise_edge_snr: f64,
+    pub denoise_min_sigma_px: f64,
+    pub denoise_max_sigma_px: f64,
+    /// In denoised regions CLAHE may stretch the estimated edge step ΔI to
+    /// this many grey levels: its clip limit (a bound on the total slope,
+    /// global gain × CLAHE) is raised to `clahe_contrast_target / ΔI`.
+    pub clahe_contrast_target: f64,
+    /// Region of interest search (`roi::find_rois`): local contrast threshold
+    /// in units of the noise σ of the smoothed 1/8 level, and as a fraction of
+    /// the strongest local contrast…
     pub roi_noise_k: f64,
     pub roi_rel_threshold: f64,
+    /// …and at least this many grey levels of the (smoothed, local-mean-free)
+    /// 1/8 level's 3x3 gradient, and this many times its median over the frame.
+    pub roi_min_gradient: f64,
+    pub roi_background_k: f64,
+    /// Hysteresis: a region grows over neighbours above this fraction of the threshold.
+    pub roi_hysteresis: f64,
     /// Beyond this fraction of the frame, ROIs are dropped for the full frame.
     pub roi_max_fraction: f64,
 
@@ -195,8 +229,13 @@ impl Default for RestoreParams {
             psf_p_clear: 2.0,
             psf_c_half_per_m: 6.0,
             psf_px_per_unit: 10.0,
+            psf_sigma_from_image: false,
+            psf_min_sigma_px: 0.5,
+            psf_trust_ratio: 0.5,
             deconv_min_c_per_m: 3.0,
             passthrough_below_c_per_m: 1.0,
+            deconv_when_denoised: true,
+            denoised_deconv_level: 1,
             deconv_level: 0,
             nsr_gain: 1.0,
             nsr_min: 2e-3,
@@ -210,8 +249,15 @@ impl Default for RestoreParams {
             edge_snr_target: 12.0,
             level_blur_px: 1.5,
             min_roi_side_at_level_px: 48,
-            roi_noise_k: 4.0,
+            denoise_edge_snr: 35.0,
+            denoise_min_sigma_px: 2.0,
+            denoise_max_sigma_px: 3.0,
+            clahe_contrast_target: 60.0,
+            roi_noise_k: 8.0,
             roi_rel_threshold: 0.2,
+            roi_min_gradient: 0.25,
+            roi_background_k: 1.8,
+            roi_hysteresis: 0.7,
             roi_max_fraction: 0.5,
             baseline_clahe_clip: 2.0,
             baseline_clahe_grid: 8,
@@ -274,6 +320,21 @@ impl RestoreParams {
                 return bad(name, v, "must be finite and > 0");
             }
         }
+        for (name, v) in [
+            ("denoise_edge_snr", self.denoise_edge_snr),
+            ("denoise_min_sigma_px", self.denoise_min_sigma_px),
+            ("denoise_max_sigma_px", self.denoise_max_sigma_px),
+            ("clahe_contrast_target", self.clahe_contrast_target),
+            ("roi_min_gradient", self.roi_min_gradient),
+            ("roi_background_k", self.roi_background_k),
+            ("roi_hysteresis", self.roi_hysteresis),
+            ("psf_min_sigma_px", self.psf_min_sigma_px),
+            ("psf_trust_ratio", self.psf_trust_ratio),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return bad(name, v, "must be finite and >= 0");
+            }
+        }
         if !(self.ambient_tau_s.is_finite() && self.ambient_tau_s >= 0.0) {
             return bad(
                 "ambient_tau_s",
@@ -303,6 +364,13 @@ impl RestoreParams {
         }
         if self.deconv_level > 3 {
             return bad("deconv_level", self.deconv_level as f64, "must be <= 3");
+        }
+        if self.denoised_deconv_level > 3 {
+            return bad(
+                "denoised_deconv_level",
+                self.denoised_deconv_level as f64,
+                "must be <= 3",
+            );
         }
         if self.clahe_tile_px < 8 {
             return bad("clahe_tile_px", self.clahe_tile_px as f64, "must be >= 8");

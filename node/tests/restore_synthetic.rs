@@ -30,11 +30,15 @@ fn hoirm_raises_marker_cnr_over_the_input_in_turbid_water() {
 }
 
 #[test]
-fn wiener_stage_raises_marker_cnr_over_the_de_attenuated_image() {
+fn wiener_stage_raises_marker_cnr_unless_the_region_was_denoised_first() {
     // The deconvolution takes the forward-scatter halo out of the cells
     // (and, with its 1/f² signal prior, does not amplify the noise), so the
-    // black and white cells separate better than after CLAHE alone.
-    for c in [6.12, 10.13] {
+    // black and white cells separate better than after CLAHE alone (6.12:
+    // at least 1.5x). At 10.13 the frame is denoised before CLAHE and
+    // deconvolved on the 1/2 level with the unsmoothed region's NSR
+    // (docs/restoration.md, "Turbid water"): there the filter must not lose
+    // more than the resampling costs.
+    for (c, factor) in [(6.12, 1.5), (10.13, 0.9)] {
         let f = frame(c, 2);
         let params = RestoreParams {
             keep_stages: true,
@@ -50,8 +54,8 @@ fn wiener_stage_raises_marker_cnr_over_the_de_attenuated_image() {
         };
         let (before, after) = (stage("de-attenuated"), stage("deblurred"));
         assert!(
-            after > 1.5 * before,
-            "c = {c}: CNR {before:.2} -> {after:.2}"
+            after > factor * before,
+            "c = {c}: CNR {before:.2} -> {after:.2} (wanted > {factor}x)"
         );
     }
 }

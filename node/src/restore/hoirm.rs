@@ -9,10 +9,15 @@
 //!    that what is taken away matches the veil the image shows; up-sampled
 //!    and subtracted (Eq. 13).
 //! 3. De-attenuation: a global gain `1/t̂` (the 99.5th percentile of
-//!    `I − B_L` stretched to `stretch_target`) on the whole frame, then CLAHE
-//!    with a clip limit growing with `c` for the local part.
+//!    `I − B_L` stretched to `stretch_target`) on the whole frame (8-bit);
+//!    in the regions of interest `gain·(I − B_L)` is recomputed in f32,
+//!    smoothed by a Gaussian when the estimated edge step over noise is low
+//!    (our addition, [`water::denoise_sigma_px`]), then CLAHE with a clip
+//!    limit growing with `c` (divided by the gain; in denoised regions raised
+//!    to bring the edge step to `clahe_contrast_target`) for the local part.
 //! 4. De-blurring: Wiener deconvolution with Eq. (14)'s PSF, `p` and σ from
-//!    `c`, the noise-to-signal ratio measured in each region.
+//!    `c`, the noise-to-signal ratio measured in each region (in a denoised
+//!    region: that of the region before smoothing, on the 1/2 level).
 //!    CLAHE and deconvolution run in the regions of interest ([`super::roi`],
 //!    feathered into the globally restored frame) or on the whole frame;
 //!    [`StageOrder`] swaps 3b and 4.
@@ -23,13 +28,13 @@
 //!    largest region `min_roi_side_at_level_px` wide.
 
 use super::ambient::AmbientLight;
-use super::psf::{GgPsf, Wiener};
+use super::psf::{self, GgPsf, Wiener};
 use super::water::{self, WaterEstimate};
 use super::{
     check_input, clahe, coarse_level, roi, snapshot, Method, RestoreError, RestoreParams, Restored,
     Restorer, StageOrder,
 };
-use opencv::core::{self, Mat, Rect, CV_8U};
+use opencv::core::{self, Mat, Rect, CV_32F, CV_8U};
 use opencv::imgproc;
 use opencv::prelude::*;
 
@@ -60,6 +65,10 @@ pub struct HoirmFrameParams {
     pub gain: f64,
     pub clahe_clip: f64,
     pub psf: GgPsf,
+    /// σ of the Gaussian smoothing before the local stretch (0: none), full-resolution pixels.
+    pub denoise_sigma_px: f64,
+    /// PSF σ measured on the first region's edges (before clamping), when it could be.
+    pub measured_psf_sigma_px: Option<f64>,
 }
 
 impl Hoirm {
@@ -102,16 +111,18 @@ impl Hoirm {
         src: &(impl MatTraitConst + core::ToInputArray),
         clip: f64,
         psf: Option<&GgPsf>,
+        nsr: Option<f64>,
+        level: u32,
     ) -> Result<(Mat, Mat), RestoreError> {
         let tile = self.params.clahe_tile_px;
         Ok(match (self.params.order, psf) {
             (StageOrder::Paper, Some(psf)) => {
                 let deatt = clahe(src, clip, tile)?;
-                let deblurred = self.deconvolve(&deatt, psf)?;
+                let deblurred = self.deconvolve(&deatt, psf, nsr, level)?;
                 (deatt, deblurred)
             }
             (StageOrder::Physical, Some(psf)) => {
-                let deblurred = self.deconvolve(src, psf)?;
+                let deblurred = self.deconvolve(src, psf, nsr, level)?;
                 let deatt = clahe(&deblurred, clip, tile)?;
                 (deblurred, deatt)
             }
@@ -134,10 +145,14 @@ impl Hoirm {
         &mut self,
         src: &(impl MatTraitConst + core::ToInputArray),
         psf: &GgPsf,
+        nsr_given: Option<f64>,
+        level: u32,
     ) -> Result<Mat, RestoreError> {
-        let level = self.params.deconv_level;
         if level == 0 {
-            let nsr = self.nsr(src)?;
+            let nsr = match nsr_given {
+                Some(k) => k,
+                None => self.nsr(src)?,
+            };
             return self.wiener.deconvolve(src, psf, nsr);
         }
         let mut small = Mat::default();
@@ -151,7 +166,10 @@ impl Hoirm {
             p: psf.p,
             sigma_px: psf.sigma_px / f64::from(1u32 << level),
         };
-        let nsr = self.nsr(&small)?;
+        let nsr = match nsr_given {
+            Some(k) => k,
+            None => self.nsr(&small)?,
+        };
         let restored = self.wiener.deconvolve(&small, &psf_l, nsr)?;
         // The restored level, up-sampled: the band above its Nyquist
         // frequency — mostly CLAHE-amplified noise, which the full-resolution
@@ -298,6 +316,8 @@ impl Hoirm {
                 gain: 1.0,
                 clahe_clip: clip,
                 psf,
+                denoise_sigma_px: 0.0,
+                measured_psf_sigma_px: None,
             };
             return Ok((restored, frame_params));
         }
@@ -328,8 +348,9 @@ impl Hoirm {
         let frame = Rect::new(0, 0, full.width, full.height);
         let rois = if self.params.roi_only {
             let margin = FEATHER_PX + 8 + psf.radius_px() / 4;
+            let coarse_f = roi::coarse_level_f32(gray, coarse.size()?)?;
             roi::find_rois(
-                &coarse,
+                &coarse_f,
                 COARSE_FACTOR,
                 full,
                 water.noise_sigma,
@@ -345,10 +366,69 @@ impl Hoirm {
         } else {
             None
         };
+        // Denoising before the local stretch when the edges are weak
+        // against the noise, and the stretch it allows.
+        let denoise_sigma = water::denoise_sigma_px(&water, &self.params);
+        let clip = if denoise_sigma > 0.0 {
+            clip.max(self.params.clahe_contrast_target / water.local_contrast.max(0.5))
+        } else {
+            clip
+        } / gain;
+        let mut bl_coarse_f = Mat::default();
+        set_mean.convert_to(&mut bl_coarse_f, CV_32F, alpha, 0.0)?;
+        let mut measured_sigma = Vec::new();
         for &r in &rois {
-            let view = Mat::roi(&global, r)?;
-            let deblur = (c >= self.params.deconv_min_c_per_m).then_some(&psf);
-            let (first, last) = self.restore_region(&view, clip, deblur)?;
+            let diff = veil_removed_region(gray, &bl_coarse_f, r)?;
+            // The PSF's width from the region's own edges when they tell
+            // (else Eq. (14)'s σ from c), see `psf::edge_blur_sigma_px`.
+            let region_psf = if self.params.psf_sigma_from_image && denoise_sigma == 0.0 {
+                let est = psf::edge_blur_sigma_px(&diff, water.noise_sigma)?;
+                if let Some(s) = est {
+                    measured_sigma.push(s);
+                }
+                // The estimate reads the sharpest component of the blur (a
+                // sharp unscattered core under a wide halo reads narrow), so
+                // it only overrides Eq. (14) when it finds the edges much
+                // sharper than Eq. (14)'s σ.
+                let trusted = est.filter(|s| *s < self.params.psf_trust_ratio * psf.sigma_px);
+                GgPsf {
+                    p: psf.p,
+                    sigma_px: trusted.map_or(psf.sigma_px, |s| s.max(self.params.psf_min_sigma_px)),
+                }
+            } else {
+                psf
+            };
+            // In a denoised region the NSR is the white-noise one of the
+            // region before smoothing (measured after it, the noise looks
+            // small and the filter would sharpen it back).
+            let nsr = if denoise_sigma > 0.0 {
+                let (mut mean, mut std) = (core::Scalar::default(), core::Scalar::default());
+                core::mean_std_dev(&diff, &mut mean, &mut std, &core::no_array())?;
+                let k =
+                    self.params.nsr_gain * water.noise_sigma.powi(2) / (std[0] * std[0]).max(1e-6);
+                Some(k.clamp(self.params.nsr_min, self.params.nsr_max))
+            } else {
+                None
+            };
+            let view = finish_region(diff, gain, denoise_sigma)?;
+            // Denoised regions are deconvolved too, with the NSR of the
+            // region before smoothing (`deconv_when_denoised`); measured on the
+            // smoothed region the NSR is small and the filter sharpens the
+            // noise back (calibrated water, 12.20 /m: detection 0.20).
+            let deblur = (c >= self.params.deconv_min_c_per_m
+                && (denoise_sigma == 0.0 || self.params.deconv_when_denoised))
+                .then_some(&region_psf);
+            // A region smoothed by σ ≥ 2 px has nothing left above the half
+            // level's Nyquist frequency (a Gaussian of σ 2 passes 0.7 % at
+            // 1/4 cycle/px): deconvolve it there, on 4x smaller DFTs.
+            let level = if denoise_sigma >= 2.0 {
+                self.params
+                    .deconv_level
+                    .max(self.params.denoised_deconv_level)
+            } else {
+                self.params.deconv_level
+            };
+            let (first, last) = self.restore_region(&view, clip, deblur, nsr, level)?;
             feather_into(&mut image, &last, r, frame)?;
             if let Some(st) = first_stage.as_mut() {
                 feather_into(st, &first, r, frame)?;
@@ -403,6 +483,8 @@ impl Hoirm {
             gain,
             clahe_clip: clip,
             psf,
+            denoise_sigma_px: denoise_sigma,
+            measured_psf_sigma_px: measured_sigma.first().copied(),
         };
         Ok((restored, frame_params))
     }
@@ -416,6 +498,57 @@ impl Restorer for Hoirm {
     fn restore(&mut self, gray: &Mat, stamp_ns: u64) -> Result<Restored, RestoreError> {
         Ok(self.restore_with_params(gray, stamp_ns)?.0)
     }
+}
+
+/// `I − B_L` on region `r` of the frame `gray`, in f32: `B_L` is
+/// interpolated bilinearly from its coarse level `bl_coarse` (f32, the frame
+/// divided into `bl_coarse`'s grid) exactly as a full-resolution
+/// `INTER_LINEAR` resize would, without rounding it to whole grey levels
+/// first (after a gain of up to 6 and CLAHE, 1-DN steps of the veil become
+/// contour bands as strong as a turbid marker's edges).
+fn veil_removed_region(gray: &Mat, bl_coarse: &Mat, r: Rect) -> Result<Mat, RestoreError> {
+    let sx = f64::from(gray.cols()) / f64::from(bl_coarse.cols());
+    let sy = f64::from(gray.rows()) / f64::from(bl_coarse.rows());
+    // Destination pixel (x, y) of the region ↦ coarse (source) coordinates.
+    let m = Mat::from_slice_2d(&[
+        [1.0 / sx, 0.0, (f64::from(r.x) + 0.5) / sx - 0.5],
+        [0.0, 1.0 / sy, (f64::from(r.y) + 0.5) / sy - 0.5],
+    ])?;
+    let mut bl = Mat::default();
+    imgproc::warp_affine(
+        bl_coarse,
+        &mut bl,
+        &m,
+        r.size(),
+        imgproc::INTER_LINEAR | imgproc::WARP_INVERSE_MAP,
+        core::BORDER_REPLICATE,
+        core::Scalar::default(),
+    )?;
+    let mut region = Mat::default();
+    Mat::roi(gray, r)?.convert_to(&mut region, CV_32F, 1.0, 0.0)?;
+    let mut diff = Mat::default();
+    core::subtract(&region, &bl, &mut diff, &core::no_array(), -1)?;
+    Ok(diff)
+}
+
+/// `gain·diff` (f32) smoothed with a Gaussian of `denoise_sigma` px when
+/// > 0, rounded to 8 bits.
+fn finish_region(mut diff: Mat, gain: f64, denoise_sigma: f64) -> Result<Mat, RestoreError> {
+    if denoise_sigma > 0.0 {
+        let mut smooth = Mat::default();
+        imgproc::gaussian_blur(
+            &diff,
+            &mut smooth,
+            core::Size::new(0, 0),
+            denoise_sigma,
+            denoise_sigma,
+            core::BORDER_REFLECT_101,
+        )?;
+        diff = smooth;
+    }
+    let mut out = Mat::default();
+    diff.convert_to(&mut out, CV_8U, gain, 0.0)?;
+    Ok(out)
 }
 
 /// Paste `region` (the size of `r`) into `dst` at `r`, blending linearly
@@ -459,7 +592,50 @@ fn feather_into(dst: &mut Mat, region: &Mat, r: Rect, frame: Rect) -> Result<(),
 #[cfg(test)]
 mod tests {
     use super::*;
-    use opencv::core::{Scalar, CV_8UC1};
+    use opencv::core::{Scalar, Size, CV_32FC1, CV_8UC1};
+
+    /// The veil removed from a region is the full-frame bilinear up-sampling
+    /// of the coarse ambient light, in f32: no whole-level steps, which a
+    /// gain of 6 would turn into 6-level contour bands.
+    #[test]
+    fn veil_removal_in_a_region_matches_the_full_frame_and_has_no_steps() {
+        let mut bl = Mat::new_rows_cols_with_default(30, 40, CV_32FC1, Scalar::all(0.0)).unwrap();
+        for y in 0..30 {
+            for (x, v) in bl.at_row_mut::<f32>(y).unwrap().iter_mut().enumerate() {
+                *v = 100.3 + 0.37 * x as f32 + 0.21 * y as f32;
+            }
+        }
+        let gray = Mat::new_rows_cols_with_default(240, 320, CV_8UC1, Scalar::all(150.0)).unwrap();
+        let mut full = Mat::default();
+        imgproc::resize(
+            &bl,
+            &mut full,
+            Size::new(320, 240),
+            0.0,
+            0.0,
+            imgproc::INTER_LINEAR,
+        )
+        .unwrap();
+        let r = Rect::new(37, 53, 101, 77);
+        let diff = veil_removed_region(&gray, &bl, r).unwrap();
+        for y in 0..r.height {
+            for x in 0..r.width {
+                let want = 150.0 - *full.at_2d::<f32>(r.y + y, r.x + x).unwrap();
+                let got = *diff.at_2d::<f32>(y, x).unwrap();
+                assert!((want - got).abs() < 1e-3, "({x}, {y}): {got} vs {want}");
+            }
+        }
+        let out = finish_region(diff, 6.0, 0.0).unwrap();
+        for y in 0..r.height {
+            let row = out.at_row::<u8>(y).unwrap();
+            for w in row.windows(2) {
+                assert!(
+                    (i32::from(w[1]) - i32::from(w[0])).abs() <= 1,
+                    "row {y}: {w:?}"
+                );
+            }
+        }
+    }
 
     #[test]
     fn feathered_region_has_no_step_at_its_border_but_keeps_frame_sides() {

@@ -125,6 +125,29 @@ pub fn psf_sigma_px(p: f64, params: &RestoreParams) -> f64 {
     params.psf_px_per_unit / (2.0 * p.sqrt())
 }
 
+/// σ (full-resolution pixels) of the Gaussian that smooths the regions
+/// before the local stretch, 0 for none: the estimated edge step over noise
+/// `ΔI/σ_n` must reach `denoise_edge_snr` after smoothing, and a Gaussian of
+/// σ divides white noise by `2√π·σ` (its noise-equivalent area is `4πσ²`)
+/// while leaving a step of modules much wider than σ intact.
+pub fn denoise_sigma_px(water: &WaterEstimate, params: &RestoreParams) -> f64 {
+    if params.denoise_edge_snr <= 0.0 || params.denoise_max_sigma_px <= 0.0 {
+        return 0.0;
+    }
+    let snr = water.local_contrast / water.noise_sigma.max(QUANTIZATION_SIGMA);
+    let sigma = params.denoise_edge_snr / (2.0 * std::f64::consts::PI.sqrt() * snr.max(1e-6));
+    if sigma < params.denoise_min_sigma_px {
+        0.0
+    } else {
+        sigma.min(params.denoise_max_sigma_px)
+    }
+}
+
+/// The factor by which a Gaussian of `sigma_px` divides white noise (≥ 1).
+pub fn noise_reduction(sigma_px: f64) -> f64 {
+    (2.0 * std::f64::consts::PI.sqrt() * sigma_px).max(1.0)
+}
+
 /// HOIRM's CLAHE clip limit for water of attenuation `c`: more veil, more
 /// stretch allowed.
 pub fn clahe_clip(c_per_m: f64, params: &RestoreParams) -> f64 {
@@ -259,6 +282,39 @@ mod tests {
             }
         }
         assert!(noise_sigma(&m, 1).unwrap() <= QUANTIZATION_SIGMA + 1e-12);
+    }
+
+    #[test]
+    fn denoising_is_off_for_strong_edges_and_grows_as_they_sink_into_noise() {
+        let params = RestoreParams::default();
+        let water = |contrast: f64, noise: f64| WaterEstimate {
+            backscatter: 110.0,
+            bright: 140.0,
+            mean: 120.0,
+            veil_fraction: 0.8,
+            contrast: 0.1,
+            noise_sigma: noise,
+            local_contrast: contrast,
+            c_per_m: 10.0,
+        };
+        // Edge step / noise 26: no smoothing.
+        assert_eq!(denoise_sigma_px(&water(26.0, 1.0), &params), 0.0);
+        // 3.4 (calibrated water at 12.20 /m): σ with the target met.
+        let s = denoise_sigma_px(&water(3.6, 1.05), &params);
+        assert!(
+            s > params.denoise_min_sigma_px && s < params.denoise_max_sigma_px,
+            "{s}"
+        );
+        let snr_after = 3.6 / 1.05 * noise_reduction(s);
+        assert!(
+            (snr_after - params.denoise_edge_snr).abs() < 1e-6,
+            "{snr_after}"
+        );
+        // Nothing contrasted: the largest σ.
+        assert_eq!(
+            denoise_sigma_px(&water(0.0, 1.0), &params),
+            params.denoise_max_sigma_px
+        );
     }
 
     #[test]
