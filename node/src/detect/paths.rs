@@ -86,7 +86,20 @@ pub fn detect_paths(
             };
             let mut frame = Mat::default();
             let mut idx = 0usize;
-            while cap.read(&mut frame).unwrap_or(false) && !frame.empty() {
+            let mut read_failed = false;
+            loop {
+                match cap.read(&mut frame) {
+                    Ok(true) if !frame.empty() => {}
+                    // The end of the stream.
+                    Ok(_) => break,
+                    // A decoder error mid-stream: say where, keep what was read.
+                    Err(e) => {
+                        sum.errors += 1;
+                        emit_error(out, format!("video read failed after frame {idx}: {e}"))?;
+                        read_failed = true;
+                        break;
+                    }
+                }
                 let gray = to_gray(&frame)?;
                 sum.frames += 1;
                 sum.detections += detect_one(
@@ -99,6 +112,10 @@ pub fn detect_paths(
                     out,
                 )?;
                 idx += 1;
+            }
+            if idx == 0 && !read_failed {
+                sum.errors += 1;
+                emit_error(out, "opened as a video, but it has no frames".into())?;
             }
         } else {
             let img = match imgcodecs::imread(&source, imgcodecs::IMREAD_GRAYSCALE) {

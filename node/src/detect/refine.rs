@@ -130,18 +130,43 @@ pub fn refine_by_edge_lines(
     module_px: f64,
     polarity: Polarity,
 ) -> Option<[Px; 4]> {
+    edge_line_passes(view, quad, module_px, polarity, &PASSES)
+}
+
+/// Pass 1 searches ±0.45 module around the contour estimate, pass 2 ±0.3
+/// module around pass 1. The contour corners are within a few pixels
+/// (half-resolution contours, polygon approximation), so the first search is
+/// capped at 6 px; the second only needs to cover the first fit's error.
+/// Pass 1 samples every 3rd pixel along the side (it only has to get close);
+/// pass 2 uses every pixel, which is where the precision comes from.
+/// `(fraction of a module, cap px, spacing px)`.
+const PASSES: [(f64, f64, f64); 2] = [(0.45, 6.0, 3.0), (0.3, 2.5, 1.0)];
+
+/// Only the coarse pass of [`refine_by_edge_lines`]: the start of the
+/// step-edge model fit ([`super::edge_model`]), which replaces the fine pass.
+pub fn refine_by_edge_lines_coarse(
+    view: &GrayView<'_>,
+    quad: &[Px; 4],
+    module_px: f64,
+    polarity: Polarity,
+) -> Option<[Px; 4]> {
+    // The fine fit starts from this: every 8th pixel along a side is enough.
+    edge_line_passes(view, quad, module_px, polarity, &[(0.45, 6.0, 8.0)])
+}
+
+fn edge_line_passes(
+    view: &GrayView<'_>,
+    quad: &[Px; 4],
+    module_px: f64,
+    polarity: Polarity,
+    passes: &[(f64, f64, f64)],
+) -> Option<[Px; 4]> {
     let sign = match polarity {
         Polarity::DarkInside => 1.0,
         Polarity::BrightInside => -1.0,
     };
     let mut cur = *quad;
-    // Pass 1 searches ±0.45 module around the contour estimate, pass 2 ±0.3 module around pass 1.
-    // The contour corners are within a few pixels (half-resolution contours,
-    // polygon approximation), so the first search is capped at 6 px; the second
-    // only needs to cover the first fit's error.
-    // Pass 1 samples every 3rd pixel along the side (it only has to get close);
-    // pass 2 uses every pixel, which is where the precision comes from.
-    for &(frac, cap, spacing) in &[(0.45, 6.0, 3.0), (0.3, 2.5, 1.0)] {
+    for &(frac, cap, spacing) in passes {
         let half = (frac * module_px).min(cap).max(1.5);
         let mut lines = [None; 4];
         for i in 0..4 {
