@@ -540,11 +540,7 @@ impl ShoalDetector {
             return None;
         }
         let coarse = refine::refine_by_edge_lines_coarse(view, &pred, module_px, polarity)?;
-        let sign = match polarity {
-            Polarity::DarkInside => 1.0,
-            Polarity::BrightInside => -1.0,
-        };
-        let fit = edge_model::fit_square(view, &coarse, module_px, sign)?;
+        let fit = edge_model::fit_square(view, &coarse, module_px, polarity.sign())?;
         if fit.min_contrast() < 0.5 * code_contrast {
             return None;
         }
@@ -611,11 +607,7 @@ impl ShoalDetector {
                 else {
                     return (*quad, None);
                 };
-                let sign = match polarity {
-                    Polarity::DarkInside => 1.0,
-                    Polarity::BrightInside => -1.0,
-                };
-                let fit = edge_model::fit_square(view, &coarse, module_px, sign);
+                let fit = edge_model::fit_square(view, &coarse, module_px, polarity.sign());
                 match fit.as_ref().and_then(|f| f.corners(None)) {
                     Some(c) => (c, fit),
                     None => (coarse, None),

@@ -21,6 +21,17 @@ pub enum Polarity {
     BrightInside,
 }
 
+impl Polarity {
+    /// +1 for a dark inside, −1 for a bright one: the sign of the grey-level
+    /// step when leaving the square (the step model's `sign`).
+    pub fn sign(self) -> f64 {
+        match self {
+            Polarity::DarkInside => 1.0,
+            Polarity::BrightInside => -1.0,
+        }
+    }
+}
+
 /// The strongest edge along a profile through `base` in direction `n`,
 /// searched over `[-half, half]` px: sub-pixel offset and gradient strength.
 fn edge_on_profile(
@@ -161,10 +172,7 @@ fn edge_line_passes(
     polarity: Polarity,
     passes: &[(f64, f64, f64)],
 ) -> Option<[Px; 4]> {
-    let sign = match polarity {
-        Polarity::DarkInside => 1.0,
-        Polarity::BrightInside => -1.0,
-    };
+    let sign = polarity.sign();
     let mut cur = *quad;
     for &(frac, cap, spacing) in passes {
         let half = (frac * module_px).min(cap).max(1.5);
