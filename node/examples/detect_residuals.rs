@@ -55,6 +55,9 @@ fn main() -> anyhow::Result<()> {
     // Distance (m) and platform yaw (deg) other than the accuracy test's 0.61 / 30.
     let dist_m: f64 = std::env::var("SHOAL_PROBE_DIST").map_or(Ok(0.61), |s| s.parse())?;
     let yaw_deg: f64 = std::env::var("SHOAL_PROBE_YAW").map_or(Ok(30.0), |s| s.parse())?;
+    // Another code set on the same footprint (e.g. `aruco4x4_50`), read by shoal's detector.
+    let codes: CodeSet =
+        std::env::var("SHOAL_PROBE_CODES").map_or(Ok(CodeSet::Shoal), |s| s.parse())?;
     let cam = CameraModel::vehicle_1440();
     let mut water = WaterParams::preset(c);
     if noiseless {
@@ -91,7 +94,7 @@ fn main() -> anyhow::Result<()> {
     ];
     let mut dets: Vec<ShoalDetector> = variants
         .iter()
-        .map(|(_, p)| ShoalDetector::new(CodeSet::Shoal, p.clone()))
+        .map(|(_, p)| ShoalDetector::new(codes, p.clone()))
         .collect();
     let mut stats: Vec<Stats> = variants
         .iter()
@@ -121,7 +124,7 @@ fn main() -> anyhow::Result<()> {
                 rng.gen_range(-j..j),
             ],
         );
-        let scene = Scene::single_marker(CodeSet::Shoal, 17, SIDE_M, truth);
+        let scene = Scene::single_marker(codes, 17, SIDE_M, truth);
         let out = renderer.render(
             &cam,
             &Pose::identity(),
@@ -132,7 +135,7 @@ fn main() -> anyhow::Result<()> {
         )?;
         let mat = shoal_node::mat::gray_as_mat(&out.image)?.clone_pointee();
         let restored = rest.restore(&mat, (k as u64) * 100_000_000)?.image;
-        let true_px: Vec<[f64; 2]> = CodeSet::Shoal
+        let true_px: Vec<[f64; 2]> = codes
             .corners_3d(SIDE_M)
             .iter()
             .map(|p| {
