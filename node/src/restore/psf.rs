@@ -302,25 +302,7 @@ pub const BLUR_PROBE_SCALES_PX: (f64, f64) = (1.5, 4.0);
 /// Gradient energy `Σ|∇(img ∗ G_s)|²` of an f32 image (Sobel / 8: a
 /// derivative per pixel).
 fn gradient_energy(img: &Mat, s: f64) -> Result<f64, RestoreError> {
-    let mut g = Mat::default();
-    opencv::imgproc::gaussian_blur(img, &mut g, core::Size::new(0, 0), s, s, BORDER_REFLECT_101)?;
-    let mut e = 0.0;
-    for (dx, dy) in [(1, 0), (0, 1)] {
-        let mut d = Mat::default();
-        opencv::imgproc::sobel(
-            &g,
-            &mut d,
-            CV_32F,
-            dx,
-            dy,
-            3,
-            1.0 / 8.0,
-            0.0,
-            BORDER_REFLECT_101,
-        )?;
-        e += d.dot(&d)?;
-    }
-    Ok(e)
+    blurred_gradient_energy(img, s, BORDER_REFLECT_101)
 }
 
 /// Per-pixel gradient energy of unit white noise after the same operators.
@@ -329,29 +311,17 @@ fn noise_gradient_factor(s: f64) -> Result<f64, RestoreError> {
     let n = 2 * half + 1;
     let mut delta = Mat::new_rows_cols_with_default(n, n, CV_32FC1, Scalar::all(0.0))?;
     *delta.at_2d_mut::<f32>(half, half)? = 1.0;
+    blurred_gradient_energy(&delta, s, core::BORDER_CONSTANT)
+}
+
+/// `Σ|∇(img ∗ G_s)|²` with the given border handling (Sobel / 8).
+fn blurred_gradient_energy(img: &Mat, s: f64, border: i32) -> Result<f64, RestoreError> {
     let mut g = Mat::default();
-    opencv::imgproc::gaussian_blur(
-        &delta,
-        &mut g,
-        core::Size::new(0, 0),
-        s,
-        s,
-        core::BORDER_CONSTANT,
-    )?;
+    opencv::imgproc::gaussian_blur(img, &mut g, core::Size::new(0, 0), s, s, border)?;
     let mut e = 0.0;
     for (dx, dy) in [(1, 0), (0, 1)] {
         let mut d = Mat::default();
-        opencv::imgproc::sobel(
-            &g,
-            &mut d,
-            CV_32F,
-            dx,
-            dy,
-            3,
-            1.0 / 8.0,
-            0.0,
-            core::BORDER_CONSTANT,
-        )?;
+        opencv::imgproc::sobel(&g, &mut d, CV_32F, dx, dy, 3, 1.0 / 8.0, 0.0, border)?;
         e += d.dot(&d)?;
     }
     Ok(e)
