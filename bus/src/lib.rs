@@ -15,10 +15,12 @@ pub mod acl;
 pub mod clock;
 pub mod queue;
 pub mod relay;
+pub mod worker;
 
 pub use clock::{Clock, ManualClock, WallClock};
 
 pub use queue::{DropOldestQueue, PopError};
+pub use worker::Worker;
 
 use shoal_proto::codec::{self, DecodeError};
 use shoal_proto::messages::WireMessage;

@@ -6,10 +6,9 @@
 use crate::{Fusion, FusionParams, FusionStats, MapView};
 use proto::config::Fleet;
 use proto::{FleetMap, KeyKind, Observation, VehicleId};
-use shoal_bus::{Bus, BusError, Clock, DropOldestQueue, Publisher, Subscription};
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use shoal_bus::{Bus, BusError, Clock, DropOldestQueue, Publisher, Subscription, Worker};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
-use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 /// Central (ground station) or on one vehicle (decentralized).
@@ -34,8 +33,7 @@ pub struct FusionConfig {
 
 /// A running fusion service.
 pub struct FusionHandle {
-    stop: Arc<AtomicBool>,
-    thread: Option<JoinHandle<()>>,
+    worker: Worker,
     latest: Arc<Mutex<Option<FleetMap>>>,
     stats: Arc<Mutex<FusionStats>>,
     dropped: Arc<AtomicU64>,
@@ -70,20 +68,8 @@ impl FusionHandle {
     pub fn maps_published(&self) -> u64 {
         self.maps.load(Ordering::Relaxed)
     }
-    pub fn stop(mut self) {
-        self.shutdown();
-    }
-    fn shutdown(&mut self) {
-        self.stop.store(true, Ordering::Relaxed);
-        if let Some(t) = self.thread.take() {
-            let _ = t.join();
-        }
-    }
-}
-
-impl Drop for FusionHandle {
-    fn drop(&mut self) {
-        self.shutdown();
+    pub fn stop(self) {
+        self.worker.stop();
     }
 }
 
@@ -110,9 +96,8 @@ pub fn spawn(
     let latest_bytes: Arc<Mutex<Option<Vec<u8>>>> = Arc::default();
     let lb = latest_bytes.clone();
     let queryable = bus.serve_latest(map_key, move || lb.lock().ok().and_then(|g| g.clone()))?;
-    let stop = Arc::new(AtomicBool::new(false));
     let stats: Arc<Mutex<FusionStats>> = Arc::default();
-    let (stop2, latest2, stats2) = (stop.clone(), latest.clone(), stats.clone());
+    let (latest2, stats2) = (latest.clone(), stats.clone());
     let (dropped, maps) = (Arc::new(AtomicU64::new(0)), Arc::new(AtomicU64::new(0)));
     let (dropped2, maps2) = (dropped.clone(), maps.clone());
     let rejected = Arc::new(AtomicU64::new(0));
@@ -120,65 +105,62 @@ pub fn spawn(
     let mut fusion = Fusion::new(&cfg.fleet, cfg.params, &producer);
     let period = Duration::from_secs_f64(1.0 / cfg.rate_hz.max(0.1));
     let bus = bus.clone();
-    let thread = std::thread::Builder::new()
-        .name(format!("fusion-{producer}"))
-        .spawn(move || {
-            let _keep = (watch, queryable, bus);
-            let mut next = Instant::now();
-            while !stop2.load(Ordering::Relaxed) {
-                let now = clock.now_ns();
-                for (key, alive) in liveliness.drain() {
-                    if let Ok(KeyKind::Alive { vehicle }) = keys.parse(&key) {
-                        fusion.set_alive(vehicle, alive, now);
-                    }
+    let worker = Worker::spawn(format!("fusion-{producer}"), move |stop2| {
+        let _keep = (watch, queryable, bus);
+        let mut next = Instant::now();
+        while !stop2.load(Ordering::Relaxed) {
+            let now = clock.now_ns();
+            for (key, alive) in liveliness.drain() {
+                if let Ok(KeyKind::Alive { vehicle }) = keys.parse(&key) {
+                    fusion.set_alive(vehicle, alive, now);
                 }
-                dropped2.store(observations.dropped(), Ordering::Relaxed);
-                rejected2.store(observations.stats().rejected(), Ordering::Relaxed);
-                for r in observations.drain() {
-                    match keys.parse(&r.key) {
-                        Ok(KeyKind::Observations { vehicle }) => {
-                            if let Err(reason) = fusion.ingest(r.msg, vehicle, now) {
-                                tracing::debug!("observation on {} rejected: {reason:?}", r.key);
-                            }
-                        }
-                        _ => tracing::warn!("observation on unexpected key {}", r.key),
-                    }
-                }
-                if Instant::now() >= next {
-                    next += period;
-                    let map = fusion.solve(now);
-                    match proto::encode(&map) {
-                        Ok(bytes) => {
-                            match publisher.put_bytes(bytes.clone()) {
-                                Ok(()) => {
-                                    maps2.fetch_add(1, Ordering::Relaxed);
-                                }
-                                Err(e) => tracing::warn!("publishing map: {e}"),
-                            }
-                            if let Ok(mut g) = latest_bytes.lock() {
-                                *g = Some(bytes);
-                            }
-                        }
-                        Err(e) => tracing::error!("encoding map: {e}"),
-                    }
-                    if let Ok(mut g) = latest2.lock() {
-                        *g = Some(map);
-                    }
-                    if let Ok(mut g) = stats2.lock() {
-                        *g = fusion.stats();
-                    }
-                    // Don't try to catch up after a stall: one map per period at most.
-                    if next < Instant::now() {
-                        next = Instant::now() + period;
-                    }
-                }
-                std::thread::sleep(Duration::from_millis(5).min(period));
             }
-        })
-        .map_err(|e| BusError::Open(format!("cannot start fusion thread: {e}")))?;
+            dropped2.store(observations.dropped(), Ordering::Relaxed);
+            rejected2.store(observations.stats().rejected(), Ordering::Relaxed);
+            for r in observations.drain() {
+                match keys.parse(&r.key) {
+                    Ok(KeyKind::Observations { vehicle }) => {
+                        if let Err(reason) = fusion.ingest(r.msg, vehicle, now) {
+                            tracing::debug!("observation on {} rejected: {reason:?}", r.key);
+                        }
+                    }
+                    _ => tracing::warn!("observation on unexpected key {}", r.key),
+                }
+            }
+            if Instant::now() >= next {
+                next += period;
+                let map = fusion.solve(now);
+                match proto::encode(&map) {
+                    Ok(bytes) => {
+                        match publisher.put_bytes(bytes.clone()) {
+                            Ok(()) => {
+                                maps2.fetch_add(1, Ordering::Relaxed);
+                            }
+                            Err(e) => tracing::warn!("publishing map: {e}"),
+                        }
+                        if let Ok(mut g) = latest_bytes.lock() {
+                            *g = Some(bytes);
+                        }
+                    }
+                    Err(e) => tracing::error!("encoding map: {e}"),
+                }
+                if let Ok(mut g) = latest2.lock() {
+                    *g = Some(map);
+                }
+                if let Ok(mut g) = stats2.lock() {
+                    *g = fusion.stats();
+                }
+                // Don't try to catch up after a stall: one map per period at most.
+                if next < Instant::now() {
+                    next = Instant::now() + period;
+                }
+            }
+            std::thread::sleep(Duration::from_millis(5).min(period));
+        }
+    })
+    .map_err(|e| BusError::Open(format!("cannot start fusion thread: {e}")))?;
     Ok(FusionHandle {
-        stop,
-        thread: Some(thread),
+        worker,
         latest,
         stats,
         dropped,

@@ -8,6 +8,7 @@
 //! (the `foxglove` server brings tokio, but exposes no HTTP routing).
 
 use crate::StationError;
+use shoal_bus::Worker;
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::{SocketAddr, TcpListener, TcpStream};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
@@ -72,8 +73,7 @@ impl Hub {
 #[derive(Debug)]
 pub struct HttpServer {
     pub addr: SocketAddr,
-    stop: Arc<AtomicBool>,
-    thread: Option<std::thread::JoinHandle<()>>,
+    worker: Worker,
 }
 
 impl HttpServer {
@@ -97,36 +97,17 @@ impl HttpServer {
                 addr,
                 source,
             })?;
-        let stop = Arc::new(AtomicBool::new(false));
         let open = Arc::new(AtomicUsize::new(0));
-        let st = stop.clone();
-        let thread = std::thread::Builder::new()
-            .name("station-http".into())
-            .spawn(move || accept_loop(listener, hub, st, open))
-            .map_err(|e| StationError::Thread(e.to_string()))?;
-        Ok(HttpServer {
-            addr,
-            stop,
-            thread: Some(thread),
+        let worker = Worker::spawn("station-http", move |st| {
+            accept_loop(listener, hub, st, open)
         })
+        .map_err(|e| StationError::Thread(e.to_string()))?;
+        Ok(HttpServer { addr, worker })
     }
 
     /// Stop accepting; open event streams end within one keep-alive period (2 s).
-    pub fn stop(mut self) {
-        self.shutdown();
-    }
-
-    fn shutdown(&mut self) {
-        self.stop.store(true, Ordering::Relaxed);
-        if let Some(t) = self.thread.take() {
-            let _ = t.join();
-        }
-    }
-}
-
-impl Drop for HttpServer {
-    fn drop(&mut self) {
-        self.shutdown();
+    pub fn stop(self) {
+        self.worker.stop();
     }
 }
 

@@ -24,7 +24,7 @@ pub mod view;
 
 use proto::config::Fleet;
 use proto::{FleetMap, KeyKind, NodeStatus, Observation, SimTruth, VehicleId};
-use shoal_bus::{Bus, Declaration, Subscription};
+use shoal_bus::{Bus, Declaration, Subscription, Worker};
 use std::collections::{BTreeMap, VecDeque};
 use std::net::{IpAddr, Ipv4Addr, SocketAddr};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -88,10 +88,10 @@ const MAP_HISTORY: usize = 32;
 
 /// A running station.
 pub struct StationHandle {
+    // Dropped in this order: the station thread first, then the page server.
+    worker: Worker,
     http: http::HttpServer,
     foxglove_port: Option<u16>,
-    stop: Arc<AtomicBool>,
-    thread: Option<std::thread::JoinHandle<()>>,
     hub: Arc<http::Hub>,
 }
 
@@ -126,21 +126,9 @@ impl StationHandle {
     }
 
     /// Stop both servers and the Zenoh subscriptions.
-    pub fn stop(mut self) {
-        self.shutdown();
-    }
-
-    fn shutdown(&mut self) {
-        self.stop.store(true, Ordering::Relaxed);
-        if let Some(t) = self.thread.take() {
-            let _ = t.join();
-        }
-    }
-}
-
-impl Drop for StationHandle {
-    fn drop(&mut self) {
-        self.shutdown();
+    pub fn stop(self) {
+        self.worker.stop();
+        self.http.stop();
     }
 }
 
@@ -208,33 +196,28 @@ pub fn spawn(
     // The thread owns a clone of the session: callers may drop theirs (the
     // session closes with its last clone, and the subscriptions with it).
     let session = bus.clone();
-    let stop = Arc::new(AtomicBool::new(false));
-    let (st, h) = (stop.clone(), hub.clone());
+    let h = hub.clone();
     let period = Duration::from_secs_f64(1.0 / cfg.rate_hz);
-    let thread = std::thread::Builder::new()
-        .name("station".into())
-        .spawn(move || {
-            let mut heard = Heard {
-                maps: VecDeque::new(),
-                truths: VecDeque::new(),
-                nodes: BTreeMap::new(),
-            };
-            // A station started mid-trial shows the current map at once.
-            match session.query_latest::<FleetMap>(&fleet.keys().map(), Duration::from_millis(500))
-            {
-                Ok(Some(m)) => heard.maps.push_back((m, Instant::now())),
-                Ok(None) => {}
-                Err(e) => tracing::debug!("station: map query: {e}"),
-            }
-            run(&fleet, feeds, foxglove, &mut heard, &h, &st, period);
-            drop(session);
-        })
-        .map_err(|e| StationError::Thread(e.to_string()))?;
+    let worker = Worker::spawn("station", move |st| {
+        let mut heard = Heard {
+            maps: VecDeque::new(),
+            truths: VecDeque::new(),
+            nodes: BTreeMap::new(),
+        };
+        // A station started mid-trial shows the current map at once.
+        match session.query_latest::<FleetMap>(&fleet.keys().map(), Duration::from_millis(500)) {
+            Ok(Some(m)) => heard.maps.push_back((m, Instant::now())),
+            Ok(None) => {}
+            Err(e) => tracing::debug!("station: map query: {e}"),
+        }
+        run(&fleet, feeds, foxglove, &mut heard, &h, &st, period);
+        drop(session);
+    })
+    .map_err(|e| StationError::Thread(e.to_string()))?;
     Ok(StationHandle {
+        worker,
         http,
         foxglove_port,
-        stop,
-        thread: Some(thread),
         hub,
     })
 }
