@@ -5,6 +5,7 @@
 //! bias (mean corner error over frames) from noise (its spread).
 //!
 //! `cargo run --release -p shoal-node --example detect_residuals -- [c_per_m] [frames] [none|hoirm] [noiseless]`
+//! (`edge-model-raw`: detected on the restoration, fitted on the raw frame, the node's default).
 //! (`SHOAL_PROBE_DIST=2.25 SHOAL_PROBE_YAW=0` for another distance or yaw).
 
 use rand::{Rng, SeedableRng};
@@ -77,6 +78,7 @@ fn main() -> anyhow::Result<()> {
     }
     let variants: Vec<(String, DetectParams)> = vec![
         ("edge-model".into(), DetectParams::default()),
+        ("edge-model-raw".into(), DetectParams::default()),
         (
             "edge-lines".into(),
             DetectParams {
@@ -145,7 +147,11 @@ fn main() -> anyhow::Result<()> {
             .collect();
         for (det, st) in dets.iter_mut().zip(stats.iter_mut()) {
             let t0 = std::time::Instant::now();
-            let found = det.detect_in(&restored)?;
+            let found = if st.label.ends_with("-raw") {
+                det.detect_with_raw_fit(&restored, &mat)?
+            } else {
+                det.detect_in(&restored)?
+            };
             st.ms += t0.elapsed().as_secs_f64() * 1e3;
             let Some(d) = found
                 .iter()
@@ -176,7 +182,28 @@ fn main() -> anyhow::Result<()> {
                 }
                 s.2 += 1;
             }
-            match estimate_pose(&cam, &d.object_points(SIDE_M), &d.corners_px, None) {
+            // `SHOAL_PROBE_SQUARES=0,1`: the pose from those squares' corners only
+            // (0 outer frame edge, 1 frame inner edge, 2 code square).
+            let keep: Vec<bool> = match std::env::var("SHOAL_PROBE_SQUARES") {
+                Ok(s) => {
+                    let sq: Vec<u8> = s.split(',').filter_map(|v| v.parse().ok()).collect();
+                    d.corner_ids.iter().map(|c| sq.contains(&(c / 4))).collect()
+                }
+                Err(_) => vec![true; d.corner_ids.len()],
+            };
+            let obj: Vec<_> = d
+                .object_points(SIDE_M)
+                .into_iter()
+                .zip(&keep)
+                .filter_map(|(p, &k)| k.then_some(p))
+                .collect();
+            let img: Vec<[f64; 2]> = d
+                .corners_px
+                .iter()
+                .zip(&keep)
+                .filter_map(|(p, &k)| k.then_some(*p))
+                .collect();
+            match estimate_pose(&cam, &obj, &img, None) {
                 Ok(sol) => {
                     let (dd, aa) = errors(&sol.best.camera_from_marker, &truth);
                     st.dist.push(dd);

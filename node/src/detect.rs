@@ -35,7 +35,10 @@
 //!    band around it, one blur pooled over the marker's twelve sides, and
 //!    adjacent lines intersected (`docs/detector.md`). A frame square that no
 //!    contour matched is refined from its prediction. The gradient-peak edge
-//!    lines ([`refine`]) remain as [`Refinement::EdgeLines`].
+//!    lines ([`refine`]) remain as [`Refinement::EdgeLines`]. Given the raw
+//!    frame beside the restored one ([`MarkerDetector::detect_restored`], the
+//!    node's pipeline), the fits use the raw pixels with the halo profile
+//!    ([`edge_model::Profile::Halo`]) and fall back to the restored frame.
 
 pub mod edge_model;
 pub mod geom;
@@ -43,6 +46,7 @@ pub mod paths;
 pub mod refine;
 
 use crate::mat::{GrayView, MatError};
+use edge_model::Profile;
 use geom::{apply, centre, dist, homography_4, mean_side, min_side, signed_area2, Px};
 use opencv::core::{Mat, Point, Size, ToInputArray, Vector};
 use opencv::imgproc;
@@ -72,6 +76,11 @@ pub enum DetectError {
     Input { path: String, reason: String },
     #[error("writing output: {0}")]
     Io(#[from] std::io::Error),
+    #[error("restored frame is {}x{} but the raw frame is {}x{}", restored.0, restored.1, raw.0, raw.1)]
+    FrameSizes {
+        restored: (usize, usize),
+        raw: (usize, usize),
+    },
 }
 
 /// One detected marker.
@@ -101,6 +110,17 @@ impl Detection {
 pub trait MarkerDetector: Send {
     fn name(&self) -> &str;
     fn detect(&mut self, gray: &Mat) -> Result<Vec<Detection>, DetectError>;
+    /// Detect in `restored`, the restoration of `raw` (same size). A
+    /// detector may take its sub-pixel measurements from the raw frame
+    /// ([`DetectParams::fit_on_raw`]); by default only `restored` is used.
+    fn detect_restored(
+        &mut self,
+        restored: &Mat,
+        raw: &Mat,
+    ) -> Result<Vec<Detection>, DetectError> {
+        let _ = raw;
+        self.detect(restored)
+    }
 }
 
 /// How corners are refined to sub-pixel precision.
@@ -149,6 +169,10 @@ pub struct DetectParams {
     /// `DICT_4X4_50`; the 1000-code table's own figure is 0).
     pub max_correction_bits: Option<u32>,
     pub refinement: Refinement,
+    /// Given the raw frame beside the restored one
+    /// ([`MarkerDetector::detect_restored`]), fit the step-edge model to the
+    /// raw frame's pixels (`docs/detector.md`, "Fitting on the raw frame").
+    pub fit_on_raw: bool,
 }
 
 impl Default for DetectParams {
@@ -167,6 +191,7 @@ impl Default for DetectParams {
             max_border_error_rate: 0.2,
             max_correction_bits: None,
             refinement: Refinement::EdgeModel,
+            fit_on_raw: true,
         }
     }
 }
@@ -524,6 +549,7 @@ impl ShoalDetector {
     fn frame_from_prediction(
         &self,
         view: &GrayView<'_>,
+        raw: Option<&GrayView<'_>>,
         code: &[Px; 4],
         code_fit: Option<&edge_model::SquareFit>,
         module_px: f64,
@@ -533,21 +559,54 @@ impl ShoalDetector {
         if self.params.refinement != Refinement::EdgeModel {
             return None;
         }
-        let code_contrast = code_fit?.min_contrast();
+        let code_fit = code_fit?;
         let pred = self.predict_frame(code, off)?;
         let margin = module_px + 4.0;
         if !pred.iter().all(|p| view.contains(p[0], p[1], margin)) {
             return None;
         }
         let coarse = refine::refine_by_edge_lines_coarse(view, &pred, module_px, polarity)?;
-        let fit = edge_model::fit_square(view, &coarse, module_px, polarity.sign())?;
-        if fit.min_contrast() < 0.5 * code_contrast {
+        // The frame is accepted on the detection image (the restored frame),
+        // where its contrast compares with the code square's.
+        let blurred = Profile::Blurred;
+        let code_contrast = if code_fit.profile() == blurred {
+            code_fit.min_contrast()
+        } else {
+            edge_model::fit_square(view, code, module_px, Polarity::DarkInside.sign(), blurred)?
+                .min_contrast()
+        };
+        let check = edge_model::fit_square(view, &coarse, module_px, polarity.sign(), blurred)?;
+        if check.min_contrast() < 0.5 * code_contrast {
             return None;
         }
-        let corners = fit.corners(None)?;
+        let (corners, fit) = match raw {
+            Some(_) => self.fit_model(view, raw, &coarse, module_px, polarity)?,
+            None => (check.corners(None)?, check),
+        };
         (0..4)
             .all(|i| dist(corners[i], pred[i]) < 0.35 * module_px)
             .then_some((corners, fit))
+    }
+
+    /// The step-edge fit of one square from its `coarse` corners: on the
+    /// raw frame with [`Profile::Halo`] when there is one, else — or when
+    /// that fit finds no edge (8.22 /m: the sharp part of a side is a few
+    /// grey levels) — on the detection image with [`Profile::Blurred`].
+    fn fit_model(
+        &self,
+        view: &GrayView<'_>,
+        raw: Option<&GrayView<'_>>,
+        coarse: &[Px; 4],
+        module_px: f64,
+        polarity: Polarity,
+    ) -> Option<([Px; 4], edge_model::SquareFit)> {
+        let sign = polarity.sign();
+        raw.and_then(|r| edge_model::fit_square(r, coarse, module_px, sign, Profile::Halo))
+            .and_then(|f| Some((f.corners(None)?, f)))
+            .or_else(|| {
+                let f = edge_model::fit_square(view, coarse, module_px, sign, Profile::Blurred)?;
+                Some((f.corners(None)?, f))
+            })
     }
 
     /// Step 4: the frame square whose corners sit `off` modules outside the
@@ -592,6 +651,7 @@ impl ShoalDetector {
         &self,
         gray: &impl ToInputArray,
         view: &GrayView<'_>,
+        raw: Option<&GrayView<'_>>,
         quad: &[Px; 4],
         module_px: f64,
         polarity: Polarity,
@@ -607,9 +667,8 @@ impl ShoalDetector {
                 else {
                     return (*quad, None);
                 };
-                let fit = edge_model::fit_square(view, &coarse, module_px, polarity.sign());
-                match fit.as_ref().and_then(|f| f.corners(None)) {
-                    Some(c) => (c, fit),
+                match self.fit_model(view, raw, &coarse, module_px, polarity) {
+                    Some((c, fit)) => (c, Some(fit)),
                     None => (coarse, None),
                 }
             }
@@ -675,6 +734,18 @@ impl MarkerDetector for ShoalDetector {
     fn detect(&mut self, gray: &Mat) -> Result<Vec<Detection>, DetectError> {
         self.detect_in(gray)
     }
+
+    fn detect_restored(
+        &mut self,
+        restored: &Mat,
+        raw: &Mat,
+    ) -> Result<Vec<Detection>, DetectError> {
+        if self.params.fit_on_raw {
+            self.detect_with_raw_fit(restored, raw)
+        } else {
+            self.detect_in(restored)
+        }
+    }
 }
 
 impl ShoalDetector {
@@ -684,6 +755,41 @@ impl ShoalDetector {
         gray: &(impl MatTraitConst + ToInputArray),
     ) -> Result<Vec<Detection>, DetectError> {
         let view = GrayView::new(gray)?;
+        self.detect_views(gray, &view, None)
+    }
+
+    /// Detect in `restored` and fit the corners' step-edge model
+    /// ([`Refinement::EdgeModel`]) to `raw`, the same frame before
+    /// restoration: quads, codes and the coarse edge lines come from the
+    /// restored frame, where the marker stands out, while the sub-pixel
+    /// fit uses the camera's own pixels: their noise is white and their
+    /// edge profile is the optics' blur, neither reshaped by a local
+    /// contrast stretch nor smoothed by denoising (`docs/detector.md`,
+    /// "Fitting on the raw frame"). Other refinements use `restored` only.
+    pub fn detect_with_raw_fit(
+        &mut self,
+        restored: &(impl MatTraitConst + ToInputArray),
+        raw: &(impl MatTraitConst + ToInputArray),
+    ) -> Result<Vec<Detection>, DetectError> {
+        let view = GrayView::new(restored)?;
+        let fit_view = GrayView::new(raw)?;
+        if (fit_view.width, fit_view.height) != (view.width, view.height) {
+            return Err(DetectError::FrameSizes {
+                restored: (view.width, view.height),
+                raw: (fit_view.width, fit_view.height),
+            });
+        }
+        self.detect_views(restored, &view, Some(&fit_view))
+    }
+
+    /// Steps 1–5 on `view` (the image `gray`), the step-edge fits on `raw` when given.
+    fn detect_views(
+        &mut self,
+        gray: &(impl MatTraitConst + ToInputArray),
+        view: &GrayView<'_>,
+        raw: Option<&GrayView<'_>>,
+    ) -> Result<Vec<Detection>, DetectError> {
+        let view = *view;
         if self.rotated.is_empty() {
             return Err(DetectError::NoCodes {
                 set: self.codes.name(),
@@ -691,7 +797,7 @@ impl ShoalDetector {
         }
         let mut quads = self.find_quads(gray)?;
         let mut found: Vec<Found> = Vec::new();
-        let undecoded = self.decode_quads(gray, &view, &quads, &mut found);
+        let undecoded = self.decode_quads(gray, &view, raw, &quads, &mut found);
         if gray.cols() > self.params.full_res_max_width && self.params.max_full_res_regions > 0 {
             // Quads inside a marker already read are its frame: nothing more to find there.
             let inside_found = |q: &Quad| {
@@ -702,11 +808,11 @@ impl ShoalDetector {
                 undecoded.into_iter().filter(|q| !inside_found(q)).collect();
             if !candidates.is_empty() {
                 let extra = self.full_res_quads(&view, &candidates, &quads)?;
-                self.decode_quads(gray, &view, &extra, &mut found);
+                self.decode_quads(gray, &view, raw, &extra, &mut found);
                 quads.extend(extra);
             }
         }
-        self.assemble(gray, &view, found, &quads)
+        self.assemble(gray, &view, raw, found, &quads)
     }
 
     /// Step 3 and the code square's refinement over `quads`, merged into
@@ -718,6 +824,7 @@ impl ShoalDetector {
         &self,
         gray: &(impl MatTraitConst + ToInputArray),
         view: &GrayView<'_>,
+        raw: Option<&GrayView<'_>>,
         quads: &[Quad],
         found: &mut Vec<Found>,
     ) -> Vec<Quad> {
@@ -736,7 +843,8 @@ impl ShoalDetector {
             {
                 continue;
             }
-            let (fine, fit) = self.refine(gray, view, &code, rough_module, Polarity::DarkInside);
+            let (fine, fit) =
+                self.refine(gray, view, raw, &code, rough_module, Polarity::DarkInside);
             let module_px = mean_side(&fine) / m;
             match found
                 .iter_mut()
@@ -755,6 +863,7 @@ impl ShoalDetector {
         &self,
         gray: &(impl MatTraitConst + ToInputArray),
         view: &GrayView<'_>,
+        raw: Option<&GrayView<'_>>,
         found: Vec<Found>,
         quads: &[Quad],
     ) -> Result<Vec<Detection>, DetectError> {
@@ -770,10 +879,11 @@ impl ShoalDetector {
                     (1.0, Polarity::BrightInside, 4u8),
                 ] {
                     if let Some(q) = self.find_frame(&code_fine, module_px, off, quads) {
-                        let (fine, fit) = self.refine(gray, view, &q, module_px, polarity);
+                        let (fine, fit) = self.refine(gray, view, raw, &q, module_px, polarity);
                         squares.push((fine, fit, first));
                     } else if let Some((fine, fit)) = self.frame_from_prediction(
                         view,
+                        raw,
                         &code_fine,
                         code_fit.as_ref(),
                         module_px,
@@ -784,12 +894,22 @@ impl ShoalDetector {
                     }
                 }
                 squares.push((code_fine, code_fit, 8));
-                // One blur for the whole marker: every side's line conditioned on it.
-                let fits: Vec<&edge_model::SquareFit> =
-                    squares.iter().filter_map(|s| s.1.as_ref()).collect();
-                let sigma = edge_model::pooled_sigma(&fits);
+                // One blur for the whole marker (per image fitted): every
+                // side's line conditioned on it.
+                let pooled = |profile: Profile| {
+                    let fits: Vec<&edge_model::SquareFit> = squares
+                        .iter()
+                        .filter_map(|s| s.1.as_ref())
+                        .filter(|f| f.profile() == profile)
+                        .collect();
+                    edge_model::pooled_sigma(&fits)
+                };
+                let sigmas = [pooled(Profile::Blurred), pooled(Profile::Halo)];
                 for (fine, fit, first) in &squares {
-                    let c = fit.as_ref().and_then(|f| f.corners(sigma)).unwrap_or(*fine);
+                    let c = fit
+                        .as_ref()
+                        .and_then(|f| f.corners(sigmas[usize::from(f.profile() == Profile::Halo)]))
+                        .unwrap_or(*fine);
                     corners_px.extend_from_slice(&c);
                     corner_ids.extend(*first..*first + 4);
                 }
@@ -872,6 +992,57 @@ mod tests {
             assert!(da < 0.015, "frame {k}: angle error {da:.4}°");
             assert!(dd < 0.2, "frame {k}: distance error {dd:.3} mm");
         }
+    }
+
+    #[test]
+    fn a_turbid_marker_is_read_on_the_restoration_and_fitted_on_the_raw_frame() {
+        // 5.16 /m, the accuracy test's pose: HOIRM's restoration for the
+        // quads and the code, the raw frame for the step-edge fits.
+        use crate::restore::{restorer, Method, RestoreParams};
+        use shoal_sim_bridge::render::{facing_camera, Renderer, Scene};
+        use shoal_sim_bridge::water::WaterParams;
+        let cam = shoal_proto::camera::CameraModel::vehicle_1440();
+        let truth = facing_camera([0.0004, -0.0003, 0.61], [0.002, 30f64.to_radians(), 0.001]);
+        let scene = Scene::single_marker(CodeSet::Shoal, 17, 0.1, truth);
+        let img = Renderer::new()
+            .render(
+                &cam,
+                &shoal_proto::geometry::Pose::identity(),
+                &scene,
+                &WaterParams::preset(5.16),
+                0.0,
+                3,
+            )
+            .expect("render")
+            .image;
+        let raw = crate::mat::gray_to_mat(&img).expect("mat");
+        let restored = restorer(Method::Hoirm, &RestoreParams::default())
+            .restore(&raw, 0)
+            .expect("restore")
+            .image;
+        let mut det = ShoalDetector::new(CodeSet::Shoal, DetectParams::default());
+        let found = det.detect_with_raw_fit(&restored, &raw).expect("detect");
+        let d = found.iter().find(|d| d.id == 17).expect("marker 17");
+        assert_eq!(d.corners_px.len(), 12, "all twelve corners");
+        let sol = crate::pose::estimate_pose(&cam, &d.object_points(0.1), &d.corners_px, None)
+            .expect("pose");
+        let est = sol.best.camera_from_marker;
+        let dd = (est.translation.vector - truth.translation.vector).norm() * 1e3;
+        let da = (est.rotation * truth.rotation.inverse())
+            .angle()
+            .to_degrees();
+        assert!(da < 0.3 && dd < 1.0, "errors {dd:.3} mm, {da:.3}°");
+        // The two frames must be the same size.
+        let half = crate::mat::gray_to_mat(&shoal_proto::image::GrayImage {
+            width: img.width / 2,
+            height: img.height / 2,
+            data: vec![0; (img.width / 2 * img.height / 2) as usize],
+        })
+        .expect("mat");
+        assert!(matches!(
+            det.detect_with_raw_fit(&restored, &half),
+            Err(DetectError::FrameSizes { .. })
+        ));
     }
 
     #[test]

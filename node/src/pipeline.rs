@@ -5,7 +5,7 @@
 //! No Zenoh here: the service (`service.rs`), the evaluation and offline
 //! re-runs from logs all drive this same type.
 
-use crate::detect::{DetectError, DetectParams, Detection, ShoalDetector};
+use crate::detect::{DetectError, DetectParams, Detection, MarkerDetector, ShoalDetector};
 use crate::pose::{estimate_pose, Hypothesis, PoseError};
 use crate::restore::{restorer, Method, RestoreError, RestoreParams, Restorer};
 use crate::track::{Track, TrackParams};
@@ -137,7 +137,7 @@ impl CameraPipeline {
         let t0 = Instant::now();
         let restored = self.restorer.restore(gray, stamp_ns)?;
         let t1 = Instant::now();
-        let detections = self.detector.detect_in(&restored.image)?;
+        let detections = self.detector.detect_restored(&restored.image, gray)?;
         let t2 = Instant::now();
         out.detections = detections.len();
         let quality = ImageQuality {

@@ -130,14 +130,16 @@ pub fn run_conditions(
                             opts.restore,
                         )?;
                     }
-                    restored.insert(codes.name(), r);
+                    restored.insert(codes.name(), (frame.image, r));
                 }
             }
             for (method, det) in detectors.iter_mut() {
-                let Some(img) = restored.get(method.codes().name()) else {
+                let Some((raw, img)) = restored.get(method.codes().name()) else {
                     continue;
                 };
-                let located = locate(det.as_mut(), img, &cam)?;
+                let raw = shoal_node::mat::gray_to_mat(raw)
+                    .map_err(shoal_node::detect::DetectError::from)?;
+                let located = locate(det.as_mut(), img, &raw, &cam)?;
                 let errors = located.camera_from_marker.map(|est| {
                     let (d, a) = pose_errors(&est, &truth);
                     (

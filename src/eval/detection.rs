@@ -12,7 +12,7 @@ use super::table::Csv;
 use super::{water_key, EvalError, EvalOptions};
 use rand::Rng;
 use serde_json::{json, Map, Value};
-use shoal_node::detect::{DetectParams, ShoalDetector};
+use shoal_node::detect::{DetectParams, MarkerDetector, ShoalDetector};
 use shoal_node::restore::Method;
 use shoal_proto::{CameraModel, CodeSet};
 use shoal_sim_bridge::render::Renderer;
@@ -82,6 +82,8 @@ pub fn success_rates(
                 time_s,
                 noise_seed,
             )?;
+            let raw = shoal_node::mat::gray_to_mat(&frame.image)
+                .map_err(shoal_node::detect::DetectError::from)?;
             for (mi, r) in restorers.iter_mut().enumerate() {
                 let img = restore(r.as_mut(), &frame.image, (time_s * 1e9) as u64)?;
                 if opts.save_frames && k == 0 {
@@ -93,7 +95,7 @@ pub fn success_rates(
                         methods[mi],
                     )?;
                 }
-                let dets = detector.detect_in(&img)?;
+                let dets = detector.detect_restored(&img, &raw)?;
                 let decoded = dets.iter().any(|d| d.id == MARKER_ID);
                 let wrong = dets.iter().filter(|d| d.id != MARKER_ID).count();
                 successes[mi][wi] += usize::from(decoded);

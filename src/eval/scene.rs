@@ -163,10 +163,11 @@ pub struct Located {
 pub fn locate(
     detector: &mut dyn MarkerDetector,
     restored: &Mat,
+    raw: &Mat,
     cam: &CameraModel,
 ) -> Result<Located, EvalError> {
     let t0 = std::time::Instant::now();
-    let dets = detector.detect(restored)?;
+    let dets = detector.detect_restored(restored, raw)?;
     let detect_ms = t0.elapsed().as_secs_f64() * 1e3;
     let wrong_ids = dets.iter().filter(|d| d.id != MARKER_ID).count();
     // Prefer the detection with the most corners (a full enhanced marker over its code square alone).
