@@ -456,6 +456,7 @@ pub struct SquareFit {
     start: [Px; 4],
     half: f64,
     profile: Profile,
+    raw: bool,
 }
 
 /// Fit the four sides of a square (clockwise on screen) whose corners are
@@ -492,6 +493,7 @@ pub fn fit_square(
         start: *quad,
         half,
         profile,
+        raw: false,
     })
 }
 
@@ -522,6 +524,19 @@ impl SquareFit {
     /// The profile the sides were fitted with.
     pub fn profile(&self) -> Profile {
         self.profile
+    }
+
+    /// Marks the fit as made on the camera's raw frame (not the detection
+    /// image): its blur is pooled only with fits of the same image.
+    #[must_use]
+    pub fn from_raw(mut self) -> Self {
+        self.raw = true;
+        self
+    }
+
+    /// Fitted to the same image with the same profile: blurs comparable.
+    pub fn same_model(&self, other: &SquareFit) -> bool {
+        self.raw == other.raw && self.profile == other.profile
     }
 
     /// The smallest fitted grey-level step of the four sides.

@@ -143,7 +143,9 @@ fn detect_one(
     side_m: Option<f64>,
     out: &mut dyn Write,
 ) -> Result<usize, DetectError> {
-    let found = det.detect(gray)?;
+    // The user's frames are the camera's own (no restoration here): the
+    // corners are fitted to them as the node fits its raw frames.
+    let found = det.detect_restored(gray, gray)?;
     for d in &found {
         let mut obj = serde_json::json!({
             "source": source,
