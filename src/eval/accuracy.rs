@@ -130,16 +130,16 @@ pub fn run_conditions(
                             opts.restore,
                         )?;
                     }
-                    restored.insert(codes.name(), (frame.image, r));
+                    let raw = shoal_node::mat::gray_to_mat(&frame.image)
+                        .map_err(shoal_node::detect::DetectError::from)?;
+                    restored.insert(codes.name(), (raw, r));
                 }
             }
             for (method, det) in detectors.iter_mut() {
                 let Some((raw, img)) = restored.get(method.codes().name()) else {
                     continue;
                 };
-                let raw = shoal_node::mat::gray_to_mat(raw)
-                    .map_err(shoal_node::detect::DetectError::from)?;
-                let located = locate(det.as_mut(), img, &raw, &cam)?;
+                let located = locate(det.as_mut(), img, raw, &cam)?;
                 let errors = located.camera_from_marker.map(|est| {
                     let (d, a) = pose_errors(&est, &truth);
                     (
