@@ -985,32 +985,42 @@ mod tests {
         (dd, da, d.corners_px.len())
     }
 
+    /// Marker 17 of the enhanced set (100 mm) at `truth`, seen by the vehicle camera.
+    fn render_17(
+        renderer: &mut shoal_sim_bridge::render::Renderer,
+        truth: shoal_proto::geometry::Pose,
+        water: &shoal_sim_bridge::water::WaterParams,
+        time_s: f64,
+        seed: u64,
+    ) -> shoal_proto::image::GrayImage {
+        let scene = shoal_sim_bridge::render::Scene::single_marker(CodeSet::Shoal, 17, 0.1, truth);
+        renderer
+            .render(
+                &shoal_proto::camera::CameraModel::vehicle_1440(),
+                &shoal_proto::geometry::Pose::identity(),
+                &scene,
+                water,
+                time_s,
+                seed,
+            )
+            .expect("render")
+            .image
+    }
+
     #[test]
     fn edge_model_recovers_the_accuracy_test_pose_to_hundredths_of_a_degree() {
         // Paper §6.2 set-up: 100 mm enhanced marker at 610 mm, yaw 30°, clear
         // water, no sensor noise; three sub-pixel phases. The gradient-peak
         // edge lines lock to the pixel grid (~0.03° here); the step model must not.
-        use shoal_sim_bridge::render::{facing_camera, Renderer, Scene};
+        use shoal_sim_bridge::render::{facing_camera, Renderer};
         use shoal_sim_bridge::water::WaterParams;
-        let cam = shoal_proto::camera::CameraModel::vehicle_1440();
         let water = WaterParams::preset(0.126).noiseless();
         let mut renderer = Renderer::new();
         let mut det = ShoalDetector::new(CodeSet::Shoal, DetectParams::default());
         assert_eq!(det.params().refinement, Refinement::EdgeModel);
         for (k, dx) in [0.0, 0.00037, 0.00081].into_iter().enumerate() {
             let truth = facing_camera([dx, -0.0004, 0.61], [0.001, 30f64.to_radians(), 0.002]);
-            let scene = Scene::single_marker(CodeSet::Shoal, 17, 0.1, truth);
-            let img = renderer
-                .render(
-                    &cam,
-                    &shoal_proto::geometry::Pose::identity(),
-                    &scene,
-                    &water,
-                    0.0,
-                    k as u64,
-                )
-                .expect("render")
-                .image;
+            let img = render_17(&mut renderer, truth, &water, 0.0, k as u64);
             let (dd, da, n) = pose_errors(&mut det, &img, &truth);
             assert_eq!(n, 12, "all twelve corners");
             assert!(da < 0.015, "frame {k}: angle error {da:.4}°");
@@ -1023,7 +1033,7 @@ mod tests {
         // Clear water with sensor noise, the node's call (HOIRM passes clear
         // water through: restored = raw). A halo profile on these sharp
         // sides put one frame in eight at 0.05–0.26°; they must stay one Gaussian.
-        use shoal_sim_bridge::render::{facing_camera, Renderer, Scene};
+        use shoal_sim_bridge::render::{facing_camera, Renderer};
         use shoal_sim_bridge::water::WaterParams;
         let cam = shoal_proto::camera::CameraModel::vehicle_1440();
         let mut renderer = Renderer::new();
@@ -1031,18 +1041,7 @@ mod tests {
         for k in 0..12u64 {
             let j = k as f64 * 1e-4;
             let truth = facing_camera([j, -j, 0.6 + j], [0.001, (20.0 + j).to_radians(), -0.002]);
-            let scene = Scene::single_marker(CodeSet::Shoal, 17, 0.1, truth);
-            let img = renderer
-                .render(
-                    &cam,
-                    &shoal_proto::geometry::Pose::identity(),
-                    &scene,
-                    &WaterParams::preset(0.126),
-                    0.0,
-                    k,
-                )
-                .expect("render")
-                .image;
+            let img = render_17(&mut renderer, truth, &WaterParams::preset(0.126), 0.0, k);
             let mat = crate::mat::gray_to_mat(&img).expect("mat");
             let found = MarkerDetector::detect_restored(&mut det, &mat, &mat).expect("detect");
             let d = found.iter().find(|d| d.id == 17).expect("marker 17");
@@ -1062,7 +1061,7 @@ mod tests {
         // most 0.8x the rms error of those fitted on the restoration (0.53x
         // when written: 0.116 vs 0.219 px).
         use crate::restore::{restorer, Method, RestoreParams};
-        use shoal_sim_bridge::render::{facing_camera, Renderer, Scene};
+        use shoal_sim_bridge::render::{facing_camera, Renderer};
         use shoal_sim_bridge::water::WaterParams;
         let cam = shoal_proto::camera::CameraModel::vehicle_1440();
         let mut renderer = Renderer::new();
@@ -1072,18 +1071,13 @@ mod tests {
         for k in 0..8u64 {
             let j = k as f64 * 2e-4;
             let truth = facing_camera([j, -j, 0.61 - j], [0.002, (30.0 + j).to_radians(), 0.001]);
-            let scene = Scene::single_marker(CodeSet::Shoal, 17, 0.1, truth);
-            let img = renderer
-                .render(
-                    &cam,
-                    &shoal_proto::geometry::Pose::identity(),
-                    &scene,
-                    &WaterParams::preset(5.16),
-                    k as f64 * 0.1,
-                    100 + k,
-                )
-                .expect("render")
-                .image;
+            let img = render_17(
+                &mut renderer,
+                truth,
+                &WaterParams::preset(5.16),
+                k as f64 * 0.1,
+                100 + k,
+            );
             let truth_px: Vec<[f64; 2]> = CodeSet::Shoal
                 .corners_3d(0.1)
                 .iter()
@@ -1131,22 +1125,17 @@ mod tests {
         // 5.16 /m, the accuracy test's pose: HOIRM's restoration for the
         // quads and the code, the raw frame for the step-edge fits.
         use crate::restore::{restorer, Method, RestoreParams};
-        use shoal_sim_bridge::render::{facing_camera, Renderer, Scene};
+        use shoal_sim_bridge::render::{facing_camera, Renderer};
         use shoal_sim_bridge::water::WaterParams;
         let cam = shoal_proto::camera::CameraModel::vehicle_1440();
         let truth = facing_camera([0.0004, -0.0003, 0.61], [0.002, 30f64.to_radians(), 0.001]);
-        let scene = Scene::single_marker(CodeSet::Shoal, 17, 0.1, truth);
-        let img = Renderer::new()
-            .render(
-                &cam,
-                &shoal_proto::geometry::Pose::identity(),
-                &scene,
-                &WaterParams::preset(5.16),
-                0.0,
-                3,
-            )
-            .expect("render")
-            .image;
+        let img = render_17(
+            &mut Renderer::new(),
+            truth,
+            &WaterParams::preset(5.16),
+            0.0,
+            3,
+        );
         let raw = crate::mat::gray_to_mat(&img).expect("mat");
         let restored = restorer(Method::Hoirm, &RestoreParams::default())
             .restore(&raw, 0)
