@@ -972,8 +972,13 @@ mod tests {
         img: &shoal_proto::image::GrayImage,
         truth: &shoal_proto::geometry::Pose,
     ) -> (f64, f64, usize) {
+        errors_of_17(&det.detect_gray(img).expect("detect"), truth)
+    }
+
+    /// [`pose_errors`] of marker 17 among `found`: position (mm), rotation
+    /// (deg), corners used.
+    fn errors_of_17(found: &[Detection], truth: &shoal_proto::geometry::Pose) -> (f64, f64, usize) {
         let cam = shoal_proto::camera::CameraModel::vehicle_1440();
-        let found = det.detect_gray(img).expect("detect");
         let d = found.iter().find(|d| d.id == 17).expect("marker 17");
         let sol = crate::pose::estimate_pose(&cam, &d.object_points(0.1), &d.corners_px, None)
             .expect("pose");
@@ -1127,7 +1132,6 @@ mod tests {
         use crate::restore::{restorer, Method, RestoreParams};
         use shoal_sim_bridge::render::{facing_camera, Renderer};
         use shoal_sim_bridge::water::WaterParams;
-        let cam = shoal_proto::camera::CameraModel::vehicle_1440();
         let truth = facing_camera([0.0004, -0.0003, 0.61], [0.002, 30f64.to_radians(), 0.001]);
         let img = render_17(
             &mut Renderer::new(),
@@ -1143,15 +1147,8 @@ mod tests {
             .image;
         let mut det = ShoalDetector::new(CodeSet::Shoal, DetectParams::default());
         let found = det.detect_with_raw_fit(&restored, &raw).expect("detect");
-        let d = found.iter().find(|d| d.id == 17).expect("marker 17");
-        assert_eq!(d.corners_px.len(), 12, "all twelve corners");
-        let sol = crate::pose::estimate_pose(&cam, &d.object_points(0.1), &d.corners_px, None)
-            .expect("pose");
-        let est = sol.best.camera_from_marker;
-        let dd = (est.translation.vector - truth.translation.vector).norm() * 1e3;
-        let da = (est.rotation * truth.rotation.inverse())
-            .angle()
-            .to_degrees();
+        let (dd, da, n) = errors_of_17(&found, &truth);
+        assert_eq!(n, 12, "all twelve corners");
         assert!(da < 0.3 && dd < 1.0, "errors {dd:.3} mm, {da:.3}°");
         // The two frames must be the same size.
         let half = crate::mat::gray_to_mat(&shoal_proto::image::GrayImage {
