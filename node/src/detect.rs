@@ -587,10 +587,10 @@ impl ShoalDetector {
         if check.min_contrast() < 0.5 * code_contrast {
             return None;
         }
-        let (corners, fit) = match raw {
-            Some(_) => self.fit_model(view, raw, &coarse, module_px, polarity)?,
-            None => (check.corners(None)?, check),
-        };
+        // The restored-frame fall-back is `check` itself, not fitted again.
+        let (corners, fit) = raw
+            .and_then(|r| Self::fit_on_raw(r, &coarse, module_px, polarity))
+            .or_else(|| Some((check.corners(None)?, check)))?;
         (0..4)
             .all(|i| dist(corners[i], pred[i]) < 0.35 * module_px)
             .then_some((corners, fit))
@@ -613,25 +613,36 @@ impl ShoalDetector {
     ) -> Option<([Px; 4], edge_model::SquareFit)> {
         let sign = polarity.sign();
         let with_corners = |f: edge_model::SquareFit| Some((f.corners(None)?, f));
-        let on_raw = raw.and_then(|r| {
-            let one =
-                edge_model::fit_square(r, coarse, module_px, sign, Profile::Blurred)?.from_raw();
-            if edge_model::pooled_sigma(&[&one]).is_some_and(|s| s < HALO_MIN_SIGMA_PX) {
-                return with_corners(one);
-            }
-            with_corners(
-                edge_model::fit_square(r, coarse, module_px, sign, Profile::Halo)?.from_raw(),
-            )
-        });
-        on_raw.or_else(|| {
-            with_corners(edge_model::fit_square(
-                view,
-                coarse,
-                module_px,
-                sign,
-                Profile::Blurred,
-            )?)
-        })
+        raw.and_then(|r| Self::fit_on_raw(r, coarse, module_px, polarity))
+            .or_else(|| {
+                with_corners(edge_model::fit_square(
+                    view,
+                    coarse,
+                    module_px,
+                    sign,
+                    Profile::Blurred,
+                )?)
+            })
+    }
+
+    /// The raw-frame part of [`ShoalDetector::fit_model`]: one Gaussian when
+    /// the edge is sharp, else the halo profile; `None` when neither fits.
+    fn fit_on_raw(
+        raw: &GrayView<'_>,
+        coarse: &[Px; 4],
+        module_px: f64,
+        polarity: Polarity,
+    ) -> Option<([Px; 4], edge_model::SquareFit)> {
+        let sign = polarity.sign();
+        let with_corners = |f: edge_model::SquareFit| Some((f.corners(None)?, f));
+        let one =
+            edge_model::fit_square(raw, coarse, module_px, sign, Profile::Blurred)?.from_raw();
+        if edge_model::pooled_sigma(&[&one]).is_some_and(|s| s < HALO_MIN_SIGMA_PX) {
+            return with_corners(one);
+        }
+        with_corners(
+            edge_model::fit_square(raw, coarse, module_px, sign, Profile::Halo)?.from_raw(),
+        )
     }
 
     /// Step 4: the frame square whose corners sit `off` modules outside the
