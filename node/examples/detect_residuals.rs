@@ -6,10 +6,11 @@
 //!
 //! `cargo run --release -p shoal-node --example detect_residuals -- [c_per_m] [frames] [none|hoirm] [noiseless]`
 //! (`edge-model-raw`: detected on the restoration, fitted on the raw frame, the node's default).
-//! (`SHOAL_PROBE_DIST=2.25 SHOAL_PROBE_YAW=0` for another distance or yaw).
+//! (`SHOAL_PROBE_DIST=2.25 SHOAL_PROBE_YAW=0` for another distance or yaw;
+//! `SHOAL_PROBE_WATER_FILE=configs/water-calibrated.toml` for another water file).
 
 use rand::{Rng, SeedableRng};
-use shoal_node::detect::{DetectParams, Refinement, ShoalDetector};
+use shoal_node::detect::{DetectParams, FitPattern, Refinement, ShoalDetector};
 use shoal_node::pose::estimate_pose;
 use shoal_node::restore::{restorer, Method, RestoreParams};
 use shoal_proto::{camera::CameraModel, geometry::Pose, marker::CodeSet};
@@ -60,7 +61,13 @@ fn main() -> anyhow::Result<()> {
     let codes: CodeSet =
         std::env::var("SHOAL_PROBE_CODES").map_or(Ok(CodeSet::Shoal), |s| s.parse())?;
     let cam = CameraModel::vehicle_1440();
-    let mut water = WaterParams::preset(c);
+    // `SHOAL_PROBE_WATER_FILE=configs/water-calibrated.toml`: presets and knobs from a file.
+    let mut water = match std::env::var("SHOAL_PROBE_WATER_FILE") {
+        Ok(path) => {
+            shoal_sim_bridge::water::WaterPresets::load(std::path::Path::new(&path))?.get(c)?
+        }
+        Err(_) => WaterParams::preset(c),
+    };
     if noiseless {
         water = water.noiseless();
     }
@@ -78,7 +85,28 @@ fn main() -> anyhow::Result<()> {
     }
     let variants: Vec<(String, DetectParams)> = vec![
         ("edge-model".into(), DetectParams::default()),
-        ("edge-model-raw".into(), DetectParams::default()),
+        (
+            "edge-model-raw".into(),
+            DetectParams {
+                fit_pattern: FitPattern::Never,
+                ..DetectParams::default()
+            },
+        ),
+        (
+            "pattern-auto-raw".into(),
+            DetectParams {
+                lens: Some(CameraModel::vehicle_1440()),
+                ..DetectParams::default()
+            },
+        ),
+        (
+            "pattern-always-raw".into(),
+            DetectParams {
+                fit_pattern: FitPattern::Always,
+                lens: Some(CameraModel::vehicle_1440()),
+                ..DetectParams::default()
+            },
+        ),
         (
             "edge-lines".into(),
             DetectParams {

@@ -113,7 +113,13 @@ impl CameraPipeline {
         }
         Ok(CameraPipeline {
             restorer: restorer(params.restore, &params.restore_params),
-            detector: ShoalDetector::new(params.codes, params.detect.clone()),
+            detector: ShoalDetector::new(
+                params.codes,
+                DetectParams {
+                    lens: Some(camera.model),
+                    ..params.detect.clone()
+                },
+            ),
             fleet,
             observer,
             camera,

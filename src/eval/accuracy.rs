@@ -71,7 +71,7 @@ pub fn run_conditions(
     let mut renderer = Renderer::new();
     let mut detectors = methods
         .iter()
-        .map(|m| Ok((*m, m.detector()?)))
+        .map(|m| Ok((*m, m.detector(&cam)?)))
         .collect::<Result<Vec<_>, EvalError>>()?;
     let mut code_sets: Vec<CodeSet> = Vec::new();
     for m in methods {

@@ -61,7 +61,13 @@ pub fn success_rates(
     let cam = CameraModel::vehicle_1440();
     let presets = opts.presets()?;
     let mut renderer = Renderer::new();
-    let mut detector = ShoalDetector::new(CodeSet::Shoal, DetectParams::default());
+    let mut detector = ShoalDetector::new(
+        CodeSet::Shoal,
+        DetectParams {
+            lens: Some(cam),
+            ..DetectParams::default()
+        },
+    );
     let mut successes = vec![vec![0usize; waters.len()]; methods.len()];
     let mut rows = Vec::new();
     let bar = opts.bar(waters.len() * frames, what);

@@ -78,10 +78,18 @@ impl MarkerMethod {
         }
     }
 
-    pub fn detector(self) -> Result<Box<dyn MarkerDetector>, EvalError> {
+    /// The method's detector for frames of `camera` (shoal's takes the
+    /// lens distortion out of its whole-pattern fit).
+    pub fn detector(self, camera: &CameraModel) -> Result<Box<dyn MarkerDetector>, EvalError> {
         Ok(match self {
             MarkerMethod::Shoal | MarkerMethod::ShoalOnAruco | MarkerMethod::ShoalOnAprilTag => {
-                Box::new(ShoalDetector::new(self.codes(), DetectParams::default()))
+                Box::new(ShoalDetector::new(
+                    self.codes(),
+                    DetectParams {
+                        lens: Some(*camera),
+                        ..DetectParams::default()
+                    },
+                ))
             }
             MarkerMethod::Aruco => Box::new(OpenCvAruco::new(self.codes())?),
             MarkerMethod::AprilTag => Box::new(AprilTag::new(self.codes())?),

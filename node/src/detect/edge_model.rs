@@ -541,6 +541,11 @@ impl SquareFit {
         self
     }
 
+    /// Fitted on the camera's raw frame ([`SquareFit::from_raw`]).
+    pub fn is_raw(&self) -> bool {
+        self.raw
+    }
+
     /// Fitted to the same image with the same profile: blurs comparable.
     pub fn same_model(&self, other: &SquareFit) -> bool {
         self.raw == other.raw && self.profile == other.profile

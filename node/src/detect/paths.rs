@@ -56,7 +56,13 @@ pub fn detect_paths(
     side_m: Option<f64>,
     out: &mut dyn Write,
 ) -> Result<DetectSummary, DetectError> {
-    let mut det = ShoalDetector::new(codes, super::DetectParams::default());
+    let mut det = ShoalDetector::new(
+        codes,
+        super::DetectParams {
+            lens: camera,
+            ..super::DetectParams::default()
+        },
+    );
     let mut sum = DetectSummary::default();
     for path in paths {
         let path = path.as_ref();
