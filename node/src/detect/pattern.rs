@@ -533,8 +533,9 @@ impl Normal {
 
 /// The model's pattern bases at homography `h` over `win`: each region
 /// (white, black, quiet zone) rendered sharp and through each Gaussian of
-/// `sigmas`, then the white print × x and × y through each kernel; with the
-/// kernel index (0 = sharp) of each basis and each pixel's module point.
+/// `sigmas` (index `region · kernels + kernel`, kernel 0 = sharp), then the
+/// white print × x and × y through each kernel (a pair per kernel); with
+/// each pixel's module point and the sharp renderings' image gradients.
 fn build_bases(
     grid: &[bool],
     m: usize,
