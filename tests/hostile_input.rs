@@ -504,6 +504,10 @@ fn node_counts_every_hostile_frame_and_keeps_processing() {
     // Then one good frame: the camera thread must still process it.
     frames.put_bytes(good).unwrap();
 
+    // A probe still queued when `base` was read (a loaded machine: the
+    // node took one probe off its queue, finished it, and the next was not
+    // yet taken) arrives late and counts as one more good frame: the bad
+    // frames' counts are exact, the good ones at least what was sent.
     let expected_invalid = (undecodable.len() + unusable.len()) as u64;
     let report = wait_for(
         "a node status counting every bad frame and the good one",
@@ -512,22 +516,23 @@ fn node_counts_every_hostile_frame_and_keeps_processing() {
             status.drain().into_iter().map(|r| r.msg).find(|s| {
                 s.cameras[0].frames_invalid == expected_invalid
                     && s.messages_rejected == undecodable.len() as u64
-                    && s.cameras[0].frames_in == base + unusable.len() as u64 + 1
+                    && s.cameras[0].frames_in > base + unusable.len() as u64
             })
         },
     );
+    // Every frame taken off the queue was processed or refused as unusable.
     let processed = wait_for(
         "the good frame to be processed",
         Duration::from_secs(30),
         || {
-            let n = node.stats().frames_processed();
-            (n == base + 1).then_some(n)
+            let st = node.stats();
+            let n = st.frames_processed();
+            (n + unusable.len() as u64 == st.frames_in()).then_some(n)
         },
     );
-    assert_eq!(
-        processed,
-        base + 1,
-        "the good frame after the garbage was processed"
+    assert!(
+        processed > base,
+        "the good frame after the garbage was processed ({processed} frames, {base} before the garbage)"
     );
     assert_eq!(node.stats().frames_invalid(), expected_invalid);
     assert!(report.cameras[1..]
