@@ -1105,6 +1105,38 @@ mod tests {
             .image
     }
 
+    /// Frame `k` of the accuracy test's pose (jittered by `k · step`) in
+    /// water `c_per_m`, noise `seed`, restored by `hoirm`: `(raw, restored,
+    /// the twelve corners' true pixels)`.
+    fn accuracy_frame(
+        renderer: &mut shoal_sim_bridge::render::Renderer,
+        hoirm: &mut dyn crate::restore::Restorer,
+        c_per_m: f64,
+        k: u64,
+        step: f64,
+        seed: u64,
+    ) -> (Mat, Mat, Vec<[f64; 2]>) {
+        let cam = shoal_proto::camera::CameraModel::vehicle_1440();
+        let j = k as f64 * step;
+        let truth = shoal_sim_bridge::render::facing_camera(
+            [j, -j, 0.61 - j],
+            [0.002, (30.0 + j).to_radians(), 0.001],
+        );
+        let water = shoal_sim_bridge::water::WaterParams::preset(c_per_m);
+        let img = render_17(renderer, truth, &water, k as f64 * 0.1, seed);
+        let truth_px = CodeSet::Shoal
+            .corners_3d(0.1)
+            .iter()
+            .map(|p| {
+                let q = cam.project(&(truth * p)).expect("in front");
+                [q.x, q.y]
+            })
+            .collect();
+        let raw = crate::mat::gray_to_mat(&img).expect("mat");
+        let restored = hoirm.restore(&raw, k * 100_000_000).expect("restore").image;
+        (raw, restored, truth_px)
+    }
+
     #[test]
     fn edge_model_recovers_the_accuracy_test_pose_to_hundredths_of_a_degree() {
         // Paper §6.2 set-up: 100 mm enhanced marker at 610 mm, yaw 30°, clear
@@ -1159,33 +1191,21 @@ mod tests {
         // most 0.8x the rms error of those fitted on the restoration (0.53x
         // when written: 0.116 vs 0.219 px).
         use crate::restore::{restorer, Method, RestoreParams};
-        use shoal_sim_bridge::render::{facing_camera, Renderer};
-        use shoal_sim_bridge::water::WaterParams;
-        let cam = shoal_proto::camera::CameraModel::vehicle_1440();
-        let mut renderer = Renderer::new();
+        let mut renderer = shoal_sim_bridge::render::Renderer::new();
         let mut hoirm = restorer(Method::Hoirm, &RestoreParams::default());
-        let mut det = ShoalDetector::new(CodeSet::Shoal, DetectParams::default());
+        // The side fits (the whole-pattern fit would take over at 5.16 /m:
+        // its raw steps are 7–8 grey levels; 0.043 px there).
+        let mut det = ShoalDetector::new(
+            CodeSet::Shoal,
+            DetectParams {
+                fit_pattern: FitPattern::Never,
+                ..DetectParams::default()
+            },
+        );
         let (mut sq_raw, mut sq_restored, mut n) = (0.0, 0.0, 0usize);
         for k in 0..8u64 {
-            let j = k as f64 * 2e-4;
-            let truth = facing_camera([j, -j, 0.61 - j], [0.002, (30.0 + j).to_radians(), 0.001]);
-            let img = render_17(
-                &mut renderer,
-                truth,
-                &WaterParams::preset(5.16),
-                k as f64 * 0.1,
-                100 + k,
-            );
-            let truth_px: Vec<[f64; 2]> = CodeSet::Shoal
-                .corners_3d(0.1)
-                .iter()
-                .map(|p| {
-                    let q = cam.project(&(truth * p)).expect("in front");
-                    [q.x, q.y]
-                })
-                .collect();
-            let raw = crate::mat::gray_to_mat(&img).expect("mat");
-            let restored = hoirm.restore(&raw, k * 100_000_000).expect("restore").image;
+            let (raw, restored, truth_px) =
+                accuracy_frame(&mut renderer, hoirm.as_mut(), 5.16, k, 2e-4, 100 + k);
             let sq = |found: Vec<Detection>| -> Option<f64> {
                 let d = found
                     .into_iter()
@@ -1265,13 +1285,10 @@ mod tests {
         // corner's mean error over 0.35 px (0.24 when written; the pattern
         // without the gain gradient across the tilted marker: 0.5 px).
         use crate::restore::{restorer, Method, RestoreParams};
-        use shoal_sim_bridge::render::{facing_camera, Renderer};
-        use shoal_sim_bridge::water::WaterParams;
-        let cam = shoal_proto::camera::CameraModel::vehicle_1440();
-        let mut renderer = Renderer::new();
+        let mut renderer = shoal_sim_bridge::render::Renderer::new();
         let mut hoirm = restorer(Method::Hoirm, &RestoreParams::default());
         let with_lens = DetectParams {
-            lens: Some(cam),
+            lens: Some(shoal_proto::camera::CameraModel::vehicle_1440()),
             ..DetectParams::default()
         };
         let mut with = ShoalDetector::new(CodeSet::Shoal, with_lens.clone());
@@ -1285,25 +1302,8 @@ mod tests {
         let (mut sq_with, mut sq_without, mut n) = (0.0, 0.0, 0usize);
         let mut bias = [[0.0f64; 2]; 12];
         for k in 0..6u64 {
-            let j = k as f64 * 3e-4;
-            let truth = facing_camera([j, -j, 0.61 - j], [0.002, (30.0 + j).to_radians(), 0.001]);
-            let img = render_17(
-                &mut renderer,
-                truth,
-                &WaterParams::preset(8.22),
-                k as f64 * 0.1,
-                300 + k,
-            );
-            let truth_px: Vec<[f64; 2]> = CodeSet::Shoal
-                .corners_3d(0.1)
-                .iter()
-                .map(|p| {
-                    let q = cam.project(&(truth * p)).expect("in front");
-                    [q.x, q.y]
-                })
-                .collect();
-            let raw = crate::mat::gray_to_mat(&img).expect("mat");
-            let restored = hoirm.restore(&raw, k * 100_000_000).expect("restore").image;
+            let (raw, restored, truth_px) =
+                accuracy_frame(&mut renderer, hoirm.as_mut(), 8.22, k, 3e-4, 300 + k);
             let twelve = |found: Vec<Detection>| {
                 found
                     .into_iter()
