@@ -6,18 +6,19 @@
 
 use anyhow::{anyhow, Context};
 use serde::Serialize;
-use shoal_bus::{client_of, free_port, Bus, Clock, Connect, ManualClock, Subscription};
+use shoal_bus::{client_of, free_port, Bus, Connect, Subscription};
 use shoal_fusion::formation::FormationController;
-use shoal_fusion::service::{FusionConfig, MapClient, Placement};
 use shoal_fusion::FusionParams;
 use shoal_node::pipeline::PipelineParams;
-use shoal_node::service::{NodeConfig, NodeHandle, Source};
+use shoal_proto::clock::{Clock, ManualClock};
 use shoal_proto::config::Fleet;
 use shoal_proto::geometry::difference;
 use shoal_proto::messages::{
     FleetMap, RejectReason, SimTruth, VehicleCommand, VehicleId, VehicleState,
 };
-use shoal_sim_bridge::bridge::SimConfig;
+use shoal_services::fusion::{FusionConfig, MapClient, Placement};
+use shoal_services::node::{NodeConfig, NodeHandle, Source};
+use shoal_services::sim::SimConfig;
 use shoal_sim_bridge::water::WaterPresets;
 use shoal_sim_bridge::world::Formation;
 use std::collections::{BTreeMap, VecDeque};
@@ -139,9 +140,9 @@ pub struct SimulatedSwarm {
     pub clock: Arc<ManualClock>,
     port: u16,
     _router: Bus,
-    fusion: Option<shoal_fusion::service::FusionHandle>,
+    fusion: Option<shoal_services::fusion::FusionHandle>,
     nodes: BTreeMap<VehicleId, NodeHandle>,
-    sim: Option<shoal_sim_bridge::bridge::SimHandle>,
+    sim: Option<shoal_services::sim::SimHandle>,
     station: Option<shoal_station::StationHandle>,
 }
 
@@ -184,7 +185,7 @@ impl SimulatedSwarm {
             station: None,
         };
         // Fusion first, so it hears everything.
-        swarm.fusion = Some(shoal_fusion::service::spawn(
+        swarm.fusion = Some(shoal_services::fusion::spawn(
             &swarm.session()?,
             FusionConfig {
                 fleet: fleet.clone(),
@@ -206,7 +207,7 @@ impl SimulatedSwarm {
         before_sim(&swarm)?;
         // Let subscriptions propagate before the first frame.
         std::thread::sleep(Duration::from_millis(300));
-        swarm.sim = Some(shoal_sim_bridge::bridge::spawn(
+        swarm.sim = Some(shoal_services::sim::spawn(
             &swarm.session()?,
             SimConfig {
                 fleet: fleet.clone(),
@@ -232,7 +233,7 @@ impl SimulatedSwarm {
 
     /// Start (or restart) vehicle `v`'s node.
     pub fn start_node(&mut self, v: VehicleId) -> anyhow::Result<()> {
-        let node = shoal_node::service::spawn(
+        let node = shoal_services::node::spawn(
             &self.session()?,
             NodeConfig {
                 fleet: self.fleet.clone(),
@@ -329,7 +330,7 @@ pub fn run(
                     }),
                     ..Default::default()
                 };
-                recorder = Some(shoal_record::Recorder::spawn(
+                recorder = Some(shoal_services::recorder::Recorder::spawn(
                     &sw.session()?,
                     sw.fleet.clone(),
                     path,

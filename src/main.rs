@@ -121,6 +121,14 @@ mod tests {
             vec!["shoal", "fusion"],
             vec!["shoal", "node", "--vehicle", "10"],
             vec!["shoal", "config", "check", "x.toml"],
+            vec!["shoal", "eval", "accuracy", "--out", "x"],
+            vec!["shoal", "eval", "probe", "residuals", "--frames", "1"],
+            vec!["shoal", "eval", "probe", "record-cost", "x.mcap"],
+            vec!["shoal", "eval", "probe", "hoirm", "--c", "8.22,12.2"],
+            vec!["shoal", "eval", "probe", "psf-scale"],
+            vec!["shoal", "eval", "probe", "restore-sheet"],
+            vec!["shoal", "eval", "probe", "water-sheet"],
+            vec!["shoal", "eval", "probe", "code-tables"],
         ] {
             if let Err(e) = Cli::try_parse_from(&args) {
                 panic!("{args:?}: {e}");

@@ -18,11 +18,12 @@ use rcgen::{
     BasicConstraints, CertificateParams, DnType, ExtendedKeyUsagePurpose, IsCa, KeyPair,
     KeyUsagePurpose, SanType,
 };
-use shoal_bus::{free_port, Bus, Connect, ManualClock, Publisher, Received, Subscription};
-use shoal_fusion::service::{FusionConfig, Placement};
+use shoal_bus::{free_port, Bus, Connect, Publisher, Received, Subscription};
 use shoal_fusion::FusionParams;
+use shoal_proto::clock::ManualClock;
 use shoal_proto::config::Fleet;
 use shoal_proto::messages::*;
+use shoal_services::fusion::{FusionConfig, Placement};
 use shoal_sim_bridge::obs_synth::{line_abreast, ObsSynth, ObsSynthParams};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -189,7 +190,7 @@ fn mutual_tls_and_access_control_confine_each_vehicle_to_its_own_keys() {
     let keys = fleet.keys();
     let clock = Arc::new(ManualClock::new(0));
     let fusion_bus = open_as("fusion", &fusion_cert).expect("fusion connects with its certificate");
-    let fusion = shoal_fusion::service::spawn(
+    let fusion = shoal_services::fusion::spawn(
         &fusion_bus,
         FusionConfig {
             fleet: fleet.clone(),

@@ -104,13 +104,45 @@ fn accuracy_quick_locates_shoal_in_clear_water_with_millimetre_error() {
             }
         }
     }
-    let clear = &s["results"]["shoal"]["0.126"];
-    assert!(
-        num(&clear["success_rate"]) >= 0.6,
-        "shoal at 0.126/m: {clear}"
-    );
-    assert!(num(&clear["median_distance_error_mm"]) < 2.0, "{clear}");
-    assert!(num(&clear["median_angle_error_deg"]) < 0.5, "{clear}");
+    // Clear water, no restoration: the marker, detector and PnP alone.
+    // The 100-frame run reads 0.083 mm / 0.0061° at 0.126 /m and 0.080 mm /
+    // 0.0094° at 1.38 /m (docs/results.md, "No restoration"); this 3-frame
+    // run 0.083 / 0.0026 and 0.082 / 0.0196. The bounds are 3x the 100-frame
+    // distance and 4x its worse angle: room for the median of 3 frames, not
+    // for a detector as good as AprilTag 3's (0.34 mm / 0.061° here).
+    const MAX_CLEAR_DISTANCE_MM: f64 = 0.25;
+    const MAX_CLEAR_ANGLE_DEG: f64 = 0.04;
+    // Issue #4's target, measured 0.23–0.26 of the better baseline here
+    // (distance and angle, both waters): shoal at most half of it.
+    const MAX_RATIO_TO_BEST_BASELINE: f64 = 0.5;
+    for water in ["0.126", "1.38"] {
+        let clear = &s["results"]["shoal"][water];
+        assert_eq!(
+            num(&clear["success_rate"]),
+            1.0,
+            "shoal at {water}/m: {clear}"
+        );
+        assert!(
+            num(&clear["median_distance_error_mm"]) < MAX_CLEAR_DISTANCE_MM,
+            "{water}: {clear}"
+        );
+        assert!(
+            num(&clear["median_angle_error_deg"]) < MAX_CLEAR_ANGLE_DEG,
+            "{water}: {clear}"
+        );
+        for key in ["median_distance_error_mm", "median_angle_error_deg"] {
+            let best = ["aruco-opencv", "apriltag3"]
+                .iter()
+                .map(|m| num(&s["results"][m][water][key]))
+                .fold(f64::INFINITY, f64::min);
+            let ratio = num(&clear[key]) / best;
+            assert!(
+                ratio <= MAX_RATIO_TO_BEST_BASELINE,
+                "{water} {key}: shoal {} vs best baseline {best} (ratio {ratio:.2})",
+                clear[key]
+            );
+        }
+    }
 }
 
 #[test]
@@ -124,11 +156,31 @@ fn accuracy_yaw_and_rmse_quick_write_their_figures() {
             "eval-accuracy-yaw.svg",
         ],
     );
+    // Yaw at 3.92 /m (paper Fig. 15): the 100-frame run reads a median
+    // |yaw error| of 0.012° over all angles for shoal, against 0.053°
+    // (AprilTag 3) and 0.174° (OpenCV ArUco) (docs/results.md,
+    // "accuracy-yaw"); this 2-frame run 0.015° against 0.076° and 0.249°.
+    // Bound: 4x the 100-frame median, and at most half the better baseline
+    // (measured 0.20–0.23 of it).
+    const MAX_YAW_ERROR_DEG: f64 = 0.05;
+    const MAX_YAW_RATIO_TO_BEST_BASELINE: f64 = 0.5;
+    let yaw = |m: &str| num(&s["results"][m]["all"]["median_abs_yaw_error_deg"]);
+    let shoal = yaw("shoal");
+    let best = yaw("apriltag3").min(yaw("aruco-opencv"));
+    assert!(shoal < MAX_YAW_ERROR_DEG, "{}", s["results"]["shoal"]);
     assert!(
-        s["results"]["shoal"]["0"]["median_abs_yaw_error_deg"].is_number(),
-        "{}",
-        s["results"]["shoal"]
+        shoal <= MAX_YAW_RATIO_TO_BEST_BASELINE * best,
+        "shoal {shoal}° vs best baseline {best}°"
     );
+    for y in ["-50", "0", "50"] {
+        assert_eq!(
+            num(&s["results"]["shoal"][y]["success_rate"]),
+            1.0,
+            "yaw {y}: {}",
+            s["results"]["shoal"]
+        );
+    }
+
     let (dir, s) = run_quick(Experiment::AccuracyRmse);
     assert_files(
         &dir,
@@ -138,27 +190,95 @@ fn accuracy_yaw_and_rmse_quick_write_their_figures() {
             "eval-accuracy-rmse-angle.svg",
         ],
     );
-    let moderate = &s["results"]["shoal"]["5.16"];
-    assert!(num(&moderate["rmse_distance_mm"]) < 5.0, "{moderate}");
+    // RMSE at 600 mm (paper Figs. 16–17): the 100-frame run reads 0.10 mm /
+    // 0.01° at 0.126 /m and 0.09 mm / 0.05° at 5.16 /m (docs/results.md,
+    // "accuracy-rmse"); this 2-frame run 0.10 / 0.008 and 0.11 / 0.036.
+    // Bounds: 4x the 100-frame figures; and the paper's claim up to 5.16 /m,
+    // an RMSE lower than the better baseline's by more than 40 % (measured
+    // here: 0.11–0.26 of it).
+    const MAX_RMSE_DISTANCE_MM: f64 = 0.4;
+    const MAX_RMSE_ANGLE_DEG: f64 = 0.2;
+    const MAX_RMSE_RATIO_TO_BEST_BASELINE: f64 = 0.6;
+    for water in ["0.126", "5.16"] {
+        let r = &s["results"]["shoal"][water];
+        assert_eq!(num(&r["success_rate"]), 1.0, "{water}: {r}");
+        assert!(
+            num(&r["rmse_distance_mm"]) < MAX_RMSE_DISTANCE_MM,
+            "{water}: {r}"
+        );
+        assert!(
+            num(&r["rmse_angle_deg"]) < MAX_RMSE_ANGLE_DEG,
+            "{water}: {r}"
+        );
+        for key in ["rmse_distance_mm", "rmse_angle_deg"] {
+            let best = ["aruco-opencv", "apriltag3"]
+                .iter()
+                .map(|m| num(&s["results"][m][water][key]))
+                .fold(f64::INFINITY, f64::min);
+            assert!(
+                num(&r[key]) <= MAX_RMSE_RATIO_TO_BEST_BASELINE * best,
+                "{water} {key}: shoal {} vs best baseline {best}",
+                r[key]
+            );
+        }
+    }
 }
 
+/// Table 5's shape, from what this 3-frame run measures (shipped water; the
+/// 100-frame table is in docs/results.md, "detection"): every method reads
+/// the marker at 5.16 /m; the raw frame is lost by 8.22 /m, every baseline
+/// restoration by 10.13 /m, HOIRM reads on there (3-frame rates: none
+/// 1, 1, 0, 0, 0, 0; CLAHE 1, 1, 0.67, 0, 0, 0; DCP 1, 1, 1, 0, 0, 0; UDCP as
+/// CLAHE; HOIRM 1, 1, 1, 0.67, 0.33, 0), and nothing reads at 14.20 /m.
 #[test]
-fn detection_quick_succeeds_at_5_16_and_never_improves_with_turbidity() {
+fn detection_quick_falls_with_turbidity_and_hoirm_holds_longest() {
     let (dir, s) = run_quick(Experiment::Detection);
     assert_files(
         &dir,
         &["detection.csv", "eval-detection.png", "eval-detection.svg"],
     );
+    const WATERS: [&str; 6] = ["5.16", "6.12", "8.22", "10.13", "12.20", "14.20"];
+    // One frame of the run: a rate may wobble by one frame between waters,
+    // and "lost" means at most one frame read (100-frame rates there: 0.00–0.08).
+    let one_frame = 1.0 / num(&s["frames"]);
+    let rate = |m: &str, w: &str| num(&s["results"][m][w]["success_rate"]);
     for method in ["none", "clahe", "dcp", "udcp", "hoirm"] {
         let r = &s["results"][method];
-        let at = |w: &str| num(&r[w]["success_rate"]);
-        assert!(at("5.16") >= 0.6, "{method} at 5.16/m: {r}");
-        assert!(at("14.20") <= at("5.16"), "{method}: {r}");
+        assert!(rate(method, "5.16") >= 0.6, "{method} at 5.16/m: {r}");
+        for pair in WATERS.windows(2) {
+            assert!(
+                rate(method, pair[1]) <= rate(method, pair[0]) + one_frame + 1e-9,
+                "{method} improves from {} to {} /m: {r}",
+                pair[0],
+                pair[1]
+            );
+        }
+        assert!(rate(method, "14.20") <= one_frame + 1e-9, "{method}: {r}");
     }
+    assert!(
+        rate("none", "8.22") <= one_frame + 1e-9,
+        "{}",
+        s["results"]["none"]
+    );
+    let best_baseline = ["none", "clahe", "dcp", "udcp"]
+        .iter()
+        .map(|m| rate(m, "10.13"))
+        .fold(0.0, f64::max);
+    assert!(best_baseline <= one_frame + 1e-9, "{}", s["results"]);
+    assert!(
+        rate("hoirm", "10.13") > best_baseline && rate("hoirm", "8.22") == 1.0,
+        "HOIRM {} vs the best baseline at 10.13 /m {best_baseline}",
+        s["results"]["hoirm"]
+    );
 }
 
+/// HOIRM against every other method on the marker region (paper Tables
+/// 1–4). CNR alone a low-pass filter could raise; that HOIRM is more than a
+/// low-pass is pinned by node/tests/restore_synthetic.rs (CNR and edge
+/// sharpness against every Gaussian of the input) and by the detection
+/// test above. Here: what the paper claims and this run measures.
 #[test]
-fn restoration_quick_hoirm_raises_marker_cnr_over_the_raw_frame() {
+fn restoration_quick_hoirm_doubles_every_methods_marker_cnr_and_raises_ssim() {
     let (dir, s) = run_quick(Experiment::Restoration);
     assert_files(
         &dir,
@@ -168,27 +288,56 @@ fn restoration_quick_hoirm_raises_marker_cnr_over_the_raw_frame() {
             "eval-restoration-ssim.svg",
         ],
     );
-    for w in ["6.12", "8.22"] {
-        let (h, n) = (
-            num(&s["results"]["hoirm"][w]["cnr"]),
-            num(&s["results"]["none"][w]["cnr"]),
-        );
-        assert!(h > n, "CNR at {w}/m: hoirm {h}, none {n}");
+    // The paper: HOIRM's CNR "at least double" CLAHE's. Measured (2 frames,
+    // shipped water) 2.7–8.6x the best other method at every water (10
+    // frames: 2.8–9x, docs/results.md "restoration").
+    const MIN_CNR_RATIO_TO_OTHERS: f64 = 2.0;
+    // SSIM against the clean twin: HOIRM 9–18 % above the raw frame at 6.12–10.13
+    // /m here and in the 10-frame run; at 12.20 /m it is not (0.23 vs 0.25),
+    // so that water is not asserted. Bound: 5 % above.
+    const MIN_SSIM_RATIO_TO_RAW: f64 = 1.05;
+    let get = |m: &str, w: &str, k: &str| num(&s["results"][m][w][k]);
+    for w in ["6.12", "8.22", "10.13", "12.20"] {
+        let h = get("hoirm", w, "cnr");
+        for other in ["none", "clahe", "dcp", "udcp"] {
+            let o = get(other, w, "cnr");
+            assert!(
+                h >= MIN_CNR_RATIO_TO_OTHERS * o,
+                "CNR at {w}/m: hoirm {h}, {other} {o}"
+            );
+        }
     }
-    assert!(s["results"]["clahe"]["12.20"]["ssim"].is_number());
+    for w in ["6.12", "8.22", "10.13"] {
+        let (h, n) = (get("hoirm", w, "ssim"), get("none", w, "ssim"));
+        assert!(
+            h >= MIN_SSIM_RATIO_TO_RAW * n,
+            "SSIM at {w}/m: hoirm {h}, none {n}"
+        );
+    }
 }
 
 #[test]
 fn fit_noise_quick_agrees_with_the_synthesizers_noise_model() {
     let (dir, s) = run_quick(Experiment::FitNoise);
     assert_files(&dir, &["noise.csv", "noise-model.json"]);
-    // The observation-level synthesizer's defaults must never be more
-    // optimistic than the pipeline (fresh σ at most 2.5x the shipped one at
-    // the demo's 1.75 m spacing; few frames in --quick) nor absurdly
-    // pessimistic (at least 0.1x). Since session 4's raw-frame corners the
-    // pipeline is 7–10x better than the defaults; adopting its fit broke
-    // fusion tests tuned to the old noise, so the defaults stay conservative
-    // (docs/results.md, "Observation noise fitted to the image pipeline").
+    // Two claims at the demo's 1.75 m spacing (few frames in --quick):
+    //
+    // 1. The pipeline's precision: session 4's 60-frame fit reads depth σ
+    //    0.23 mm and tilt σ 0.061° at 1.75 m (docs/results.md, "Observation
+    //    noise fitted to the image pipeline"); this 8-frame run 0.32 mm and
+    //    0.075°. An 8-frame σ has a sampling spread of ~25 %, so the band
+    //    is the 60-frame figure ÷2 … ×2: a pipeline twice as noisy fails.
+    // 2. The observation-level synthesizer's defaults are never optimistic
+    //    (fresh σ below the shipped one: measured 0.13x depth, 0.17x tilt)
+    //    nor absurdly pessimistic (at least 0.1x). They are deliberately
+    //    conservative: adopting session 4's fit broke fusion tests tuned to
+    //    the old noise (same section of docs/results.md); refitting them
+    //    means revisiting this bound.
+    const PIPELINE_DEPTH_SIGMA_MM: f64 = 0.23;
+    const PIPELINE_TILT_SIGMA_DEG: f64 = 0.061;
+    const SAMPLING_BAND: f64 = 2.0;
+    const MIN_RATIO_TO_SHIPPED: f64 = 0.1;
+    const MAX_RATIO_TO_SHIPPED: f64 = 1.0;
     let shipped = shoal_sim_bridge::obs_synth::NoiseModel::default().camera_covariance(1.75);
     let at = s["results"]["ranges"]
         .as_array()
@@ -198,28 +347,83 @@ fn fit_noise_quick_agrees_with_the_synthesizers_noise_model() {
         .expect("1.75 m measured")
         .clone();
     assert!(num(&at["detection_rate"]) > 0.9, "{at}");
+    assert_eq!(at["gross_errors"].as_u64(), Some(0), "{at}");
+    for (name, measured, pipeline) in [
+        ("depth mm", num(&at["depth_mm"]), PIPELINE_DEPTH_SIGMA_MM),
+        ("tilt deg", num(&at["tilt_deg"]), PIPELINE_TILT_SIGMA_DEG),
+    ] {
+        assert!(
+            measured > pipeline / SAMPLING_BAND && measured < pipeline * SAMPLING_BAND,
+            "{name}: σ {measured} against the 60-frame fit's {pipeline}: {at}"
+        );
+    }
     for (measured, var) in [
         (num(&at["depth_mm"]) * 1e-3, shipped[(2, 2)]),
         (num(&at["tilt_deg"]).to_radians(), shipped[(3, 3)]),
     ] {
         let ratio = measured / var.sqrt();
         assert!(
-            ratio > 0.1 && ratio < 2.5,
+            ratio > MIN_RATIO_TO_SHIPPED && ratio < MAX_RATIO_TO_SHIPPED,
             "measured {measured} vs shipped σ {}: {at}",
             var.sqrt()
         );
     }
 }
 
+/// The search's bookkeeping, which a broken loss or search would break: the
+/// reported deviation is the largest |rate − Table 5| of the reported
+/// rates, the verdict follows from it, the result is never worse than the
+/// start (the first evaluation in calibration.csv), the budget is spent
+/// (3 evaluations in --quick: measured, the shipped water stays at 0.61,
+/// far from the ±0.15 band), and the file holds the knobs reported.
 #[test]
 fn calibrate_water_quick_writes_a_loadable_presets_file() {
     let (dir, s) = run_quick(Experiment::CalibrateWater);
     assert_files(&dir, &["calibration.csv", "water-calibrated.toml"]);
     let presets =
         shoal_sim_bridge::water::WaterPresets::load(&dir.join("water-calibrated.toml")).unwrap();
-    assert!((presets.knobs.backscatter_scale - num(&s["knobs"]["backscatter_scale"])).abs() < 1e-3);
-    assert!(s["results"]["clahe"]["10.13"]["success_rate"].is_number());
-    assert!(s["max_deviation"].is_number() && s["within_tolerance"].is_boolean());
+    let k = &s["knobs"];
+    for (name, v) in [
+        ("backscatter_scale", presets.knobs.backscatter_scale),
+        ("noise_scale", presets.knobs.noise_scale),
+        ("psf_width_scale", presets.knobs.psf_width_scale),
+        ("forward_scatter_scale", presets.knobs.forward_scatter_scale),
+    ] {
+        assert!(
+            (v - num(&k[name])).abs() < 1e-3,
+            "{name}: file {v}, summary {k}"
+        );
+    }
+    let tolerance = num(&s["tolerance"]);
+    assert_eq!(tolerance, 0.15, "issue #6's band");
+    let worst = s["results"]["clahe"]
+        .as_object()
+        .unwrap()
+        .values()
+        .map(|r| (num(&r["success_rate"]) - num(&r["paper_success_rate"])).abs())
+        .fold(0.0, f64::max);
+    let reported = num(&s["max_deviation"]);
+    assert!(
+        (worst - reported).abs() < 1e-9,
+        "max_deviation {reported}, rates say {worst}"
+    );
+    assert_eq!(s["within_tolerance"].as_bool(), Some(reported <= tolerance));
+    let csv = std::fs::read_to_string(dir.join("calibration.csv")).unwrap();
+    let rows: Vec<&str> = csv.lines().skip(1).collect();
+    assert_eq!(
+        rows.len() as u64,
+        s["evaluations"].as_u64().unwrap(),
+        "{csv}"
+    );
+    assert!(
+        reported <= tolerance / 2.0 || rows.len() == 3,
+        "budget not spent: {csv}"
+    );
+    let start: f64 = rows[0].rsplit(',').next().unwrap().parse().unwrap();
+    assert!(
+        reported <= start + 1e-9,
+        "worse than the start ({start}): {reported}"
+    );
 }
 
 #[test]

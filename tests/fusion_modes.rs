@@ -5,11 +5,11 @@
 mod fusion_rig;
 
 use fusion_rig::Rig;
-use shoal_fusion::service::Placement;
 use shoal_fusion::{FusionParams, MapView};
 use shoal_proto::config::Fleet;
 use shoal_proto::geometry::difference;
 use shoal_proto::messages::{FleetMap, VehicleState};
+use shoal_services::fusion::Placement;
 use shoal_sim_bridge::obs_synth::{line_abreast, ObsSynth, ObsSynthParams};
 use std::path::Path;
 use std::sync::Arc;

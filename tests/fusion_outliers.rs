@@ -6,10 +6,10 @@
 mod fusion_rig;
 
 use fusion_rig::Rig;
-use shoal_fusion::service::Placement;
 use shoal_fusion::FusionParams;
 use shoal_proto::messages::{EdgeReport, FleetMap};
 use shoal_proto::{CodeSet, VehicleId};
+use shoal_services::fusion::Placement;
 use shoal_sim_bridge::obs_synth::{
     grid_formation, synthetic_fleet, FormationJitter, ObsSynth, ObsSynthParams, OutlierKind,
     OutlierModel,

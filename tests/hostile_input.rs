@@ -15,15 +15,16 @@
 //! - well-formed frames a node cannot use (size, format, camera): the
 //!   camera's `frames_invalid` in `NodeStatus`.
 
-use shoal_bus::{client_of, free_port, Bus, Connect, ManualClock, Publisher, Subscription};
-use shoal_fusion::service::{FusionConfig, FusionHandle, Placement};
+use shoal_bus::{client_of, free_port, Bus, Connect, Publisher, Subscription};
 use shoal_fusion::FusionParams;
 use shoal_node::pipeline::PipelineParams;
-use shoal_node::service::{NodeConfig, Source};
+use shoal_proto::clock::ManualClock;
 use shoal_proto::codec::{encode, HEADER_LEN, MAX_PAYLOAD};
 use shoal_proto::config::Fleet;
 use shoal_proto::messages::*;
 use shoal_proto::Cov6;
+use shoal_services::fusion::{FusionConfig, FusionHandle, Placement};
+use shoal_services::node::{NodeConfig, Source};
 use shoal_sim_bridge::obs_synth::{line_abreast, ObsSynth, ObsSynthParams};
 use std::path::Path;
 use std::sync::Arc;
@@ -180,7 +181,7 @@ impl FusionRig {
         let port = free_port().unwrap();
         let router = Bus::open(&Connect::Router { port }).unwrap();
         let clock = Arc::new(ManualClock::new(0));
-        let fusion = shoal_fusion::service::spawn(
+        let fusion = shoal_services::fusion::spawn(
             &Bus::open(&client_of(port)).unwrap(),
             FusionConfig {
                 fleet: fleet.clone(),
@@ -422,7 +423,7 @@ fn node_counts_every_hostile_frame_and_keeps_processing() {
     let keys = fleet.keys();
     let port = free_port().unwrap();
     let _router = Bus::open(&Connect::Router { port }).unwrap();
-    let node = shoal_node::service::spawn(
+    let node = shoal_services::node::spawn(
         &Bus::open(&client_of(port)).unwrap(),
         NodeConfig {
             fleet: fleet.clone(),

@@ -6,15 +6,17 @@
 //! - offline re-fusion is bit-identical twice and matches the live maps;
 //! - replaying it into a fresh fusion service reproduces the live map.
 
-use shoal_bus::{client_of, free_port, Bus, Clock, Connect, ManualClock, Subscription};
-use shoal_fusion::service::{FusionConfig, Placement};
+use shoal_bus::{client_of, free_port, Bus, Connect, Subscription};
 use shoal_fusion::FusionParams;
+use shoal_proto::clock::{Clock, ManualClock};
 use shoal_proto::config::Fleet;
 use shoal_proto::messages::*;
 use shoal_proto::CameraModel;
 use shoal_record::reader::{read_file, scan, Item};
 use shoal_record::refuse::compare_maps;
-use shoal_record::{FuseOptions, RecordOptions, RecordSummary, Recorder, ReplayOptions, SolveAt};
+use shoal_record::{FuseOptions, RecordOptions, RecordSummary, ReplayOptions, SolveAt};
+use shoal_services::fusion::{FusionConfig, Placement};
+use shoal_services::recorder::Recorder;
 use shoal_sim_bridge::obs_synth::{line_abreast, ObsSynth, ObsSynthParams};
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -97,7 +99,7 @@ fn recording() -> &'static Recorded {
         )
         .unwrap();
         let clock = Arc::new(ManualClock::new(0));
-        let fusion = shoal_fusion::service::spawn(
+        let fusion = shoal_services::fusion::spawn(
             &Bus::open(&client_of(port)).unwrap(),
             FusionConfig {
                 fleet: fleet.clone(),
@@ -423,7 +425,7 @@ fn replay_into_a_fresh_fusion_reproduces_the_live_map() {
     // The fresh fusion follows the replayed simulator clock, like `shoal fusion --clock sim`.
     let truth_sub: Subscription<SimTruth> = fusion_bus.subscribe(&keys.truth(), 64).unwrap();
     let maps_sub: Subscription<FleetMap> = fusion_bus.subscribe(&keys.map(), 1024).unwrap();
-    let fusion = shoal_fusion::service::spawn(
+    let fusion = shoal_services::fusion::spawn(
         &fusion_bus,
         FusionConfig {
             fleet: fleet.clone(),
@@ -460,7 +462,8 @@ fn replay_into_a_fresh_fusion_reproduces_the_live_map() {
         kinds: Some(vec![MessageKind::Observation, MessageKind::SimTruth]),
         ..ReplayOptions::default()
     };
-    let s = shoal_record::replay(&replay_bus, &r.path, &opts, &AtomicBool::new(false)).unwrap();
+    let s = shoal_services::replay::replay(&replay_bus, &r.path, &opts, &AtomicBool::new(false))
+        .unwrap();
     assert_eq!(
         s.messages,
         r.published[&MessageKind::Observation] + r.published[&MessageKind::SimTruth]

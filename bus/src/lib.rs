@@ -1,29 +1,30 @@
-//! shoal's Zenoh plumbing, shared by the node, fusion, simulator and
-//! recorder processes so that none of them touches raw bytes or key strings.
+//! shoal's Zenoh plumbing, shared by the services (`shoal-services`: node,
+//! fusion, simulator, recorder, replay) and the ground station, so that none
+//! of them touches raw bytes or key strings.
 //!
 //! - [`Bus`]: one Zenoh session (every shoal component owns its own), opened
 //!   from the embedded default (peer mode, loopback TCP, no multicast) or a
 //!   Zenoh config file;
 //! - typed [`Publisher`]s and [`Subscription`]s that encode/decode through
 //!   `shoal_proto::codec`, count what they reject, and queue into a
-//!   [`DropOldestQueue`];
-//! - liveliness tokens and watchers, and a late-joiner queryable.
+//!   [`DropOldestQueue`] (`shoal_proto::queue`);
+//! - liveliness tokens and watchers, and a late-joiner queryable;
+//! - [`Worker`]: a named background thread with a stop flag (the services'
+//!   and the station's loops).
 //!
 //! It uses Zenoh's synchronous API (`Wait`), so services are plain threads.
 
+// A library reports failures as errors; an `unwrap()` that cannot fail says why with `expect`.
+#![warn(clippy::unwrap_used)]
+
 pub mod acl;
-pub mod clock;
-pub mod queue;
-pub mod relay;
 pub mod worker;
 
-pub use clock::{Clock, ManualClock, WallClock};
-
-pub use queue::{DropOldestQueue, PopError};
-pub use worker::Worker;
+pub use worker::{join_reporting, Worker};
 
 use shoal_proto::codec::{self, DecodeError};
 use shoal_proto::messages::WireMessage;
+use shoal_proto::queue::DropOldestQueue;
 use std::marker::PhantomData;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -40,6 +41,12 @@ pub enum BusError {
     ConfigValue(String),
     #[error("cannot open zenoh session: {0}")]
     Open(String),
+    #[error("cannot start the {what} thread")]
+    Thread {
+        what: &'static str,
+        #[source]
+        source: std::io::Error,
+    },
     #[error("zenoh {what} on {key}: {reason}")]
     Declare {
         what: &'static str,

@@ -37,7 +37,26 @@ impl Worker {
     fn shutdown(&mut self) {
         self.stop.store(true, Ordering::Relaxed);
         if let Some(t) = self.thread.take() {
-            let _ = t.join();
+            join_reporting(t);
+        }
+    }
+}
+
+/// Wait for `thread`; a panic in it is reported (logged at error level with
+/// the thread's name and the panic message) rather than dropped, and `None`
+/// is returned for it.
+pub fn join_reporting<T>(thread: JoinHandle<T>) -> Option<T> {
+    let name = thread.thread().name().unwrap_or("unnamed").to_string();
+    match thread.join() {
+        Ok(v) => Some(v),
+        Err(payload) => {
+            let message = payload
+                .downcast_ref::<&str>()
+                .map(|s| (*s).to_string())
+                .or_else(|| payload.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "a non-text panic payload".to_string());
+            tracing::error!(thread = %name, "thread panicked: {message}");
+            None
         }
     }
 }
@@ -51,6 +70,17 @@ impl Drop for Worker {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_panicking_thread_is_reported_not_dropped() {
+        let t = std::thread::Builder::new()
+            .name("doomed".into())
+            .spawn(|| -> u32 { panic!("camera 3 lost its sensor") })
+            .unwrap();
+        assert_eq!(join_reporting(t), None);
+        let t = std::thread::spawn(|| 7u32);
+        assert_eq!(join_reporting(t), Some(7));
+    }
     use std::sync::atomic::AtomicU64;
     use std::time::Duration;
 

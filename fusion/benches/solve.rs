@@ -3,6 +3,9 @@
 //! observations with 10% wrong IDs and ~10% flips, plus the bare LM solve of
 //! 100 vehicles.
 //!
+//! Before each fleet size's timings it prints where one solve's time goes
+//! (consistency checks, LM and gate rounds, pairs, clusters).
+//!
 //! `cargo bench -p shoal-fusion --bench solve`
 
 #[path = "../tests/common/mod.rs"]
@@ -47,6 +50,14 @@ fn bench_fusion(c: &mut Criterion) {
         let (fleet, truth) = scenario(n);
         let (fusion, obs, now) = run_frames(&fleet, &truth, synth, FusionParams::default(), 1, 20);
         eprintln!("{n} vehicles: {} observations in the window", obs.len());
+        // Where one solve's time goes (consistency checks, LM + gate rounds).
+        let mut once = fusion.clone();
+        let map = once.solve(now);
+        eprintln!(
+            "  one solve: {} us in all; {:?}",
+            map.solve_time_us,
+            once.stats().last_solve
+        );
         group.bench_with_input(BenchmarkId::from_parameter(n), &n, |b, _| {
             b.iter_batched(
                 || fusion.clone(),

@@ -1,6 +1,8 @@
-//! Reading a fleet map the way a formation controller needs it: the pose of
-//! one vehicle relative to another. The Zenoh subscription that feeds maps in
-//! is the service's business; this is the pure part.
+//! The controller-side map API, everything of it that needs no Zenoh:
+//! reading a fleet map the way a formation controller needs it (the pose of
+//! one vehicle relative to another, [`MapView`]) and keeping the newest of
+//! the maps that arrive ([`LatestMap`]). The Zenoh subscription that feeds
+//! maps in (`MapClient`) is in `shoal_services::fusion`.
 //!
 //! **Correlation caveat.** A [`FleetMap`] carries each vehicle's *marginal*
 //! covariance relative to the reference, not the cross-covariances. So
@@ -65,5 +67,82 @@ impl MapView {
             age_ns: self.map.stamp_ns.saturating_sub(oldest),
             live: ea.state == VehicleState::Live && eb.state == VehicleState::Live,
         })
+    }
+}
+
+/// The newest map a controller holds, from the maps that arrive on the live
+/// topic (possibly several between two reads) or from a late joiner's query.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct LatestMap {
+    view: Option<MapView>,
+}
+
+impl LatestMap {
+    pub fn new(initial: Option<FleetMap>) -> Self {
+        Self {
+            view: initial.map(MapView::new),
+        }
+    }
+
+    /// The map held (`None` before the first).
+    pub fn view(&self) -> Option<&MapView> {
+        self.view.as_ref()
+    }
+
+    /// Keeps the highest-`seq` map of `arrived` when it is not older than
+    /// the one held: its `seq` or its stamp at least the held one's (a
+    /// restarted fusion numbers its maps from 1 again, with later stamps).
+    /// Returns whether the held map changed.
+    pub fn offer(&mut self, arrived: impl IntoIterator<Item = FleetMap>) -> bool {
+        let Some(m) = arrived.into_iter().max_by_key(|m| m.seq) else {
+            return false;
+        };
+        let newer = self
+            .view
+            .as_ref()
+            .is_none_or(|l| m.seq >= l.map().seq || m.stamp_ns >= l.map().stamp_ns);
+        if newer {
+            self.view = Some(MapView::new(m));
+        }
+        newer
+    }
+
+    /// Holds `map` whatever it replaces (a map just waited for).
+    pub fn replace(&mut self, map: FleetMap) {
+        self.view = Some(MapView::new(map));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn map(seq: u64, stamp_ns: u64) -> FleetMap {
+        FleetMap {
+            fleet: "f".into(),
+            producer: "central".into(),
+            seq,
+            stamp_ns,
+            reference: 1,
+            vehicles: Vec::new(),
+            edges: Vec::new(),
+            solve_time_us: 0,
+        }
+    }
+
+    #[test]
+    fn latest_map_keeps_the_newest_and_accepts_a_restarted_fusion() {
+        let mut latest = LatestMap::new(None);
+        assert!(!latest.offer([]));
+        assert!(latest.offer([map(3, 300), map(5, 500), map(4, 400)]));
+        assert_eq!(latest.view().unwrap().map().seq, 5);
+        // An older map arriving late is ignored.
+        assert!(!latest.offer([map(2, 200)]));
+        assert_eq!(latest.view().unwrap().map().seq, 5);
+        // A restarted fusion: seq from 1 again, later stamp.
+        assert!(latest.offer([map(1, 900)]));
+        assert_eq!(latest.view().unwrap().map().seq, 1);
+        latest.replace(map(0, 0));
+        assert_eq!(latest.view().unwrap().map().stamp_ns, 0);
     }
 }

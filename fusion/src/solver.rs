@@ -127,10 +127,9 @@ pub struct Solution {
 }
 
 /// [`proto::geometry::difference`] (the perturbation taking `reference` to
-/// `pose`), the same operations compiled in this crate: the per-observation
-/// loops (grouping, fusion, chi-square of every hypothesis) call it tens of
-/// thousands of times per solve, and `shoal-proto`, a workspace member, is
-/// built unoptimized in dev builds, where that call dominated the solve.
+/// `pose`), the same operations compiled in this crate so that they inline
+/// into the per-observation loops (grouping, fusion, chi-square of every
+/// hypothesis), which call it tens of thousands of times per solve.
 /// `tests::local_difference_is_bit_identical_to_proto` pins the equality.
 #[inline]
 pub(crate) fn difference(pose: &Pose, reference: &Pose) -> Vector6<f64> {
@@ -384,61 +383,105 @@ pub fn solve(
             .ok_or(SolveError::BadCovariance { a: c.a, b: c.b })?;
         informations.push((info + info.transpose()) * 0.5);
     }
-    let mut neighbours: BTreeMap<VehicleId, BTreeSet<VehicleId>> = BTreeMap::new();
-    for c in constraints {
-        if c.a != reference && c.b != reference {
-            neighbours.entry(c.a).or_default().insert(c.b);
-            neighbours.entry(c.b).or_default().insert(c.a);
-        }
-    }
-    let variables: Vec<VehicleId> = constraints
-        .iter()
-        .flat_map(|c| [c.a, c.b])
-        .filter(|v| *v != reference)
-        .collect::<BTreeSet<_>>()
-        .into_iter()
-        .collect();
-    let order = reverse_cuthill_mckee(&variables, &neighbours);
-    let position: BTreeMap<VehicleId, usize> =
-        order.iter().enumerate().map(|(i, v)| (*v, i)).collect();
-    let n = 6 * order.len();
-    // Profile: each block row starts at its lowest-positioned neighbour.
-    let mut first = vec![0usize; n];
-    for (p, v) in order.iter().enumerate() {
-        let lowest = neighbours
-            .get(v)
-            .into_iter()
-            .flatten()
-            .filter_map(|u| position.get(u))
-            .copied()
-            .chain([p])
-            .min()
-            .unwrap_or(p);
-        for r in 0..6 {
-            first[6 * p + r] = 6 * lowest;
-        }
-    }
-
+    let problem = Problem {
+        constraints,
+        informations,
+        params,
+        layout: Layout::new(reference, constraints),
+    };
     let mut poses = initial.clone();
-    let cost_of = |poses: &BTreeMap<VehicleId, Pose>| -> f64 {
-        constraints
+    let initial_cost = problem.cost(&poses);
+    let (iterations, cost) = problem.levenberg_marquardt(&mut poses, initial_cost);
+    let covariances = problem.marginals(reference, &poses)?;
+    Ok(Solution {
+        poses,
+        covariances,
+        iterations,
+        initial_cost,
+        final_cost: cost,
+    })
+}
+
+/// Where each vehicle's 6 unknowns sit in the normal equations: reverse
+/// Cuthill–McKee order, and the profile (each row's first stored column).
+struct Layout {
+    position: BTreeMap<VehicleId, usize>,
+    first: Vec<usize>,
+    n: usize,
+}
+
+impl Layout {
+    fn new(reference: VehicleId, constraints: &[Constraint]) -> Self {
+        let mut neighbours: BTreeMap<VehicleId, BTreeSet<VehicleId>> = BTreeMap::new();
+        for c in constraints {
+            if c.a != reference && c.b != reference {
+                neighbours.entry(c.a).or_default().insert(c.b);
+                neighbours.entry(c.b).or_default().insert(c.a);
+            }
+        }
+        let variables: Vec<VehicleId> = constraints
             .iter()
-            .zip(&informations)
+            .flat_map(|c| [c.a, c.b])
+            .filter(|v| *v != reference)
+            .collect::<BTreeSet<_>>()
+            .into_iter()
+            .collect();
+        let order = reverse_cuthill_mckee(&variables, &neighbours);
+        let position: BTreeMap<VehicleId, usize> =
+            order.iter().enumerate().map(|(i, v)| (*v, i)).collect();
+        let n = 6 * order.len();
+        // Profile: each block row starts at its lowest-positioned neighbour.
+        let mut first = vec![0usize; n];
+        for (p, v) in order.iter().enumerate() {
+            let lowest = neighbours
+                .get(v)
+                .into_iter()
+                .flatten()
+                .filter_map(|u| position.get(u))
+                .copied()
+                .chain([p])
+                .min()
+                .unwrap_or(p);
+            for r in 0..6 {
+                first[6 * p + r] = 6 * lowest;
+            }
+        }
+        Self { position, first, n }
+    }
+}
+
+/// The pose graph: constraints with their (symmetrized) informations.
+struct Problem<'a> {
+    constraints: &'a [Constraint],
+    informations: Vec<Cov6>,
+    params: &'a SolverParams,
+    layout: Layout,
+}
+
+impl Problem<'_> {
+    /// Robust cost at `poses`.
+    fn cost(&self, poses: &BTreeMap<VehicleId, Pose>) -> f64 {
+        self.constraints
+            .iter()
+            .zip(&self.informations)
             .map(|(c, info)| {
-                params
+                self.params
                     .robust
                     .cost(edge_chi2(&poses[&c.a], &poses[&c.b], &c.a_from_b, info))
             })
             .sum()
-    };
-    // Gauss–Newton system at `poses`, robust weights included.
-    let build = |poses: &BTreeMap<VehicleId, Pose>| -> (Profile, Vec<f64>) {
-        let mut h = Profile::zeros(first.clone());
-        let mut g = vec![0.0; n];
-        for (c, info) in constraints.iter().zip(&informations) {
+    }
+
+    /// Gauss–Newton system at `poses`, robust weights included: the
+    /// information (lower triangle, in the profile) and the gradient.
+    fn normal_equations(&self, poses: &BTreeMap<VehicleId, Pose>) -> (Profile, Vec<f64>) {
+        let position = &self.layout.position;
+        let mut h = Profile::zeros(self.layout.first.clone());
+        let mut g = vec![0.0; self.layout.n];
+        for (c, info) in self.constraints.iter().zip(&self.informations) {
             let (r, ja, jb) = residual_and_jacobians(&poses[&c.a], &poses[&c.b], &c.a_from_b);
             let s = (r.transpose() * info * r)[0];
-            let w = params.robust.weight(s);
+            let w = self.params.robust.weight(s);
             let wi = info * w;
             let blocks = [
                 (position.get(&c.a).copied(), ja),
@@ -470,16 +513,24 @@ pub fn solve(
             }
         }
         (h, g)
-    };
+    }
 
-    let initial_cost = cost_of(&poses);
-    let mut cost = initial_cost;
-    let mut lambda = params.initial_lambda;
-    let mut iterations = 0;
-    if n > 0 {
-        for _ in 0..params.max_iterations {
+    /// Levenberg–Marquardt from `poses` (cost `cost`), in place: returns the
+    /// iterations and the final cost.
+    fn levenberg_marquardt(
+        &self,
+        poses: &mut BTreeMap<VehicleId, Pose>,
+        mut cost: f64,
+    ) -> (usize, f64) {
+        let n = self.layout.n;
+        let mut lambda = self.params.initial_lambda;
+        let mut iterations = 0;
+        if n == 0 {
+            return (iterations, cost);
+        }
+        for _ in 0..self.params.max_iterations {
             iterations += 1;
-            let (h, g) = build(&poses);
+            let (h, g) = self.normal_equations(poses);
             let mut improved = false;
             for _ in 0..10 {
                 let mut damped = h.clone();
@@ -494,20 +545,20 @@ pub fn solve(
                 let neg_g: Vec<f64> = g.iter().map(|v| -v).collect();
                 let dx = l.solve(&neg_g);
                 let mut trial = poses.clone();
-                for (v, p) in &position {
+                for (v, p) in &self.layout.position {
                     let xi = Vector6::from_iterator(dx[6 * p..6 * p + 6].iter().copied());
                     trial.insert(*v, perturb(&poses[v], &xi));
                 }
-                let trial_cost = cost_of(&trial);
+                let trial_cost = self.cost(&trial);
                 if trial_cost.is_finite() && trial_cost <= cost {
                     let decrease = cost - trial_cost;
                     let step = dx.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-                    poses = trial;
+                    *poses = trial;
                     cost = trial_cost;
                     lambda = (lambda / 10.0).max(1e-12);
-                    // Converged: negligible relative decrease, or a step below 1e-9 m / rad.
-                    improved =
-                        decrease > params.relative_tolerance * cost && step > params.min_step;
+                    // Converged: negligible relative decrease, or a step below `min_step`.
+                    improved = decrease > self.params.relative_tolerance * cost
+                        && step > self.params.min_step;
                     break;
                 }
                 lambda *= 10.0;
@@ -516,26 +567,28 @@ pub fn solve(
                 break;
             }
         }
+        (iterations, cost)
     }
 
-    // Marginals: inverse of the (undamped) Gauss–Newton information at the solution.
-    let mut covariances = BTreeMap::new();
-    covariances.insert(reference, Cov6::zeros());
-    if n > 0 {
-        let (h, _) = build(&poses);
-        let l = h.cholesky().ok_or(SolveError::Singular)?;
-        for (v, p) in &position {
-            let c = l.inverse_diagonal_block(*p);
-            covariances.insert(*v, (c + c.transpose()) * 0.5);
+    /// Marginals: the inverse of the (undamped) Gauss–Newton information at
+    /// `poses`, one 6x6 diagonal block per vehicle (zero for the reference).
+    fn marginals(
+        &self,
+        reference: VehicleId,
+        poses: &BTreeMap<VehicleId, Pose>,
+    ) -> Result<BTreeMap<VehicleId, Cov6>, SolveError> {
+        let mut covariances = BTreeMap::new();
+        covariances.insert(reference, Cov6::zeros());
+        if self.layout.n > 0 {
+            let (h, _) = self.normal_equations(poses);
+            let l = h.cholesky().ok_or(SolveError::Singular)?;
+            for (v, p) in &self.layout.position {
+                let c = l.inverse_diagonal_block(*p);
+                covariances.insert(*v, (c + c.transpose()) * 0.5);
+            }
         }
+        Ok(covariances)
     }
-    Ok(Solution {
-        poses,
-        covariances,
-        iterations,
-        initial_cost,
-        final_cost: cost,
-    })
 }
 
 #[cfg(test)]

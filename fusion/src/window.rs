@@ -209,3 +209,81 @@ pub(crate) fn early_report(
         chi2: f64::NAN,
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::solve::testing::observation;
+    use proto::geometry::pose_from_xyz_rpy;
+    use std::path::Path;
+
+    const S: u64 = 1_000_000_000;
+    const LIMITS: Admission = Admission {
+        window_ns: 2 * S,
+        max_clock_skew_ns: S / 4,
+        max_std: 5.0,
+    };
+
+    fn paper_fleet() -> Fleet {
+        Fleet::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/fleets/paper.toml"))
+            .expect("paper fleet loads")
+    }
+
+    /// Vehicle 10 seeing 15's marker 15 at `stamp_ns`.
+    fn seen(stamp_ns: u64) -> Observation {
+        observation(
+            10,
+            0,
+            15,
+            stamp_ns,
+            pose_from_xyz_rpy([2.0, 0.0, 0.0], [0.0; 3]),
+        )
+    }
+
+    #[test]
+    fn admission_rejects_an_observation_older_than_the_window_or_from_the_future() {
+        let fleet = paper_fleet();
+        let mut w = Window::default();
+        let now = 100 * S;
+        assert_eq!(w.admit(&fleet, seen(now - 2 * S), 10, now, &LIMITS), Ok(15));
+        assert_eq!(
+            w.admit(&fleet, seen(now - 2 * S - 1), 10, now, &LIMITS),
+            Err(RejectReason::Stale)
+        );
+        assert_eq!(w.admit(&fleet, seen(now + S / 4), 10, now, &LIMITS), Ok(15));
+        assert_eq!(
+            w.admit(&fleet, seen(now + S / 4 + 1), 10, now, &LIMITS),
+            Err(RejectReason::ClockSkew)
+        );
+        assert_eq!(
+            w.admit(&fleet, seen(now), 15, now, &LIMITS),
+            Err(RejectReason::ObserverMismatch)
+        );
+        let mut loose = seen(now);
+        loose.covariance[(2, 2)] = 36.0; // σ = 6 m > max_std
+        assert_eq!(
+            w.admit(&fleet, loose, 10, now, &LIMITS),
+            Err(RejectReason::Invalid)
+        );
+        assert_eq!(w.entries.len(), 2);
+    }
+
+    #[test]
+    fn eviction_drops_what_aged_out_and_forgets_its_duplicate_key() {
+        let fleet = paper_fleet();
+        let mut w = Window::default();
+        let t0 = 100 * S;
+        for k in 0..5 {
+            w.admit(&fleet, seen(t0 + k * S / 2), 10, t0 + k * S / 2, &LIMITS)
+                .unwrap();
+        }
+        assert_eq!(
+            w.admit(&fleet, seen(t0 + S), 10, t0 + S, &LIMITS),
+            Err(RejectReason::Duplicate)
+        );
+        // At t0 + 3 s the frames at t0 and t0 + 0.5 s are beyond 2 s.
+        assert_eq!(w.evict(t0 + 3 * S, LIMITS.window_ns), 2);
+        assert_eq!(w.entries.len(), 3);
+        assert_eq!(w.duplicates.len(), 3);
+    }
+}

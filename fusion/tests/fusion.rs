@@ -4,13 +4,14 @@
 mod common;
 
 use common::*;
-use shoal_fusion::{Fusion, FusionParams, MapView};
+use shoal_fusion::{AgeInflation, Fusion, FusionParams, MapView};
 use shoal_proto::geometry::difference;
 use shoal_proto::{CodeSet, RejectReason, VehicleState};
 use shoal_sim_bridge::obs_synth::{
     grid_formation, line_abreast, synthetic_fleet, FormationJitter, ObsSynthParams, OutlierKind,
     OutlierModel,
 };
+use std::collections::BTreeMap;
 
 /// Paper fleet line abreast, 2 m apart (the 2.2 m hull's side cameras sit
 /// 0.95 m ahead of its neighbours' markers: 1.5 m spacing puts them outside its 60° view).
@@ -34,7 +35,7 @@ fn three_vehicles_clean_relative_poses_within_millimetres() {
     let fleet = paper_fleet();
     let truth = paper_line_abreast();
     // One full 2 s window at 10 Hz.
-    // Seed 1 is the worst of the seeds `fusion_metrics` prints (5.5 mm at 4 m from the reference).
+    // Seed 1 gives the largest error of seeds 0–4 (5.5 mm at 4 m from the reference).
     let (mut fusion, obs, now) = run_frames(
         &fleet,
         &truth,
@@ -50,19 +51,6 @@ fn three_vehicles_clean_relative_poses_within_millimetres() {
     assert_eq!(live, 3, "{:?}", map.vehicles);
     assert!(t_err < 0.006, "translation error {t_err} m");
     assert!(r_err < 0.2f64.to_radians(), "rotation error {r_err} rad");
-    // And the error is what the reported covariance says (each axis within 4σ).
-    for v in &map.vehicles {
-        let e = difference(&v.reference_from_vehicle, &want[&v.vehicle]);
-        for i in 0..6 {
-            assert!(
-                e[i].abs() <= 4.0 * v.covariance[(i, i)].sqrt() + 1e-12,
-                "vehicle {} axis {i}: {} vs σ {}",
-                v.vehicle,
-                e[i],
-                v.covariance[(i, i)].sqrt()
-            );
-        }
-    }
     assert!(map
         .edges
         .iter()
@@ -74,6 +62,93 @@ fn three_vehicles_clean_relative_poses_within_millimetres() {
     let e = difference(&rel.a_from_b.pose, &truth_rel);
     assert!(e.fixed_rows::<3>(0).norm() < 0.005, "{e}");
     assert!(rel.live);
+}
+
+/// Seeds per check of [`reported_covariance_matches_the_error_over_many_seeds`].
+const NEES_SEEDS: u64 = 200;
+/// χ² quantiles for 6 · [`NEES_SEEDS`] = 1200 degrees of freedom at 0.05%
+/// and 99.95% (scipy.stats.chi2.ppf): one vehicle's NEES summed over the
+/// seeds falls outside with probability 0.1% when its covariance is exact.
+const CHI2_1200_LOW: f64 = 1045.32;
+const CHI2_1200_HIGH: f64 = 1367.78;
+/// How far the reported covariance may be off the error's actual covariance
+/// (a factor either way): the synthesizer's noise is Gaussian in the camera
+/// frame with its covariance propagated to first order, and fusion
+/// linearizes again (frame fusion, inversion, LM marginals at the solution).
+/// Over 400 seeds the paper fleet's mean NEES is 6.2–6.4 for 6 DoF (motion
+/// model off), within 7% of 6; a covariance 1.5 times too small or too large
+/// fails.
+const COVARIANCE_SCALE_TOLERANCE: f64 = 1.1;
+
+/// Per non-reference vehicle of the paper fleet, its NEES
+/// `eᵀ Σ⁻¹ e` (error against truth, Σ the map's marginal covariance) summed
+/// over [`NEES_SEEDS`] independent 2 s windows.
+fn nees_sums(params: FusionParams) -> BTreeMap<u32, f64> {
+    let fleet = paper_fleet();
+    let truth = paper_line_abreast();
+    let want = truth_poses(&fleet, &truth);
+    let mut sums = BTreeMap::new();
+    for seed in 0..NEES_SEEDS {
+        let (mut fusion, _, now) = run_frames(
+            &fleet,
+            &truth,
+            ObsSynthParams::default(),
+            params,
+            1000 + seed,
+            20,
+        );
+        let map = fusion.solve(now);
+        for v in map.vehicles.iter().filter(|v| v.vehicle != map.reference) {
+            assert_eq!(v.state, VehicleState::Live, "seed {seed}: {v:?}");
+            let e = difference(&v.reference_from_vehicle, &want[&v.vehicle]);
+            let info = v.covariance.try_inverse().expect("invertible covariance");
+            *sums.entry(v.vehicle).or_insert(0.0) += (e.transpose() * info * e)[0];
+        }
+    }
+    sums
+}
+
+#[test]
+fn reported_covariance_matches_the_error_over_many_seeds() {
+    // A formation holding still: without age inflation and the motion model
+    // (the drift and velocity they allow for are not there) the reported
+    // covariance claims to be the error's own, and must be, both ways.
+    let mut still = FusionParams {
+        age_inflation: AgeInflation {
+            translation_m2_per_s: 0.0,
+            rotation_rad2_per_s: 0.0,
+        },
+        record_solve_time: false,
+        ..FusionParams::default()
+    };
+    still.motion.enabled = false;
+    let (low, high) = (
+        CHI2_1200_LOW / COVARIANCE_SCALE_TOLERANCE,
+        CHI2_1200_HIGH * COVARIANCE_SCALE_TOLERANCE,
+    );
+    let exact = nees_sums(still);
+    eprintln!("NEES sums, still model: {exact:?} (allowed {low:.0}..{high:.0})");
+    assert_eq!(exact.len(), 2);
+    for (v, sum) in &exact {
+        assert!(
+            (low..=high).contains(sum),
+            "vehicle {v}: NEES sum {sum:.0} over {NEES_SEEDS} seeds"
+        );
+    }
+    // With the defaults (vehicles assumed to drift, the motion model on) the
+    // covariance is larger than the still formation's error: never optimistic.
+    let inflated = nees_sums(FusionParams {
+        record_solve_time: false,
+        ..FusionParams::default()
+    });
+    eprintln!("NEES sums, default parameters: {inflated:?}");
+    for (v, sum) in &inflated {
+        assert!(*sum <= CHI2_1200_HIGH, "vehicle {v}: NEES sum {sum:.0}");
+        assert!(
+            sum < &exact[v],
+            "vehicle {v}: inflation makes the covariance larger"
+        );
+    }
 }
 
 #[test]

@@ -13,6 +13,9 @@
 //! HOIRM-restored frames, corners fitted on the raw frame) with the
 //! whole-pattern fit (the default there) and with the per-side fits only.
 //!
+//! A third group times detection alone with each corner refinement, and the
+//! pose alone.
+//!
 //! `cargo bench -p shoal-node --bench detect`
 
 use criterion::{criterion_group, criterion_main, Criterion};
@@ -201,9 +204,48 @@ fn bench_turbid(c: &mut Criterion) {
     g.finish();
 }
 
+/// Detection alone with each corner refinement (the default is the edge
+/// model), and the pose alone, on the 1.38 /m frames of [`bench`].
+fn bench_refinement(c: &mut Criterion) {
+    use shoal_node::detect::Refinement;
+    opencv::core::set_num_threads(1).expect("threads");
+    let cam = CameraModel::vehicle_1440();
+    let frames = frames(CodeSet::Shoal);
+    let mut g = c.benchmark_group("detect_1440x1080_refinement");
+    for (name, refinement) in [
+        ("no_refinement", Refinement::None),
+        ("edge_lines", Refinement::EdgeLines),
+        ("edge_model", Refinement::EdgeModel),
+    ] {
+        let mut det = ShoalDetector::new(
+            CodeSet::Shoal,
+            DetectParams {
+                refinement,
+                ..DetectParams::default()
+            },
+        );
+        g.bench_function(name, |b| {
+            let mut i = 0;
+            b.iter(|| {
+                let f = &frames[i % frames.len()];
+                i += 1;
+                det.detect(f).expect("detect").len()
+            })
+        });
+    }
+    let found = ShoalDetector::new(CodeSet::Shoal, DetectParams::default())
+        .detect(&frames[0])
+        .expect("detect");
+    let d = found.first().expect("a marker in the frame");
+    g.bench_function("pose_only_12_corners", |b| {
+        b.iter(|| estimate_pose(&cam, &d.object_points(SIDE_M), &d.corners_px, None).is_ok())
+    });
+    g.finish();
+}
+
 criterion_group! {
     name = benches;
     config = Criterion::default().sample_size(30);
-    targets = bench, bench_turbid
+    targets = bench, bench_turbid, bench_refinement
 }
 criterion_main!(benches);

@@ -9,8 +9,8 @@ use opencv::core::{Mat, Size};
 use opencv::imgproc;
 use opencv::prelude::*;
 use shoal_node::restore::psf::Wiener;
-use shoal_node::restore::synthetic::{marker_frame, Degradation};
 use shoal_node::restore::{restorer, Hoirm, Method, RestoreParams};
+use shoal_test_support::synthetic::{marker_frame, Degradation};
 use std::hint::black_box;
 use std::time::Duration;
 

@@ -3,7 +3,7 @@
 
 pub mod apriltag_ffi;
 
-use crate::detect::{DetectError, Detection, MarkerDetector};
+use crate::detect::{CornerChoice, DetectError, Detection, MarkerDetector};
 use crate::mat::GrayView;
 use apriltag_ffi::{Family, FamilyHandle};
 use opencv::aruco;
@@ -11,8 +11,9 @@ use opencv::core::{Mat, Point2f, Ptr, Vector};
 use opencv::prelude::*;
 use shoal_proto::marker::CodeSet;
 
-/// OpenCV's predefined dictionary for an ArUco code set (`shoal` reads its
-/// code square as ArUco 4x4_50: the enhanced marker's white ring is its quiet zone).
+/// OpenCV's predefined dictionary for a code set (`shoal` reads its code
+/// square as ArUco 4x4_50: the enhanced marker's white ring is its quiet
+/// zone; the AprilTag families are OpenCV's `DICT_APRILTAG_*`, the same IDs).
 pub fn opencv_dictionary(codes: CodeSet) -> Option<aruco::PREDEFINED_DICTIONARY_NAME> {
     use aruco::PREDEFINED_DICTIONARY_NAME as D;
     use CodeSet::*;
@@ -29,7 +30,8 @@ pub fn opencv_dictionary(codes: CodeSet) -> Option<aruco::PREDEFINED_DICTIONARY_
         Aruco6x6_100 => D::DICT_6X6_100,
         Aruco6x6_250 => D::DICT_6X6_250,
         Aruco6x6_1000 => D::DICT_6X6_1000,
-        AprilTag16h5 | AprilTag36h11 => return None,
+        AprilTag16h5 => D::DICT_APRILTAG_16h5,
+        AprilTag36h11 => D::DICT_APRILTAG_36h11,
     })
 }
 
@@ -101,6 +103,7 @@ impl MarkerDetector for OpenCvAruco {
                 corner_ids: (first_id..first_id + 4).collect(),
                 hamming: 0,
                 module_px: side / (self.codes.data_side() + 2) as f64,
+                corner_fit: CornerChoice::baseline(),
             });
         }
         Ok(out)
@@ -161,6 +164,17 @@ impl AprilTag {
     }
 }
 
+impl AprilTag {
+    /// libapriltag's `quad_decimate`: 2 (the library default) finds quads on
+    /// a half-resolution image; 1 at full resolution, which reads smaller tags
+    /// at several times the cost. Values below 1 are taken as 1.
+    #[allow(unsafe_code)] // FFI to libapriltag.
+    pub fn set_quad_decimate(&mut self, decimate: f32) {
+        // SAFETY: `td` is the valid detector created in `new` and destroyed only in Drop.
+        unsafe { (*self.td).quad_decimate = decimate.max(1.0) }
+    }
+}
+
 impl Drop for AprilTag {
     #[allow(unsafe_code)] // FFI to libapriltag.
     fn drop(&mut self) {
@@ -214,6 +228,7 @@ impl MarkerDetector for AprilTag {
                     corner_ids: vec![0, 1, 2, 3],
                     hamming: d.hamming as u32,
                     module_px: side / self.codes.modules() as f64,
+                    corner_fit: CornerChoice::baseline(),
                 });
             }
             apriltag_ffi::apriltag_detections_destroy(dets);

@@ -1,6 +1,7 @@
 //! The per-vehicle pipeline of shoal (paper §4–§5): camera frames →
 //! HOIRM restoration → enhanced-marker detection → PnP with covariance →
-//! `observer_from_target` observations, and the Zenoh node service around it.
+//! `observer_from_target` observations, on each camera's thread. No Zenoh:
+//! the node service that feeds it from the bus is `shoal_services::node`.
 //!
 //! - [`restore`]: HOIRM (paper §4) and the baselines (none, CLAHE, DCP, UDCP);
 //! - [`metrics`]: SSIM, PSNR, CNR for scoring restoration;
@@ -11,7 +12,11 @@
 //! - [`mat`]: zero-fuss conversions between `GrayImage` and `cv::Mat`;
 //! - [`pipeline`]: one camera's chain, restore → detect → PnP → body-frame observations;
 //! - [`track`]: constant-velocity SE(3) tracking that bridges short occlusions;
-//! - [`service`], [`source`]: the Zenoh node service and its frame sources.
+//! - [`vehicle`]: the vehicle's camera threads, fed from any [`vehicle::FrameInput`], and their counters;
+//! - [`source`]: local frame sources (a folder of images, a video, a live camera).
+
+// A library reports failures as errors; an `unwrap()` that cannot fail says why with `expect`.
+#![warn(clippy::unwrap_used)]
 
 pub mod baseline;
 pub mod detect;
@@ -21,6 +26,6 @@ pub mod pipeline;
 pub mod pose;
 pub mod print;
 pub mod restore;
-pub mod service;
 pub mod source;
 pub mod track;
+pub mod vehicle;

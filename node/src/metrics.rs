@@ -17,10 +17,19 @@
 //!   grey-level change `a·I + b` — CLAHE-like gains do not raise it by
 //!   themselves; only a better separation of the two populations does.
 //!
+//! - [`michelson_contrast`]: `|μ_w − μ_b| / (μ_w + μ_b)` of the same two
+//!   populations, 0..1: how much of the grey range the marker still spans
+//!   (unlike CNR it falls with the water's veil, whatever the noise).
+//! - [`marker_contrast`]: both of the above on the white and black modules
+//!   of a *detected* marker, located from its corners alone (what the node
+//!   reports on the wire as `ImageQuality`).
+//!
 //! All functions take 8-bit grey [`GrayImage`]s; `*_mat` variants take
 //! single-channel 8-bit `cv::Mat`s.
 
-use opencv::core::{Mat, CV_8UC1};
+use crate::detect::Detection;
+use nalgebra::{Matrix3, SMatrix, SVector, Vector3};
+use opencv::core::{Mat, Rect, CV_8UC1};
 use opencv::prelude::*;
 use shoal_proto::GrayImage;
 
@@ -35,7 +44,7 @@ pub const SSIM_K2: f64 = 0.03;
 const L: f64 = 255.0;
 
 /// Errors of the metrics.
-#[derive(Debug, thiserror::Error, PartialEq)]
+#[derive(Debug, thiserror::Error)]
 pub enum MetricError {
     #[error("image sizes differ: {a_width}x{a_height} vs {b_width}x{b_height}")]
     SizeMismatch {
@@ -65,14 +74,10 @@ pub enum MetricError {
     NoNoise,
     #[error("Mat is not single-channel 8-bit (type {typ})")]
     MatType { typ: i32 },
-    #[error("OpenCV: {0}")]
-    OpenCv(String),
-}
-
-impl From<opencv::Error> for MetricError {
-    fn from(e: opencv::Error) -> Self {
-        MetricError::OpenCv(e.to_string())
-    }
+    #[error("OpenCV")]
+    OpenCv(#[from] opencv::Error),
+    #[error("marker {marker}: {reason}")]
+    Marker { marker: String, reason: String },
 }
 
 fn check_buffer(img: &GrayImage) -> Result<(), MetricError> {
@@ -255,6 +260,163 @@ pub fn cnr(img: &GrayImage, white: &[bool], black: &[bool]) -> Result<f64, Metri
         return Err(MetricError::NoNoise);
     }
     Ok((mw - mb).abs() / noise)
+}
+
+/// Michelson contrast `|μ_w − μ_b| / (μ_w + μ_b)` between the mean grey
+/// levels of the `white` and `black` regions (row-major masks of the
+/// image's size), in 0..1; 0 when both regions are black.
+pub fn michelson_contrast(
+    img: &GrayImage,
+    white: &[bool],
+    black: &[bool],
+) -> Result<f64, MetricError> {
+    check_buffer(img)?;
+    let (mw, _) = masked_stats(img, white, "white")?;
+    let (mb, _) = masked_stats(img, black, "black")?;
+    Ok(if mw + mb > 0.0 {
+        (mw - mb).abs() / (mw + mb)
+    } else {
+        0.0
+    })
+}
+
+/// Part of each module's side that [`marker_contrast`] samples: the central
+/// 60 %, so blurred module borders and corner errors of a few tenths of a
+/// module do not mix the two populations (the evaluation's masks keep the
+/// same part, `shoal::eval::scene::module_masks`).
+pub const MARKER_MODULE_INNER: f64 = 0.6;
+
+/// The contrast of one detected marker's modules on one frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MarkerContrast {
+    /// [`michelson_contrast`] of its white and black modules, 0..1.
+    pub michelson: f64,
+    /// [`cnr`] of its white and black modules.
+    pub cnr: f64,
+}
+
+/// [`michelson_contrast`] and [`cnr`] of the white and black modules of
+/// `det` on `gray` (8-bit, the frame its corners were measured on).
+///
+/// The modules are located from the detection alone: the largest square of
+/// corners it holds completely (for the enhanced marker the outer frame, else
+/// the frame's inner edge or the code border, whichever is complete) gives a
+/// homography from pixels to the module grid, and each pixel of the marker's
+/// bounding box whose grid position falls in the central
+/// [`MARKER_MODULE_INNER`] of a module counts as white or black after
+/// [`CodeSet::module_grid`](shoal_proto::CodeSet::module_grid) of the
+/// decoded ID. Lens distortion is not taken out (it moves a 300 px marker's
+/// modules by well under the 20 % margin kept on each side).
+pub fn marker_contrast(gray: &Mat, det: &Detection) -> Result<MarkerContrast, MetricError> {
+    let marker = || format!("{}#{}", det.codes, det.id);
+    let err = |reason: String| MetricError::Marker {
+        marker: marker(),
+        reason,
+    };
+    if gray.typ() != CV_8UC1 {
+        return Err(MetricError::MatType { typ: gray.typ() });
+    }
+    let grid = det
+        .codes
+        .module_grid(det.id)
+        .map_err(|e| err(e.to_string()))?;
+    let m = det.codes.modules();
+    // Square s of `corners_3d` has half-side halves[s] of the black square,
+    // i.e. it starts `(0.5 - half) * m` modules inside it.
+    let squares = det.codes.corner_count() / 4;
+    let outer = det.codes.corners_3d(1.0);
+    let (square, px) = (0..squares)
+        .find_map(|s| {
+            let px: Option<Vec<[f64; 2]>> = (0..4)
+                .map(|k| {
+                    det.corner_ids
+                        .iter()
+                        .position(|&c| usize::from(c) == 4 * s + k)
+                        .and_then(|i| det.corners_px.get(i).copied())
+                })
+                .collect();
+            px.map(|px| (s, px))
+        })
+        .ok_or_else(|| err("no complete square of corners".into()))?;
+    let inset = (0.5 - outer[4 * square].x.abs()) * m as f64;
+    let far = m as f64 - inset;
+    // corners_3d order: top-left, top-right, bottom-right, bottom-left
+    // (grid columns to the right, rows down).
+    let grid_pts = [[inset, inset], [far, inset], [far, far], [inset, far]];
+    let to_grid = homography(&px, &grid_pts).ok_or_else(|| err("degenerate corners".into()))?;
+    let to_px = to_grid
+        .try_inverse()
+        .ok_or_else(|| err("degenerate corners".into()))?;
+    let apply = |h: &Matrix3<f64>, x: f64, y: f64| {
+        let p = h * Vector3::new(x, y, 1.0);
+        [p.x / p.z, p.y / p.z]
+    };
+    // Bounding box of the whole black square, clipped to the frame.
+    let ends = [0.0, m as f64];
+    let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
+    for &u in &ends {
+        for &v in &ends {
+            let [x, y] = apply(&to_px, u, v);
+            (x0, y0, x1, y1) = (x0.min(x), y0.min(y), x1.max(x), y1.max(y));
+        }
+    }
+    let clip = |v: f64, hi: i32| (v.max(0.0) as i32).min(hi);
+    let (x0, y0) = (clip(x0.floor(), gray.cols()), clip(y0.floor(), gray.rows()));
+    let (x1, y1) = (clip(x1.ceil(), gray.cols()), clip(y1.ceil(), gray.rows()));
+    if x1 - x0 < 2 || y1 - y0 < 2 {
+        return Err(err("outside the frame".into()));
+    }
+    let roi = Mat::roi(gray, Rect::new(x0, y0, x1 - x0, y1 - y0))?.clone_pointee();
+    let crop = gray_from_mat(&roi)?;
+    let n = crop.data.len();
+    let (mut white, mut black) = (vec![false; n], vec![false; n]);
+    let margin = 0.5 * (1.0 - MARKER_MODULE_INNER);
+    for y in 0..crop.height as usize {
+        for x in 0..crop.width as usize {
+            // Pixel centres are at integer coordinates (OpenCV's convention).
+            let [u, v] = apply(&to_grid, (x0 as usize + x) as f64, (y0 as usize + y) as f64);
+            if !(u >= 0.0 && v >= 0.0 && u < m as f64 && v < m as f64) {
+                continue;
+            }
+            let (fu, fv) = (u.fract(), v.fract());
+            if fu < margin || fu > 1.0 - margin || fv < margin || fv > 1.0 - margin {
+                continue;
+            }
+            let i = y * crop.width as usize + x;
+            if grid[v as usize * m + u as usize] {
+                white[i] = true;
+            } else {
+                black[i] = true;
+            }
+        }
+    }
+    Ok(MarkerContrast {
+        michelson: michelson_contrast(&crop, &white, &black)?,
+        cnr: cnr(&crop, &white, &black)?,
+    })
+}
+
+/// The projective map taking each `from` point to its `to` point (four
+/// correspondences, `h33 = 1`); `None` when they are degenerate.
+fn homography(from: &[[f64; 2]], to: &[[f64; 2]; 4]) -> Option<Matrix3<f64>> {
+    let mut a = SMatrix::<f64, 8, 8>::zeros();
+    let mut b = SVector::<f64, 8>::zeros();
+    for (k, (p, q)) in from.iter().zip(to).enumerate() {
+        let (x, y, u, v) = (p[0], p[1], q[0], q[1]);
+        a.set_row(
+            2 * k,
+            &SMatrix::<f64, 1, 8>::from_row_slice(&[x, y, 1.0, 0.0, 0.0, 0.0, -x * u, -y * u]),
+        );
+        a.set_row(
+            2 * k + 1,
+            &SMatrix::<f64, 1, 8>::from_row_slice(&[0.0, 0.0, 0.0, x, y, 1.0, -x * v, -y * v]),
+        );
+        b[2 * k] = u;
+        b[2 * k + 1] = v;
+    }
+    let h = a.lu().solve(&b)?;
+    let h = Matrix3::new(h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], 1.0);
+    h.iter().all(|v| v.is_finite()).then_some(h)
 }
 
 /// Copy a single-channel 8-bit `Mat` into a [`GrayImage`].
@@ -459,5 +621,85 @@ mod tests {
         assert_eq!(gray_from_mat(&ma).unwrap(), a);
         assert_eq!(ssim_mat(&ma, &mb).unwrap(), ssim(&a, &b).unwrap());
         assert_eq!(psnr_mat(&ma, &mb).unwrap(), psnr(&a, &b).unwrap());
+    }
+
+    /// Shoal marker #17 drawn axis-aligned with 20-px modules from (40, 40),
+    /// white 200 and black 50 grey levels, plus a ±2 checkerboard: every
+    /// sampled module is 12x12 px (balanced), so the populations' means are
+    /// exactly 200 and 50 and their variances exactly 4.
+    fn drawn_marker() -> (Mat, Vec<[f64; 2]>) {
+        use shoal_proto::CodeSet;
+        let grid = CodeSet::Shoal.module_grid(17).unwrap();
+        let (side, module, x0) = (280usize, 20usize, 40usize);
+        let mut data = vec![128u8; side * side];
+        for y in 0..side {
+            for x in 0..side {
+                let (u, v) = (x as i64 - x0 as i64, y as i64 - x0 as i64);
+                let inside = u >= 0 && v >= 0 && u < 200 && v < 200;
+                let base: i32 = if !inside {
+                    128
+                } else if grid[(v as usize / module) * 10 + u as usize / module] {
+                    200
+                } else {
+                    50
+                };
+                let noise = if (x + y).is_multiple_of(2) { 2 } else { -2 };
+                data[y * side + x] = (base + noise) as u8;
+            }
+        }
+        let mat = Mat::new_rows_cols_with_data(side as i32, side as i32, &data)
+            .unwrap()
+            .try_clone()
+            .unwrap();
+        // Module edges fall between pixel centres: the marker covers columns 40..=239.
+        let corners = [0.0, 20.0, 40.0]
+            .iter()
+            .flat_map(|&inset| {
+                let (a, b) = (39.5 + inset, 239.5 - inset);
+                [[a, a], [b, a], [b, b], [a, b]]
+            })
+            .collect();
+        (mat, corners)
+    }
+
+    fn detection(corners_px: Vec<[f64; 2]>, corner_ids: Vec<u8>) -> Detection {
+        Detection {
+            codes: shoal_proto::CodeSet::Shoal,
+            id: 17,
+            corners_px,
+            corner_ids,
+            hamming: 0,
+            module_px: 20.0,
+            corner_fit: crate::detect::CornerChoice::baseline(),
+        }
+    }
+
+    #[test]
+    fn marker_contrast_of_a_drawn_marker_is_its_drawn_contrast() {
+        let (img, corners) = drawn_marker();
+        let c = marker_contrast(&img, &detection(corners.clone(), (0..12).collect())).unwrap();
+        assert!((c.michelson - 150.0 / 250.0).abs() < 1e-12, "{c:?}");
+        assert!((c.cnr - 150.0 / 8f64.sqrt()).abs() < 1e-9, "{c:?}");
+        // Without the outer frame's corners the code border's square maps the same modules.
+        let inner = detection(corners[8..].to_vec(), (8..12).collect());
+        assert_eq!(marker_contrast(&img, &inner).unwrap(), c);
+        // Corners of no complete square: an error naming the marker.
+        let partial = detection(corners[..3].to_vec(), vec![0, 1, 2]);
+        let e = marker_contrast(&img, &partial).unwrap_err();
+        assert!(e.to_string().contains("shoal#17"), "{e}");
+    }
+
+    #[test]
+    fn michelson_contrast_is_signless_and_zero_on_black() {
+        let img = GrayImage::from_vec(2, 2, vec![150, 150, 50, 50]).unwrap();
+        let (top, bottom) = (
+            vec![true, true, false, false],
+            vec![false, false, true, true],
+        );
+        let c = michelson_contrast(&img, &top, &bottom).unwrap();
+        assert!((c - 0.5).abs() < 1e-12);
+        assert_eq!(michelson_contrast(&img, &bottom, &top).unwrap(), c);
+        let black = GrayImage::filled(2, 2, 0);
+        assert_eq!(michelson_contrast(&black, &top, &bottom).unwrap(), 0.0);
     }
 }

@@ -5,7 +5,9 @@
 //! No Zenoh here: the service (`service.rs`), the evaluation and offline
 //! re-runs from logs all drive this same type.
 
-use crate::detect::{DetectError, DetectParams, Detection, MarkerDetector, ShoalDetector};
+use crate::detect::{
+    CornerFitCounts, DetectError, DetectParams, Detection, MarkerDetector, ShoalDetector,
+};
 use crate::pose::{estimate_pose, Hypothesis, PoseError};
 use crate::restore::{restorer, Method, RestoreError, RestoreParams, Restorer};
 use crate::track::{Track, TrackParams};
@@ -64,6 +66,9 @@ pub struct FrameOutput {
     pub observations: Vec<Observation>,
     /// Markers decoded in the frame.
     pub detections: usize,
+    /// The detections per corner fit ([`crate::detect::CornerFit`]): which
+    /// fits ran, for the node's status.
+    pub corner_fits: CornerFitCounts,
     /// Detections dropped: PnP failed, or the marker size is unknown.
     pub pose_failures: Vec<String>,
     pub restore_ms: f64,
@@ -146,7 +151,10 @@ impl CameraPipeline {
         let detections = self.detector.detect_restored(&restored.image, gray)?;
         let t2 = Instant::now();
         out.detections = detections.len();
-        let quality = ImageQuality {
+        out.corner_fits = detections.iter().collect();
+        // The frame's figures; the marker's own contrast is added per
+        // detection (and stays 0 on predictions, where no marker was seen).
+        let frame_quality = ImageQuality {
             marker_contrast: 0.0,
             cnr: 0.0,
             backscatter: (restored.backscatter / 255.0) as f32,
@@ -154,6 +162,7 @@ impl CameraPipeline {
         };
         let mut seen = Vec::new();
         for det in &detections {
+            let quality = marker_quality(gray, det, frame_quality);
             match self.observation(det, stamp_ns, frame_seq, quality) {
                 Ok(obs) => {
                     seen.push(det.id);
@@ -163,7 +172,13 @@ impl CameraPipeline {
                 Err(reason) => out.pose_failures.push(reason),
             }
         }
-        self.bridge_occlusions(&seen, stamp_ns, frame_seq, quality, &mut out.observations);
+        self.bridge_occlusions(
+            &seen,
+            stamp_ns,
+            frame_seq,
+            frame_quality,
+            &mut out.observations,
+        );
         let t3 = Instant::now();
         out.restore_ms = (t1 - t0).as_secs_f64() * 1e3;
         out.detect_ms = (t2 - t1).as_secs_f64() * 1e3;
@@ -312,6 +327,24 @@ impl CameraPipeline {
                 quality,
                 predicted: true,
             });
+        }
+    }
+}
+
+/// `frame` with the contrast and CNR of `det`'s modules on the raw frame
+/// `gray` ([`crate::metrics::marker_contrast`]): what the water and the
+/// camera leave of the marker, before restoration. A marker whose modules
+/// cannot be sampled (no complete square of corners) keeps 0.
+fn marker_quality(gray: &Mat, det: &Detection, frame: ImageQuality) -> ImageQuality {
+    match crate::metrics::marker_contrast(gray, det) {
+        Ok(c) => ImageQuality {
+            marker_contrast: c.michelson as f32,
+            cnr: c.cnr as f32,
+            ..frame
+        },
+        Err(e) => {
+            tracing::debug!("{}#{}: no marker contrast: {e}", det.codes, det.id);
+            frame
         }
     }
 }

@@ -22,7 +22,6 @@ pub mod baselines;
 pub mod hoirm;
 pub mod psf;
 pub mod roi;
-pub mod synthetic;
 pub mod water;
 
 use opencv::core::{Mat, Rect, Size, CV_8UC1};
@@ -285,19 +284,18 @@ impl RestoreParams {
                 return bad("c_per_m", c, "must be finite and >= 0");
             }
         }
-        if !(self.passthrough_below_c_per_m.is_finite() && self.passthrough_below_c_per_m >= 0.0) {
-            return bad(
-                "passthrough_below_c_per_m",
-                self.passthrough_below_c_per_m,
-                "must be finite and >= 0",
-            );
-        }
-        if !(self.deconv_min_c_per_m.is_finite() && self.deconv_min_c_per_m >= 0.0) {
-            return bad(
-                "deconv_min_c_per_m",
-                self.deconv_min_c_per_m,
-                "must be finite and >= 0",
-            );
+        let non_negative = |params: &[(&'static str, f64)]| {
+            params
+                .iter()
+                .find(|(_, v)| !(v.is_finite() && *v >= 0.0))
+                .and_then(|&(name, v)| bad(name, v, "must be finite and >= 0"))
+        };
+        let first = non_negative(&[
+            ("passthrough_below_c_per_m", self.passthrough_below_c_per_m),
+            ("deconv_min_c_per_m", self.deconv_min_c_per_m),
+        ]);
+        if first.is_some() {
+            return first;
         }
         let positive = [
             ("ambient_sigma_px", self.ambient_sigma_px),
@@ -320,7 +318,7 @@ impl RestoreParams {
                 return bad(name, v, "must be finite and > 0");
             }
         }
-        for (name, v) in [
+        let more = non_negative(&[
             ("denoise_edge_snr", self.denoise_edge_snr),
             ("denoise_min_sigma_px", self.denoise_min_sigma_px),
             ("denoise_max_sigma_px", self.denoise_max_sigma_px),
@@ -330,17 +328,10 @@ impl RestoreParams {
             ("roi_hysteresis", self.roi_hysteresis),
             ("psf_min_sigma_px", self.psf_min_sigma_px),
             ("psf_trust_ratio", self.psf_trust_ratio),
-        ] {
-            if !(v.is_finite() && v >= 0.0) {
-                return bad(name, v, "must be finite and >= 0");
-            }
-        }
-        if !(self.ambient_tau_s.is_finite() && self.ambient_tau_s >= 0.0) {
-            return bad(
-                "ambient_tau_s",
-                self.ambient_tau_s,
-                "must be finite and >= 0",
-            );
+            ("ambient_tau_s", self.ambient_tau_s),
+        ]);
+        if more.is_some() {
+            return more;
         }
         if !(self.ambient_alpha_max >= 0.0 && self.ambient_alpha_max < 1.0) {
             return bad(
@@ -441,14 +432,8 @@ pub enum RestoreError {
     Read { path: String, reason: String },
     #[error("cannot write image {path}: {reason}")]
     Write { path: String, reason: String },
-    #[error("OpenCV: {0}")]
-    OpenCv(String),
-}
-
-impl From<opencv::Error> for RestoreError {
-    fn from(e: opencv::Error) -> Self {
-        RestoreError::OpenCv(e.to_string())
-    }
+    #[error("OpenCV")]
+    OpenCv(#[from] opencv::Error),
 }
 
 /// One restoration method with its per-camera state (HOIRM keeps the

@@ -1,25 +1,69 @@
-//! Frame sources other than Zenoh: a folder of images, a video file, a live
-//! camera (OpenCV `VideoCapture`). Each runs on its own named thread and
-//! feeds one camera's drop-oldest queue.
+//! Frame sources on the vehicle itself: a folder of images, a video file, a
+//! live camera (OpenCV `VideoCapture`). Each runs on its own named thread and
+//! feeds one camera's drop-oldest queue (a [`crate::vehicle::LocalInput`]).
+//! Frames that arrive over Zenoh are the node service's business
+//! (`shoal_services::node`).
 
 use crate::mat::mat_to_gray;
-use crate::service::{NodeError, Source};
 use opencv::core::Mat;
 use opencv::prelude::*;
 use opencv::{imgcodecs, imgproc, videoio};
-use shoal_bus::DropOldestQueue;
 use shoal_proto::image::GrayImage;
 use shoal_proto::messages::{CameraFrame, CameraInfo, PixelFormat, VehicleId};
+use shoal_proto::queue::DropOldestQueue;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
+/// A frame source on this machine, played as one of the vehicle's cameras.
+#[derive(Debug, Clone, PartialEq)]
+pub enum LocalSource {
+    /// A folder of images (sorted by name) played as one camera at `rate_hz`.
+    Images {
+        dir: PathBuf,
+        camera: u8,
+        rate_hz: f64,
+    },
+    /// A video file played as one camera at its own frame rate.
+    Video { path: PathBuf, camera: u8 },
+    /// A live camera through OpenCV's VideoCapture (device index).
+    Live { device: i32, camera: u8 },
+}
+
+impl LocalSource {
+    /// Which of the vehicle's cameras (index in the fleet file) this source is.
+    pub fn camera(&self) -> u8 {
+        match self {
+            LocalSource::Images { camera, .. }
+            | LocalSource::Video { camera, .. }
+            | LocalSource::Live { camera, .. } => *camera,
+        }
+    }
+}
+
+/// Errors of the frame sources.
+#[derive(Debug, thiserror::Error)]
+pub enum SourceError {
+    /// `what` (a folder, file or camera device) cannot be opened or read.
+    #[error("source {what}: {reason}")]
+    Unreadable { what: String, reason: String },
+    #[error("cannot start thread: {0}")]
+    Thread(#[from] std::io::Error),
+}
+
+fn source_error(what: impl Into<String>, reason: impl Into<String>) -> SourceError {
+    SourceError::Unreadable {
+        what: what.into(),
+        reason: reason.into(),
+    }
+}
+
 /// Image files in `dir`, sorted by name.
-pub fn image_files(dir: &Path) -> Result<Vec<PathBuf>, NodeError> {
+pub fn image_files(dir: &Path) -> Result<Vec<PathBuf>, SourceError> {
     let rd = std::fs::read_dir(dir)
-        .map_err(|e| NodeError::Source(dir.display().to_string(), e.to_string()))?;
+        .map_err(|e| source_error(dir.display().to_string(), e.to_string()))?;
     let mut files: Vec<PathBuf> = rd
         .filter_map(|e| e.ok().map(|e| e.path()))
         .filter(|p| {
@@ -34,27 +78,24 @@ pub fn image_files(dir: &Path) -> Result<Vec<PathBuf>, NodeError> {
         .collect();
     files.sort();
     if files.is_empty() {
-        return Err(NodeError::Source(
-            dir.display().to_string(),
-            "no image files".into(),
-        ));
+        return Err(source_error(dir.display().to_string(), "no image files"));
     }
     Ok(files)
 }
 
 /// Read one image file as 8-bit grey, as the image-folder source does. A
 /// missing, truncated or undecodable file is an error naming it, never a panic.
-pub fn read_image_gray(path: &Path) -> Result<GrayImage, NodeError> {
+pub fn read_image_gray(path: &Path) -> Result<GrayImage, SourceError> {
     let name = path.display().to_string();
     let mat = imgcodecs::imread(&path.to_string_lossy(), imgcodecs::IMREAD_GRAYSCALE)
-        .map_err(|e| NodeError::Source(name.clone(), format!("cannot decode: {e}")))?;
+        .map_err(|e| source_error(name.clone(), format!("cannot decode: {e}")))?;
     if mat.empty() {
-        return Err(NodeError::Source(
+        return Err(source_error(
             name,
-            "unreadable image (missing, truncated or not an image)".into(),
+            "unreadable image (missing, truncated or not an image)",
         ));
     }
-    mat_to_gray(&mat).map_err(|e| NodeError::Source(name, e.to_string()))
+    mat_to_gray(&mat).map_err(|e| source_error(name, e.to_string()))
 }
 
 fn to_gray(mat: &Mat) -> opencv::Result<Mat> {
@@ -71,58 +112,47 @@ fn to_gray(mat: &Mat) -> opencv::Result<Mat> {
     Ok(g)
 }
 
-/// Start the reader thread of a non-Zenoh source. Images or video frames it
+/// Start the reader thread of a local source. Images or video frames it
 /// cannot decode are skipped and counted in `unreadable`.
 pub fn spawn_reader(
-    source: Source,
+    source: LocalSource,
     vehicle: VehicleId,
     info: CameraInfo,
     queue: DropOldestQueue<CameraFrame>,
     unreadable: Arc<AtomicU64>,
     stop: Arc<AtomicBool>,
-) -> Result<JoinHandle<()>, NodeError> {
+) -> Result<JoinHandle<()>, SourceError> {
     let name = format!("source-{vehicle}");
-    let camera = match &source {
-        Source::Images { camera, .. }
-        | Source::Video { camera, .. }
-        | Source::Live { camera, .. } => *camera,
-        Source::Zenoh => {
-            return Err(NodeError::Source(
-                "zenoh".into(),
-                "not a local source".into(),
-            ))
-        }
-    };
+    let camera = source.camera();
     // Open up front so a bad path is an error of `spawn`, not a log line.
     enum Opened {
         Files(Vec<PathBuf>, f64),
         Capture(videoio::VideoCapture, bool),
     }
     let opened = match &source {
-        Source::Images { dir, rate_hz, .. } => Opened::Files(image_files(dir)?, *rate_hz),
-        Source::Video { path, .. } => {
+        LocalSource::Images { dir, rate_hz, .. } => Opened::Files(image_files(dir)?, *rate_hz),
+        LocalSource::Video { path, .. } => {
             let cap = videoio::VideoCapture::from_file(&path.to_string_lossy(), videoio::CAP_ANY)
-                .map_err(|e| NodeError::Source(path.display().to_string(), e.to_string()))?;
+                .map_err(|e| source_error(path.display().to_string(), e.to_string()))?;
             if !cap.is_opened().unwrap_or(false) {
-                return Err(NodeError::Source(
+                return Err(source_error(
                     path.display().to_string(),
-                    "cannot open video".into(),
+                    "cannot open video",
                 ));
             }
             Opened::Capture(cap, false)
         }
-        Source::Live { device, .. } => {
+        LocalSource::Live { device, .. } => {
             let cap = videoio::VideoCapture::new(*device, videoio::CAP_ANY)
-                .map_err(|e| NodeError::Source(format!("camera {device}"), e.to_string()))?;
+                .map_err(|e| source_error(format!("camera {device}"), e.to_string()))?;
             if !cap.is_opened().unwrap_or(false) {
-                return Err(NodeError::Source(
+                return Err(source_error(
                     format!("camera {device}"),
-                    "cannot open camera".into(),
+                    "cannot open camera",
                 ));
             }
             Opened::Capture(cap, true)
         }
-        Source::Zenoh => unreachable!("checked above"),
     };
     let make_frame = move |g: GrayImage, seq: u64, stamp_ns: u64| -> CameraFrame {
         let mut info = info;

@@ -1,5 +1,5 @@
-//! Regression guard for the headline figure (full table: `cargo run -p
-//! shoal-node --example detect_accuracy`): on the same simulated poses in
+//! Regression guard for the headline figure (full table: `shoal eval
+//! accuracy`): on the same simulated poses in
 //! moderately turbid water, the enhanced marker read by the shoal detector
 //! localizes at most half as far off as OpenCV's ArUco and AprilTag 3 with
 //! the same outer black square.

@@ -64,6 +64,14 @@ fn prints_detections_with_pose_and_reports_unreadable_files() {
     assert_eq!(det["id"], 15);
     assert_eq!(det["codes"], "shoal");
     assert_eq!(det["corners_px"].as_array().unwrap().len(), 12);
+    // Clear water, the frame as the camera's: every square's sides fitted on
+    // it, edges far above the pattern fit's threshold.
+    assert_eq!(det["corner_fit"], "raw_sides", "{det}");
+    assert_eq!(det["corner_fit_reason"]["why"], "edges_strong", "{det}");
+    assert!(det["corner_fit_reason"]["step_dn"].as_f64().unwrap() >= 16.0);
+    let squares = det["squares"].as_array().unwrap();
+    assert_eq!(squares.len(), 3);
+    assert_eq!(squares[2]["first_corner"], 8);
     let z = det["camera_from_marker"]["t_m"][2].as_f64().unwrap();
     assert!((z - 0.61).abs() < 0.005, "z = {z}");
     assert!(lines[1]["error"].as_str().unwrap().contains("cannot read"));

@@ -1,7 +1,7 @@
 //! Fuzzing image decoding on the node's image-folder path (issue #10):
 //! PNG, BMP, PGM, TIFF and JPEG files cut short, with bytes overwritten, or
 //! replaced by random bytes, read by `source::read_image_gray` (what
-//! `Source::Images` uses). Each read gives a well-formed 8-bit image or an
+//! `LocalSource::Images` uses). Each read gives a well-formed 8-bit image or an
 //! error naming the file, never a panic or a crash; the reader thread skips
 //! and counts unreadable files and delivers the good ones.
 //!
@@ -13,10 +13,9 @@ use opencv::imgcodecs;
 use opencv::prelude::*;
 use proptest::prelude::*;
 use proptest::test_runner::Config as ProptestConfig;
-use shoal_bus::DropOldestQueue;
-use shoal_node::service::Source;
-use shoal_node::source::{read_image_gray, spawn_reader};
+use shoal_node::source::{read_image_gray, spawn_reader, LocalSource};
 use shoal_proto::messages::{CameraInfo, WireMessage};
+use shoal_proto::queue::DropOldestQueue;
 use shoal_proto::CameraModel;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -125,7 +124,7 @@ fn the_folder_source_skips_and_counts_unreadable_files() {
         body_from_camera: shoal_proto::Pose::identity(),
     };
     let thread = spawn_reader(
-        Source::Images {
+        LocalSource::Images {
             dir: dir.clone(),
             camera: 0,
             rate_hz: 200.0,

@@ -1,9 +1,11 @@
-//! The pose covariance is honest (NEES ≈ 6) and both planar hypotheses are kept.
+//! The pose covariance is honest (NEES ≈ 6 with the corner noise given; on
+//! rendered frames through the production path, conservative within a stated
+//! factor) and both planar hypotheses are kept.
 
 use nalgebra::{Point3, Vector6};
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
-use shoal_node::pose::{estimate_pose, features_experiment, PoseError};
+use shoal_node::pose::{estimate_pose, PoseError};
 use shoal_proto::camera::CameraModel;
 use shoal_proto::geometry::{covariance_problem, difference, pose_from_xyz_rpy};
 use shoal_proto::marker::CodeSet;
@@ -91,25 +93,103 @@ fn rejects_bad_input() {
     ));
 }
 
-/// Paper §3.1 / Figure 3: more points → less error, more so at high noise.
-#[test]
-fn features_experiment_shows_the_papers_trend() {
-    let rows = features_experiment(200, &[1.0, 16.0], &[4, 12, 20], 11);
-    let get = |s: f64, n: usize| {
-        rows.iter()
-            .find(|r| r.sigma_px == s && r.points == n)
+/// Frames per water for the production-path test: 2 waters x 24 frames
+/// render and detect in ~10 s in a debug build.
+const PRODUCTION_FRAMES: u64 = 24;
+/// The covariance the node reports when no corner noise is given
+/// (`PipelineParams::corner_sigma_px: None`: σ estimated from the residuals,
+/// floored at 0.05 px) on rendered frames read by the production chain
+/// (HOIRM, `detect_restored` with the lens, `estimate_pose(.., None)`).
+/// Measured mean NEES over these 24 frames: 2.5 at 0.126 /m and 2.3 at
+/// 1.38 /m (2.9 and 2.5 over 30) — the covariance is ~2.4x conservative: the residuals (~0.01 px RMS) are
+/// below the floor, and the floor over-covers the corners' real error.
+/// Allowed: mean NEES in 1.5 … 4.5: the covariance at most 4x too large
+/// (6 / 4 = 1.5; fusion then under-weighs the camera, it does not reject
+/// it) and below the χ²₆ expectation of 6 by a margin, i.e. never
+/// overconfident (fusion's χ² gates trust it). ±2 standard errors of a
+/// 24-frame mean at the measured scale are ±0.7. Doubling the reported
+/// covariance fails (measured: mean NEES 1.26); halving it lands at 4.5–5.0,
+/// on or over the upper bound.
+const PRODUCTION_NEES_MIN: f64 = 1.5;
+const PRODUCTION_NEES_MAX: f64 = 4.5;
+
+/// Mean NEES of the production path's best hypothesis over rendered frames
+/// of the enhanced marker at `c_per_m`, random poses 0.5–1.0 m, ±0.5 rad tilt.
+fn production_mean_nees(c_per_m: f64, seed: u64) -> (f64, usize) {
+    use nalgebra::{Translation3, UnitQuaternion, Vector3};
+    use rand::Rng;
+    use shoal_node::detect::{DetectParams, MarkerDetector, ShoalDetector};
+    use shoal_node::mat::gray_to_mat;
+    use shoal_node::restore::{restorer, Method, RestoreParams};
+    use shoal_proto::geometry::Pose;
+    use shoal_sim_bridge::render::{Renderer, Scene};
+    use shoal_sim_bridge::water::WaterParams;
+    let cam = CameraModel::vehicle_1440();
+    let water = WaterParams::preset(c_per_m);
+    let mut renderer = Renderer::new();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    // As `CameraPipeline::new` builds them.
+    let mut detector = ShoalDetector::new(
+        CodeSet::Shoal,
+        DetectParams {
+            lens: Some(cam),
+            ..DetectParams::default()
+        },
+    );
+    let mut restore = restorer(Method::Hoirm, &RestoreParams::default());
+    let (mut sum, mut n) = (0.0, 0usize);
+    for f in 0..PRODUCTION_FRAMES {
+        let truth = Pose::from_parts(
+            Translation3::new(
+                rng.gen_range(-0.1..0.1),
+                rng.gen_range(-0.08..0.08),
+                rng.gen_range(0.5..1.0),
+            ),
+            UnitQuaternion::from_axis_angle(
+                &Vector3::x_axis(),
+                std::f64::consts::PI + rng.gen_range(-0.5..0.5),
+            ) * UnitQuaternion::from_axis_angle(&Vector3::y_axis(), rng.gen_range(-0.6..0.6))
+                * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), rng.gen_range(-3.0..3.0)),
+        );
+        let scene = Scene::single_marker(CodeSet::Shoal, 17, 0.1, truth);
+        let img = renderer
+            .render(
+                &cam,
+                &Pose::identity(),
+                &scene,
+                &water,
+                f as f64 * 0.1,
+                f + 1,
+            )
             .unwrap()
-            .cumulative_mm
-    };
-    for s in [1.0, 16.0] {
+            .image;
+        let raw = gray_to_mat(&img).unwrap();
+        let restored = restore.restore(&raw, f * 100_000_000).unwrap();
+        let found = detector.detect_restored(&restored.image, &raw).unwrap();
+        let Some(d) = found.iter().find(|d| d.id == 17) else {
+            continue;
+        };
+        let sol = estimate_pose(&cam, &d.object_points(0.1), &d.corners_px, None).unwrap();
+        let xi: Vector6<f64> = difference(&truth, &sol.best.camera_from_marker);
+        let inv = sol.best.covariance.try_inverse().unwrap();
+        sum += (xi.transpose() * inv * xi)[0];
+        n += 1;
+    }
+    (sum / n.max(1) as f64, n)
+}
+
+#[test]
+fn production_covariance_is_conservative_within_a_factor_4_never_overconfident() {
+    for (c, seed) in [(0.126, 5), (1.38, 6)] {
+        let (mean, n) = production_mean_nees(c, seed);
+        eprintln!("production path at {c} /m: mean NEES {mean:.2} over {n} frames");
         assert!(
-            get(s, 4) > get(s, 12) && get(s, 12) > get(s, 20) * 0.95,
-            "sigma {s}: {rows:?}"
+            n as u64 >= PRODUCTION_FRAMES - 1,
+            "{c} /m: marker read in {n} of {PRODUCTION_FRAMES} frames"
+        );
+        assert!(
+            (PRODUCTION_NEES_MIN..PRODUCTION_NEES_MAX).contains(&mean),
+            "{c} /m: mean NEES {mean:.2} over {n} frames (allowed {PRODUCTION_NEES_MIN}..{PRODUCTION_NEES_MAX})"
         );
     }
-    assert!(get(16.0, 4) - get(16.0, 12) > 5.0 * (get(1.0, 4) - get(1.0, 12)));
-    assert_eq!(
-        rows.iter().find(|r| r.points == 20).unwrap().relative_mm,
-        0.0
-    );
 }

@@ -172,6 +172,77 @@ pub enum MarkerOwner {
     Ambiguous,
 }
 
+/// The cameras of every rig in `[rigs]`, validated (a step of [`Fleet::parse`]).
+fn parse_rigs<'a>(
+    specs: &'a BTreeMap<String, RigSpec>,
+    base: &Path,
+    invalid: &impl Fn(String, String) -> ConfigError,
+) -> Result<HashMap<&'a str, Vec<Camera>>, ConfigError> {
+    let mut rigs: HashMap<&str, Vec<Camera>> = HashMap::new();
+    for (rig_name, rig) in specs {
+        if rig.cameras.len() > 255 {
+            return Err(invalid(
+                format!("rigs.{rig_name}.cameras"),
+                "at most 255 cameras".into(),
+            ));
+        }
+        let mut cams = Vec::new();
+        for (i, c) in rig.cameras.iter().enumerate() {
+            let field = format!("rigs.{rig_name}.cameras[{i}]");
+            let model = resolve_camera(c, base).map_err(|r| invalid(field.clone(), r))?;
+            if let Some(p) = model.problem() {
+                return Err(invalid(field, p));
+            }
+            check_mount(&c.body_from_camera)
+                .map_err(|r| invalid(format!("{field}.body_from_camera"), r))?;
+            cams.push(Camera {
+                index: i as u8,
+                name: c.name.clone(),
+                model,
+                body_from_camera: c.body_from_camera.pose(),
+            });
+        }
+        rigs.insert(rig_name.as_str(), cams);
+    }
+    Ok(rigs)
+}
+
+/// A vehicle's markers, validated; `field` names the vehicle in messages
+/// (a step of [`Fleet::parse`]).
+fn parse_markers(
+    field: &str,
+    specs: &[MarkerSpec],
+    invalid: &impl Fn(String, String) -> ConfigError,
+) -> Result<Vec<Marker>, ConfigError> {
+    let mut markers = Vec::new();
+    for (mi, m) in specs.iter().enumerate() {
+        let mfield = format!("{field}.markers[{mi}]");
+        let codes = CodeSet::from_name(&m.codes)
+            .map_err(|e| invalid(format!("{mfield}.codes"), e.to_string()))?;
+        if (m.id as usize) >= codes.len() && !codes.table().codes.is_empty() {
+            return Err(invalid(
+                format!("{mfield}.id"),
+                format!("ID {} is not in {} (0..{})", m.id, codes, codes.len()),
+            ));
+        }
+        if !(m.side_m > 0.0 && m.side_m < 10.0) {
+            return Err(invalid(
+                format!("{mfield}.side_m"),
+                format!("{} m is not a plausible marker side", m.side_m),
+            ));
+        }
+        check_mount(&m.body_from_marker)
+            .map_err(|r| invalid(format!("{mfield}.body_from_marker"), r))?;
+        markers.push(Marker {
+            codes,
+            id: m.id,
+            side_m: m.side_m,
+            body_from_marker: m.body_from_marker.pose(),
+        });
+    }
+    Ok(markers)
+}
+
 impl Fleet {
     /// Load and validate a fleet file.
     pub fn load(path: &Path) -> Result<Fleet, ConfigError> {
@@ -201,32 +272,7 @@ impl Fleet {
             ));
         }
         let base = path.parent().unwrap_or(Path::new("."));
-        let mut rigs: HashMap<&str, Vec<Camera>> = HashMap::new();
-        for (rig_name, rig) in &file.rigs {
-            if rig.cameras.len() > 255 {
-                return Err(invalid(
-                    format!("rigs.{rig_name}.cameras"),
-                    "at most 255 cameras".into(),
-                ));
-            }
-            let mut cams = Vec::new();
-            for (i, c) in rig.cameras.iter().enumerate() {
-                let field = format!("rigs.{rig_name}.cameras[{i}]");
-                let model = resolve_camera(c, base).map_err(|r| invalid(field.clone(), r))?;
-                if let Some(p) = model.problem() {
-                    return Err(invalid(field, p));
-                }
-                check_mount(&c.body_from_camera)
-                    .map_err(|r| invalid(format!("{field}.body_from_camera"), r))?;
-                cams.push(Camera {
-                    index: i as u8,
-                    name: c.name.clone(),
-                    model,
-                    body_from_camera: c.body_from_camera.pose(),
-                });
-            }
-            rigs.insert(rig_name.as_str(), cams);
-        }
+        let rigs = parse_rigs(&file.rigs, base, &invalid)?;
         let mut vehicles = Vec::new();
         let mut seen_ids = HashMap::new();
         for (vi, v) in file.vehicles.iter().enumerate() {
@@ -258,32 +304,7 @@ impl Fleet {
                     ),
                 )
             })?;
-            let mut markers = Vec::new();
-            for (mi, m) in v.markers.iter().enumerate() {
-                let mfield = format!("{field}.markers[{mi}]");
-                let codes = CodeSet::from_name(&m.codes)
-                    .map_err(|e| invalid(format!("{mfield}.codes"), e.to_string()))?;
-                if (m.id as usize) >= codes.len() && !codes.table().codes.is_empty() {
-                    return Err(invalid(
-                        format!("{mfield}.id"),
-                        format!("ID {} is not in {} (0..{})", m.id, codes, codes.len()),
-                    ));
-                }
-                if !(m.side_m > 0.0 && m.side_m < 10.0) {
-                    return Err(invalid(
-                        format!("{mfield}.side_m"),
-                        format!("{} m is not a plausible marker side", m.side_m),
-                    ));
-                }
-                check_mount(&m.body_from_marker)
-                    .map_err(|r| invalid(format!("{mfield}.body_from_marker"), r))?;
-                markers.push(Marker {
-                    codes,
-                    id: m.id,
-                    side_m: m.side_m,
-                    body_from_marker: m.body_from_marker.pose(),
-                });
-            }
+            let markers = parse_markers(&field, &v.markers, &invalid)?;
             vehicles.push(Vehicle {
                 id: v.id,
                 name: v.name.clone(),
@@ -427,11 +448,42 @@ pub fn camera_preset(name: &str) -> Result<CameraModel, String> {
     }
 }
 
+/// Why a camera calibration file could not be read.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum CalibrationError {
+    #[error("missing `{key}`")]
+    Missing { key: &'static str },
+    #[error("`{key}`: {value:?} is not a whole number of pixels")]
+    BadInteger { key: &'static str, value: String },
+    #[error("`{key}`: bad number {token:?}")]
+    BadNumber { key: String, token: String },
+    #[error("`data` outside a matrix")]
+    DataOutsideMatrix,
+    #[error("unterminated `data: [` list")]
+    Unterminated,
+    #[error("`{key}` has {got} values, expected {expected}")]
+    WrongLength {
+        key: &'static str,
+        got: usize,
+        expected: usize,
+    },
+    #[error("`camera_matrix` is not an upper-triangular pinhole matrix ({what}); skew and a non-unit K[8] are not supported")]
+    NotPinhole { what: String },
+    #[error("`distortion_model: {model}` is not supported (supported: plumb_bob; a calibration in another model must not be read as plumb-bob)")]
+    UnsupportedModel { model: String },
+    #[error("`distortion_coefficients` has {got} values; only the 5-parameter plumb-bob model is supported")]
+    TooManyCoefficients { got: usize },
+    #[error("{0}")]
+    Implausible(String),
+}
+
 /// Read a camera calibration in OpenCV `FileStorage` YAML (`camera_matrix:
 /// !!opencv-matrix`, `distortion_coefficients`, `image_width`,
 /// `image_height`) or ROS `camera_info` YAML (the same keys with plain
-/// `rows/cols/data` maps). Only the fields shoal needs are read.
-pub fn parse_calibration_yaml(text: &str) -> Result<CameraModel, String> {
+/// `rows/cols/data` maps). Only the fields shoal needs are read; a
+/// `distortion_model` other than `plumb_bob` and a camera matrix with skew are
+/// refused rather than read as something they are not.
+pub fn parse_calibration_yaml(text: &str) -> Result<CameraModel, CalibrationError> {
     let mut scalars: HashMap<String, String> = HashMap::new();
     let mut matrices: HashMap<String, Vec<f64>> = HashMap::new();
     let mut current: Option<String> = None;
@@ -445,7 +497,7 @@ pub fn parse_calibration_yaml(text: &str) -> Result<CameraModel, String> {
             buf.push_str(line);
             if line.contains(']') {
                 let key = current.clone().unwrap_or_default();
-                let data = parse_list(buf).map_err(|e| format!("`{key}`: {e}"))?;
+                let data = parse_list(buf, &key)?;
                 matrices.insert(key, data);
                 collecting = None;
             }
@@ -462,9 +514,9 @@ pub fn parse_calibration_yaml(text: &str) -> Result<CameraModel, String> {
                 scalars.insert(k, v.to_string());
             }
         } else if k == "data" {
-            let key = current.clone().ok_or("`data` outside a matrix")?;
+            let key = current.clone().ok_or(CalibrationError::DataOutsideMatrix)?;
             if v.contains(']') {
-                let data = parse_list(v).map_err(|e| format!("`{key}`: {e}"))?;
+                let data = parse_list(v, &key)?;
                 matrices.insert(key, data);
             } else {
                 collecting = Some(v.to_string());
@@ -472,33 +524,49 @@ pub fn parse_calibration_yaml(text: &str) -> Result<CameraModel, String> {
         }
     }
     if collecting.is_some() {
-        return Err("unterminated `data: [` list".into());
+        return Err(CalibrationError::Unterminated);
     }
-    let get_u32 = |k: &str| -> Result<u32, String> {
-        scalars
-            .get(k)
-            .ok_or(format!("missing `{k}`"))?
-            .parse()
-            .map_err(|e| format!("`{k}`: {e}"))
+    let get_u32 = |key: &'static str| -> Result<u32, CalibrationError> {
+        let value = scalars.get(key).ok_or(CalibrationError::Missing { key })?;
+        value.parse().map_err(|_| CalibrationError::BadInteger {
+            key,
+            value: value.clone(),
+        })
     };
+    if let Some(model) = scalars.get("distortion_model") {
+        let model = model.trim_matches(|c| c == '"' || c == '\'');
+        if model != "plumb_bob" {
+            return Err(CalibrationError::UnsupportedModel {
+                model: model.to_string(),
+            });
+        }
+    }
     let k = matrices
         .get("camera_matrix")
-        .ok_or("missing `camera_matrix`")?;
+        .ok_or(CalibrationError::Missing {
+            key: "camera_matrix",
+        })?;
     if k.len() != 9 {
-        return Err(format!(
-            "`camera_matrix` has {} values, expected 9",
-            k.len()
-        ));
+        return Err(CalibrationError::WrongLength {
+            key: "camera_matrix",
+            got: k.len(),
+            expected: 9,
+        });
+    }
+    if k[1] != 0.0 || k[3] != 0.0 || k[6] != 0.0 || k[7] != 0.0 || k[8] != 1.0 {
+        return Err(CalibrationError::NotPinhole {
+            what: format!(
+                "K[1]={}, K[3]={}, K[6]={}, K[7]={}, K[8]={}",
+                k[1], k[3], k[6], k[7], k[8]
+            ),
+        });
     }
     let d = matrices
         .get("distortion_coefficients")
         .cloned()
         .unwrap_or_default();
     if d.len() > 5 && d[5..].iter().any(|v| *v != 0.0) {
-        return Err(format!(
-            "`distortion_coefficients` has {} values; only the 5-parameter plumb-bob model is supported",
-            d.len()
-        ));
+        return Err(CalibrationError::TooManyCoefficients { got: d.len() });
     }
     let mut dist = [0.0; 5];
     for (i, v) in d.iter().take(5).enumerate() {
@@ -514,12 +582,12 @@ pub fn parse_calibration_yaml(text: &str) -> Result<CameraModel, String> {
         distortion: dist,
     };
     match model.problem() {
-        Some(p) => Err(p),
+        Some(p) => Err(CalibrationError::Implausible(p)),
         None => Ok(model),
     }
 }
 
-fn parse_list(s: &str) -> Result<Vec<f64>, String> {
+fn parse_list(s: &str, key: &str) -> Result<Vec<f64>, CalibrationError> {
     let inner = s
         .trim()
         .trim_start_matches('[')
@@ -531,8 +599,10 @@ fn parse_list(s: &str) -> Result<Vec<f64>, String> {
         .map(str::trim)
         .filter(|t| !t.is_empty())
         .map(|t| {
-            t.parse::<f64>()
-                .map_err(|e| format!("bad number {t:?}: {e}"))
+            t.parse::<f64>().map_err(|_| CalibrationError::BadNumber {
+                key: key.to_string(),
+                token: t.to_string(),
+            })
         })
         .collect()
 }
@@ -605,6 +675,21 @@ markers = [ { codes = "shoal", id = 7, side_m = 0.1, body_from_marker = { xyz_m 
         let ros = "image_width: 640\nimage_height: 480\ncamera_name: cam\ncamera_matrix:\n  rows: 3\n  cols: 3\n  data: [500, 0, 320, 0, 500, 240, 0, 0, 1]\ndistortion_model: plumb_bob\ndistortion_coefficients:\n  rows: 1\n  cols: 5\n  data: [0.1, 0, 0, 0, 0]\n";
         let m = parse_calibration_yaml(ros).unwrap();
         assert_eq!((m.width, m.cx), (640, 320.0));
-        assert!(parse_calibration_yaml("image_width: 3\n").is_err());
+        assert_eq!(
+            parse_calibration_yaml("image_width: 3\n"),
+            Err(CalibrationError::Missing {
+                key: "camera_matrix"
+            })
+        );
+        let fisheye = ros.replace("plumb_bob", "equidistant");
+        assert!(matches!(
+            parse_calibration_yaml(&fisheye),
+            Err(CalibrationError::UnsupportedModel { model }) if model == "equidistant"
+        ));
+        let skewed = ros.replace("500, 0, 320", "500, 0.5, 320");
+        assert!(matches!(
+            parse_calibration_yaml(&skewed),
+            Err(CalibrationError::NotPinhole { .. })
+        ));
     }
 }

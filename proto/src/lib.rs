@@ -11,9 +11,15 @@
 //! - [`camera`]: the pinhole + distortion camera model shared by simulator
 //!   and detector;
 //! - [`marker`]: code sets (enhanced marker, ArUco, AprilTag) and their layouts;
-//! - [`config`]: fleet files and camera calibrations.
+//! - [`config`]: fleet files and camera calibrations;
+//! - [`queue`]: the bounded drop-oldest queue every shoal queue is;
+//! - [`clock`]: injected clocks (wall time, or simulation and replay time).
+
+// A library reports failures as errors; an `unwrap()` that cannot fail says why with `expect`.
+#![warn(clippy::unwrap_used)]
 
 pub mod camera;
+pub mod clock;
 pub mod codec;
 pub mod config;
 pub mod geometry;
@@ -21,6 +27,7 @@ pub mod image;
 pub mod keys;
 pub mod marker;
 pub mod messages;
+pub mod queue;
 pub mod samples;
 
 pub use camera::CameraModel;

@@ -17,9 +17,8 @@
 //! the top-left module, most significant bit first (bit `n·n−1−(r·n+c)` is row
 //! `r`, column `c`), **1 = white**, in the marker's upright orientation. The
 //! tables under `proto/data/codes/` are extracted from OpenCV 4.6 (ArUco) and
-//! libapriltag 3 (AprilTag) by `cargo run -p shoal-node --example
-//! extract_code_tables`, and a parity test in `shoal-node` checks them against
-//! those libraries.
+//! libapriltag 3 (AprilTag) by `shoal eval probe code-tables`, and a parity
+//! test in `shoal-node` checks them against those libraries.
 //!
 //! **Marker frame**: origin at the centre of the face, x to the right of the
 //! upright printed image, y up, z out of the face (towards a viewer). Corners
@@ -77,7 +76,7 @@ pub enum MarkerError {
         id: MarkerId,
         len: usize,
     },
-    #[error("code table for {set} is empty; run `cargo run -p shoal-node --example extract_code_tables`")]
+    #[error("code table for {set} is empty; run `shoal eval probe code-tables`")]
     TableMissing { set: &'static str },
 }
 

@@ -251,7 +251,7 @@ proptest! {
         };
         match parse_calibration_yaml(&text) {
             Ok(model) => prop_assert_eq!(model.problem(), None),
-            Err(e) => prop_assert!(!e.is_empty()),
+            Err(e) => prop_assert!(!e.to_string().is_empty()),
         }
     }
 }

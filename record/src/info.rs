@@ -1,7 +1,7 @@
 //! `shoal log info`: what a log holds — vehicles, duration, messages per
 //! channel, detection rate, gaps.
 
-use crate::reader::{header, read_file, scan, Item, ScanError, Stop};
+use crate::reader::{header, read_file, scan, ChannelInfo, Item};
 use crate::recorder::envelope_kind;
 use crate::RecordError;
 use proto::{KeyKind, MessageKind, NodeStatus, VehicleId};
@@ -66,7 +66,10 @@ const GAP_MIN_S: f64 = 1.0;
 
 pub fn info(path: &Path) -> Result<LogInfo, RecordError> {
     let buf = read_file(path)?;
-    let h = header(&buf)?;
+    let h = header(&buf).map_err(|source| RecordError::NotMcap {
+        path: path.to_path_buf(),
+        source,
+    })?;
     let mut times: BTreeMap<u16, Vec<u64>> = BTreeMap::new();
     let mut bytes: BTreeMap<u16, u64> = BTreeMap::new();
     let mut vehicles = std::collections::BTreeSet::new();
@@ -77,7 +80,7 @@ pub fn info(path: &Path) -> Result<LogInfo, RecordError> {
         .metadata
         .get("fleet")
         .and_then(|f| proto::Keys::new(f).ok());
-    let outcome = scan(&buf, |item| -> Result<(), Stop> {
+    let outcome = scan(&buf, |item| -> Result<(), std::convert::Infallible> {
         if let Item::Message {
             channel,
             log_time,
@@ -117,7 +120,10 @@ pub fn info(path: &Path) -> Result<LogInfo, RecordError> {
         }
         Ok(())
     })
-    .map_err(|e: ScanError<Stop>| RecordError::Format(format!("{}: {e}", path.display())))?;
+    .map_err(|e| match e.into_record_error(path) {
+        Ok(never) => match never {},
+        Err(e) => e,
+    })?;
     let all: Vec<u64> = times
         .values()
         .flat_map(|t| [t[0], t[t.len() - 1]])
@@ -129,68 +135,23 @@ pub fn info(path: &Path) -> Result<LogInfo, RecordError> {
     let mut gaps = Vec::new();
     for (id, c) in &outcome.channels {
         let t = times.get(id).cloned().unwrap_or_default();
-        let span = if t.len() > 1 {
-            (t[t.len() - 1] - t[0]) as f64 * 1e-9
-        } else {
-            0.0
-        };
         let schema = outcome
             .schemas
             .get(&c.schema_id)
             .map(|s| s.name.clone())
             .unwrap_or_default();
-        channels.push(ChannelFigures {
-            topic: c.topic.clone(),
+        channels.push(channel_figures(
+            c,
             schema,
-            message_encoding: c.message_encoding.clone(),
-            messages: t.len() as u64,
-            bytes: bytes.get(id).copied().unwrap_or(0),
-            rate_hz: if span > 0.0 {
-                (t.len() - 1) as f64 / span
-            } else {
-                0.0
-            },
-        });
-        if c.is_wire() && t.len() > 2 {
-            let mut d: Vec<u64> = t.windows(2).map(|w| w[1].saturating_sub(w[0])).collect();
-            let mut sorted = d.clone();
-            sorted.sort_unstable();
-            let median = sorted[sorted.len() / 2] as f64 * 1e-9;
-            let limit = (median * GAP_FACTOR).max(GAP_MIN_S);
-            for (i, dt) in d.drain(..).enumerate() {
-                let dt_s = dt as f64 * 1e-9;
-                if dt_s > limit {
-                    gaps.push(Gap {
-                        topic: c.topic.clone(),
-                        from_s: t[i].saturating_sub(t0) as f64 * 1e-9,
-                        length_s: dt_s,
-                    });
-                }
-            }
+            &t,
+            bytes.get(id).copied().unwrap_or(0),
+        ));
+        if c.is_wire() {
+            gaps.extend(channel_gaps(&c.topic, &t, t0));
         }
     }
     channels.sort_by(|a, b| a.topic.cmp(&b.topic));
-    let detections = vehicles
-        .iter()
-        .map(|&v| {
-            let n = obs_per_vehicle.get(&v).copied().unwrap_or(0);
-            let per_frame = last_status.get(&v).and_then(|s| {
-                let frames: u64 = s.cameras.iter().map(|c| c.frames_in).sum();
-                let det: u64 = s.cameras.iter().map(|c| c.detections).sum();
-                (frames > 0).then(|| det as f64 / frames as f64)
-            });
-            DetectionFigures {
-                vehicle: v,
-                observations: n,
-                per_second: if duration_s > 0.0 {
-                    n as f64 / duration_s
-                } else {
-                    0.0
-                },
-                per_frame,
-            }
-        })
-        .collect();
+    let detections = detection_figures(&vehicles, &obs_per_vehicle, &last_status, duration_s);
     Ok(LogInfo {
         complete: outcome.complete,
         damage: outcome.damage,
@@ -215,6 +176,82 @@ pub fn info(path: &Path) -> Result<LogInfo, RecordError> {
         detections,
         gaps,
     })
+}
+
+/// One channel's figures from its message log times `t` and payload bytes.
+fn channel_figures(c: &ChannelInfo, schema: String, t: &[u64], bytes: u64) -> ChannelFigures {
+    let span = if t.len() > 1 {
+        (t[t.len() - 1] - t[0]) as f64 * 1e-9
+    } else {
+        0.0
+    };
+    ChannelFigures {
+        topic: c.topic.clone(),
+        schema,
+        message_encoding: c.message_encoding.clone(),
+        messages: t.len() as u64,
+        bytes,
+        rate_hz: if span > 0.0 {
+            (t.len() - 1) as f64 / span
+        } else {
+            0.0
+        },
+    }
+}
+
+/// Silences on one channel (message log times `t`, log start `t0`) longer
+/// than `GAP_FACTOR` times its median spacing and than `GAP_MIN_S`.
+fn channel_gaps(topic: &str, t: &[u64], t0: u64) -> Vec<Gap> {
+    let mut gaps = Vec::new();
+    if t.len() <= 2 {
+        return gaps;
+    }
+    let d: Vec<u64> = t.windows(2).map(|w| w[1].saturating_sub(w[0])).collect();
+    let mut sorted = d.clone();
+    sorted.sort_unstable();
+    let median = sorted[sorted.len() / 2] as f64 * 1e-9;
+    let limit = (median * GAP_FACTOR).max(GAP_MIN_S);
+    for (i, dt) in d.into_iter().enumerate() {
+        let dt_s = dt as f64 * 1e-9;
+        if dt_s > limit {
+            gaps.push(Gap {
+                topic: topic.to_string(),
+                from_s: t[i].saturating_sub(t0) as f64 * 1e-9,
+                length_s: dt_s,
+            });
+        }
+    }
+    gaps
+}
+
+/// Detection figures of each vehicle seen in the log.
+fn detection_figures(
+    vehicles: &std::collections::BTreeSet<VehicleId>,
+    obs_per_vehicle: &BTreeMap<VehicleId, u64>,
+    last_status: &BTreeMap<VehicleId, NodeStatus>,
+    duration_s: f64,
+) -> Vec<DetectionFigures> {
+    vehicles
+        .iter()
+        .map(|&v| {
+            let n = obs_per_vehicle.get(&v).copied().unwrap_or(0);
+            let per_frame = last_status.get(&v).and_then(|s| {
+                let frames: u64 = s.cameras.iter().map(|c| c.frames_in).sum();
+                let det: u64 = s.cameras.iter().map(|c| c.detections).sum();
+                (frames > 0).then(|| det as f64 / frames as f64)
+            });
+            DetectionFigures {
+                vehicle: v,
+                observations: n,
+                per_second: if duration_s > 0.0 {
+                    n as f64 / duration_s
+                } else {
+                    0.0
+                },
+                per_frame,
+            }
+        })
+        .collect()
 }
 
 impl std::fmt::Display for LogInfo {

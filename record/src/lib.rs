@@ -1,16 +1,21 @@
 //! MCAP logs of swarm trials (issue #8).
 //!
-//! - [`Recorder`]: subscribes to a fleet's Zenoh keys and writes every wire
-//!   message **unchanged** (one channel per key, so replay is bit-exact), and
-//!   beside it the same information in Foxglove's well-known schemas
-//!   ([`foxglove`]), into zstd-chunked MCAP flushed often enough that a
-//!   killed recorder leaves every complete chunk readable;
+//! - [`Recording`]: writes every wire message it is handed **unchanged** (one
+//!   channel per key, so replay is bit-exact), and beside it the same
+//!   information in Foxglove's well-known schemas ([`foxglove`]), into
+//!   zstd-chunked MCAP flushed often enough that a killed recorder leaves
+//!   every complete chunk readable;
 //! - [`reader`]: tolerant scanning and [`reader::recover`] of such files;
-//! - [`replay`]: republish a log on Zenoh with its original timing;
+//! - [`replay`]: a log's messages with their original timing, into a [`ReplaySink`];
 //! - [`refuse`]: offline, deterministic re-fusion of a log's observations;
 //! - [`info`]: vehicles, duration, messages per channel, detection rate, gaps.
 //!
-//! File layout and channel names are documented in `docs/logs.md`.
+//! No Zenoh: the recorder's subscriptions and replay's publishers are
+//! `shoal_services::recorder` and `shoal_services::replay`. File layout and
+//! channel names are documented in `docs/logs.md`.
+
+// A library reports failures as errors; an `unwrap()` that cannot fail says why with `expect`.
+#![warn(clippy::unwrap_used)]
 
 extern crate shoal_proto as proto;
 
@@ -27,9 +32,9 @@ pub use mcap;
 
 pub use info::{info, LogInfo};
 pub use reader::{recover, RecoverReport};
-pub use recorder::{RecordOptions, RecordSummary, Recorder, RecorderHandle};
+pub use recorder::{RecordOptions, RecordSummary, Recording};
 pub use refuse::{refuse, FuseOptions, FuseSummary, SolveAt};
-pub use replay::{replay, ReplayOptions, ReplaySummary};
+pub use replay::{replay_into, ReplayOptions, ReplaySink, ReplaySummary};
 pub use writer::{ChannelCount, LogWriter, WriterOptions};
 
 use std::path::PathBuf;
@@ -49,16 +54,33 @@ pub enum RecordError {
         #[source]
         source: mcap::McapError,
     },
-    #[error("{0}")]
-    Format(String),
+    #[error("{}", path.display())]
+    NotMcap {
+        path: PathBuf,
+        #[source]
+        source: reader::NotMcap,
+    },
+    #[error("{}: fleet attached to the log", path.display())]
+    AttachedFleet {
+        path: PathBuf,
+        #[source]
+        source: proto::config::ConfigError,
+    },
+    #[error("encoding a {what}")]
+    Encode {
+        what: &'static str,
+        #[source]
+        source: proto::codec::EncodeError,
+    },
     #[error("{0}: the log carries no fleet file; pass one with --fleet")]
     NoFleet(PathBuf),
-    #[error("JSON: {0}")]
-    Json(String),
+    #[error("JSON")]
+    Json(#[from] serde_json::Error),
+    /// The transport a recording or replay runs over (Zenoh, in `shoal-services`).
     #[error(transparent)]
-    Bus(#[from] shoal_bus::BusError),
-    #[error("cannot start the recorder thread: {0}")]
-    Thread(String),
+    Transport(Box<dyn std::error::Error + Send + Sync>),
+    #[error("cannot start the recorder thread")]
+    Thread(#[source] std::io::Error),
     #[error("the recorder's writer thread panicked")]
     WriterPanicked,
     #[error("the recorder was already stopped")]

@@ -118,10 +118,10 @@ pub fn scan<E>(
 ) -> Result<ScanOutcome, ScanError<E>> {
     let mut out = ScanOutcome::default();
     if buf.len() < 8 || &buf[..8] != mcap::MAGIC {
-        return Err(ScanError::NotMcap);
+        return Err(NotMcap::NoMagic.into());
     }
     let reader = LinearReader::new_with_options(buf, Options::IgnoreEndMagic.into())
-        .map_err(|e| ScanError::NotMcapBecause(e.to_string()))?;
+        .map_err(|e| ScanError::NotMcap(NotMcap::Unreadable(e)))?;
     let mut saw_footer = false;
     for record in reader {
         let record = match record {
@@ -234,12 +234,32 @@ impl std::fmt::Display for Stop {
 /// Why a scan failed.
 #[derive(Debug, thiserror::Error)]
 pub enum ScanError<E> {
-    #[error("not an MCAP file (no magic)")]
-    NotMcap,
-    #[error("not a readable MCAP file: {0}")]
-    NotMcapBecause(String),
+    #[error(transparent)]
+    NotMcap(#[from] NotMcap),
     #[error(transparent)]
     Visitor(E),
+}
+
+/// Why a file is not an MCAP log at all.
+#[derive(Debug, thiserror::Error)]
+pub enum NotMcap {
+    #[error("not an MCAP file (no magic)")]
+    NoMagic,
+    #[error("not a readable MCAP file")]
+    Unreadable(#[source] mcap::McapError),
+}
+
+impl<E> ScanError<E> {
+    /// The visitor's own error, or the file's as a [`crate::RecordError`] naming `path`.
+    pub fn into_record_error(self, path: &std::path::Path) -> Result<E, crate::RecordError> {
+        match self {
+            ScanError::Visitor(e) => Ok(e),
+            ScanError::NotMcap(source) => Err(crate::RecordError::NotMcap {
+                path: path.to_path_buf(),
+                source,
+            }),
+        }
+    }
 }
 
 fn handle<E>(
@@ -308,7 +328,7 @@ pub struct LogHeader {
 }
 
 /// Read the header items of a log (they are written first, so this is quick to find).
-pub fn header(buf: &[u8]) -> Result<LogHeader, RecordError> {
+pub fn header(buf: &[u8]) -> Result<LogHeader, NotMcap> {
     let mut h = LogHeader::default();
     let res = scan(buf, |item| {
         match item {
@@ -325,7 +345,7 @@ pub fn header(buf: &[u8]) -> Result<LogHeader, RecordError> {
     });
     match res {
         Ok(_) | Err(ScanError::Visitor(Stop)) => Ok(h),
-        Err(e) => Err(RecordError::Format(e.to_string())),
+        Err(ScanError::NotMcap(e)) => Err(e),
     }
 }
 
@@ -414,7 +434,10 @@ pub fn recover(input: &Path, output: &Path) -> Result<RecoverReport, RecordError
             path: output.to_path_buf(),
             source,
         },
-        other => RecordError::Format(format!("{}: {other}", input.display())),
+        ScanError::NotMcap(source) => RecordError::NotMcap {
+            path: input.to_path_buf(),
+            source,
+        },
     })?;
     w.finish().map_err(merr)?;
     let mut inner = w.into_inner();

@@ -1,14 +1,17 @@
-//! [`Recorder`]: subscribes to a fleet's keys and writes an MCAP log on its
-//! own thread, behind a bounded drop-oldest queue (drops are counted and
-//! reported in the [`RecordSummary`], never silent).
+//! The writing half of a recording: [`Recording`] writes an MCAP log on its
+//! own thread from bounded drop-oldest queues of received wire messages
+//! (drops are counted and reported in the [`RecordSummary`], never silent).
+//! The Zenoh subscriptions that fill the queues are
+//! `shoal_services::recorder`.
 
 use crate::foxglove;
 use crate::writer::{ChannelCount, LogWriter, WriterOptions};
 use crate::RecordError;
+use proto::clock::{Clock, WallClock};
 use proto::codec::{self, HEADER_LEN};
 use proto::config::Fleet;
+use proto::queue::{DropOldestQueue, PopError};
 use proto::{FleetMap, KeyKind, MessageKind, NodeStatus, Observation, SimTruth};
-use shoal_bus::{Bus, Clock, Declaration, DropOldestQueue, PopError, WallClock};
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -95,177 +98,94 @@ pub struct RecorderStats {
     pub conversion_errors: AtomicU64,
 }
 
-/// The recorder (see [`Recorder::spawn`]).
-#[derive(Debug)]
-pub struct Recorder;
+/// The queue of liveliness changes a recording writes (Foxglove channel):
+/// the token's key, whether it appeared, and the UNIX time it was heard.
+pub type LivelinessEvents = DropOldestQueue<(String, bool, u64)>;
 
-/// A running recorder; [`RecorderHandle::stop`] finishes the file.
-pub struct RecorderHandle {
+/// A log being written on its own thread from queues of received wire
+/// messages, `(key, envelope bytes)` (see [`Recording::start`]); what fills
+/// the queues (Zenoh subscriptions, in `shoal_services::recorder`) is not
+/// this crate's business. [`Recording::stop`] finishes the file.
+pub struct Recording {
     stop: Arc<AtomicBool>,
     queues: Vec<DropOldestQueue<(String, Vec<u8>)>>,
-    declarations: Vec<Declaration>,
-    /// Keeps the Zenoh session open even if the caller drops its `Bus`.
-    bus: Option<Bus>,
     thread: Option<JoinHandle<Result<RecordSummary, RecordError>>>,
     stats: Arc<RecorderStats>,
 }
 
-impl std::fmt::Debug for RecorderHandle {
+impl std::fmt::Debug for Recording {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("RecorderHandle")
+        f.debug_struct("Recording")
             .field("stats", &self.stats)
             .finish()
     }
 }
 
-impl RecorderHandle {
-    /// Messages dropped so far because the writer fell behind.
-    pub fn dropped(&self) -> u64 {
-        self.queues.iter().map(|q| q.dropped()).sum()
-    }
-    pub fn stats(&self) -> &RecorderStats {
-        &self.stats
-    }
-    /// Whether the writer thread ended early (an I/O error); `stop` returns it.
-    pub fn failed(&self) -> bool {
-        self.thread.as_ref().is_none_or(|t| t.is_finished())
-    }
-
-    /// Unsubscribe, write what is queued, close the file with its summary.
-    pub fn stop(mut self) -> Result<RecordSummary, RecordError> {
-        self.shutdown()
-    }
-
-    fn shutdown(&mut self) -> Result<RecordSummary, RecordError> {
-        self.declarations.clear();
-        self.bus = None;
-        self.stop.store(true, Ordering::Relaxed);
-        for q in &self.queues {
-            q.close();
-        }
-        match self.thread.take() {
-            Some(t) => t.join().map_err(|_| RecordError::WriterPanicked)?,
-            None => Err(RecordError::AlreadyStopped),
-        }
-    }
-}
-
-impl Drop for RecorderHandle {
-    fn drop(&mut self) {
-        if self.thread.is_some() {
-            if let Err(e) = self.shutdown() {
-                tracing::error!("recorder: {e}");
-            }
-        }
-    }
-}
-
-/// The file-level metadata of a recording.
-pub fn file_metadata(
+/// Create the log file at `path` for `fleet`, with its file-level metadata
+/// and the fleet file attached (the first step of a recording).
+pub fn create_log(
     fleet: &Fleet,
+    path: &Path,
     opts: &RecordOptions,
-    start_unix_ns: u64,
-) -> BTreeMap<String, String> {
-    let mut m = opts.extra_metadata.clone();
-    m.insert("fleet".into(), fleet.name.clone());
-    m.insert("fleet_file".into(), fleet.source.display().to_string());
-    m.insert(
-        "reference_vehicle".into(),
-        fleet.reference_vehicle.to_string(),
-    );
-    m.insert(
-        "vehicles".into(),
-        fleet
-            .vehicles
-            .iter()
-            .map(|v| v.id.to_string())
-            .collect::<Vec<_>>()
-            .join(","),
-    );
-    if let Some(c) = opts.water_c_per_m {
-        m.insert("water_c_per_m".into(), c.to_string());
+) -> Result<LogWriter, RecordError> {
+    let start = WallClock.now_ns();
+    let fleet_toml = match &opts.fleet_toml {
+        Some(t) => Some(t.clone()),
+        None => std::fs::read_to_string(&fleet.source).ok(),
+    };
+    if fleet_toml.is_none() {
+        tracing::warn!(
+            "recorder: fleet file {} unreadable; the log will not carry it",
+            fleet.source.display()
+        );
     }
-    m.insert(
-        "software".into(),
-        format!("shoal {}", env!("CARGO_PKG_VERSION")),
-    );
-    m.insert(
-        "wire_schema_version".into(),
-        codec::SCHEMA_VERSION.to_string(),
-    );
-    m.insert("start_time_unix_ns".into(), start_unix_ns.to_string());
-    m.insert("frames".into(), opts.frames.to_string());
-    if let Some(r) = opts.frame_rate_limit_hz {
-        m.insert("frame_rate_limit_hz".into(), r.to_string());
-    }
-    if let Some(r) = opts.image_rate_limit_hz {
-        m.insert("image_rate_limit_hz".into(), r.to_string());
-    }
-    m
+    LogWriter::create(
+        path,
+        &opts.writer,
+        &file_metadata(fleet, opts, start),
+        fleet_toml.as_deref(),
+        start,
+    )
 }
 
-impl Recorder {
-    /// Start recording `fleet`'s traffic on `bus` into `path`.
-    pub fn spawn(
-        bus: &Bus,
+/// The key expressions a recording of `keys`' fleet listens to, each with the
+/// capacity of its queue; the first (observations) is the one the writer
+/// waits on. Frames get their own, smaller queue: 4096 frames would be 6 GB.
+pub fn subscriptions(keys: &proto::Keys, opts: &RecordOptions) -> Vec<(String, usize)> {
+    let mut exprs: Vec<(String, usize)> = [
+        keys.all_observations(),
+        // `map/**` also matches `map` itself (`**` is zero or more chunks).
+        keys.all_maps(),
+        keys.all_status(),
+        keys.all_commands(),
+        keys.truth(),
+    ]
+    .into_iter()
+    .map(|k| (k, opts.queue_capacity))
+    .collect();
+    if opts.frames {
+        exprs.push((keys.all_frames(), opts.frame_queue_capacity));
+    }
+    exprs
+}
+
+impl Recording {
+    /// Start writing into `writer` (from [`create_log`]) what arrives in
+    /// `queues` (one per entry of [`subscriptions`], in that order) and, with
+    /// Foxglove channels on, the liveliness changes in `liveliness`.
+    pub fn start(
+        mut writer: LogWriter,
         fleet: Arc<Fleet>,
         path: &Path,
         opts: RecordOptions,
-    ) -> Result<RecorderHandle, RecordError> {
-        let start = WallClock.now_ns();
-        let fleet_toml = match &opts.fleet_toml {
-            Some(t) => Some(t.clone()),
-            None => std::fs::read_to_string(&fleet.source).ok(),
-        };
-        if fleet_toml.is_none() {
-            tracing::warn!(
-                "recorder: fleet file {} unreadable; the log will not carry it",
-                fleet.source.display()
-            );
-        }
-        let mut writer = LogWriter::create(
-            path,
-            &opts.writer,
-            &file_metadata(&fleet, &opts, start),
-            fleet_toml.as_deref(),
-            start,
-        )?;
+        queues: Vec<DropOldestQueue<(String, Vec<u8>)>>,
+        liveliness: LivelinessEvents,
+    ) -> Result<Recording, RecordError> {
         let keys = fleet.keys();
-        // Frames get their own, smaller queue: 4096 frames would be 6 GB.
-        let mut exprs: Vec<(String, usize)> = [
-            keys.all_observations(),
-            // `map/**` also matches `map` itself (`**` is zero or more chunks).
-            keys.all_maps(),
-            keys.all_status(),
-            keys.all_commands(),
-            keys.truth(),
-        ]
-        .into_iter()
-        .map(|k| (k, opts.queue_capacity))
-        .collect();
-        if opts.frames {
-            exprs.push((keys.all_frames(), opts.frame_queue_capacity));
-        }
-        let mut queues = Vec::new();
-        let mut declarations = Vec::new();
-        // Nodes appearing and going away (their liveliness tokens), with the
-        // wall time the recorder heard it.
-        let liveliness: DropOldestQueue<(String, bool, u64)> = DropOldestQueue::new(1024);
-        if opts.foxglove {
-            let l = liveliness.clone();
-            declarations.push(bus.watch_liveliness(&keys.all_alive(), move |key, alive| {
-                l.push((key.to_string(), alive, WallClock.now_ns()));
-            })?);
-        }
-        for (e, capacity) in &exprs {
-            let (q, d) = bus.subscribe_raw(e, *capacity)?;
-            queues.push(q);
-            declarations.push(d);
-        }
         let stop = Arc::new(AtomicBool::new(false));
         let stats = Arc::new(RecorderStats::default());
         let (stop2, stats2, qs) = (stop.clone(), stats.clone(), queues.clone());
-        let (liveliness2, keys2) = (liveliness.clone(), keys.clone());
+        let (liveliness2, keys2) = (liveliness, keys);
         let path_buf = path.to_path_buf();
         let thread = std::thread::Builder::new()
             .name("recorder".into())
@@ -282,7 +202,7 @@ impl Recorder {
                         std::thread::Builder::new()
                             .name("recorder-png".into())
                             .spawn(move || png_worker(fleet, j, d, st))
-                            .map_err(|e| RecordError::Thread(e.to_string()))?,
+                            .map_err(RecordError::Thread)?,
                     )
                 } else {
                     None
@@ -352,16 +272,99 @@ impl Recorder {
                     writer_cpu_s: thread_cpu_s() - cpu0,
                 })
             })
-            .map_err(|e| RecordError::Thread(e.to_string()))?;
-        Ok(RecorderHandle {
+            .map_err(RecordError::Thread)?;
+        Ok(Recording {
             stop,
             queues,
-            declarations,
-            bus: Some(bus.clone()),
             thread: Some(thread),
             stats,
         })
     }
+
+    /// Messages dropped so far because the writer fell behind.
+    pub fn dropped(&self) -> u64 {
+        self.queues.iter().map(|q| q.dropped()).sum()
+    }
+    pub fn stats(&self) -> &RecorderStats {
+        &self.stats
+    }
+    /// Whether the writer thread ended early (an I/O error); `stop` returns it.
+    pub fn failed(&self) -> bool {
+        self.thread.as_ref().is_none_or(|t| t.is_finished())
+    }
+
+    /// Write what is queued, close the file with its summary.
+    pub fn stop(mut self) -> Result<RecordSummary, RecordError> {
+        self.finish()
+    }
+
+    /// As [`Recording::stop`], for an owner that cannot give the recording
+    /// away; a second call is [`RecordError::AlreadyStopped`]. Whoever fills
+    /// the queues should have stopped first.
+    pub fn finish(&mut self) -> Result<RecordSummary, RecordError> {
+        self.stop.store(true, Ordering::Relaxed);
+        for q in &self.queues {
+            q.close();
+        }
+        match self.thread.take() {
+            Some(t) => t.join().map_err(|_| RecordError::WriterPanicked)?,
+            None => Err(RecordError::AlreadyStopped),
+        }
+    }
+}
+
+impl Drop for Recording {
+    fn drop(&mut self) {
+        if self.thread.is_some() {
+            if let Err(e) = self.finish() {
+                tracing::error!("recorder: {e}");
+            }
+        }
+    }
+}
+
+/// The file-level metadata of a recording.
+pub fn file_metadata(
+    fleet: &Fleet,
+    opts: &RecordOptions,
+    start_unix_ns: u64,
+) -> BTreeMap<String, String> {
+    let mut m = opts.extra_metadata.clone();
+    m.insert("fleet".into(), fleet.name.clone());
+    m.insert("fleet_file".into(), fleet.source.display().to_string());
+    m.insert(
+        "reference_vehicle".into(),
+        fleet.reference_vehicle.to_string(),
+    );
+    m.insert(
+        "vehicles".into(),
+        fleet
+            .vehicles
+            .iter()
+            .map(|v| v.id.to_string())
+            .collect::<Vec<_>>()
+            .join(","),
+    );
+    if let Some(c) = opts.water_c_per_m {
+        m.insert("water_c_per_m".into(), c.to_string());
+    }
+    m.insert(
+        "software".into(),
+        format!("shoal {}", env!("CARGO_PKG_VERSION")),
+    );
+    m.insert(
+        "wire_schema_version".into(),
+        codec::SCHEMA_VERSION.to_string(),
+    );
+    m.insert("start_time_unix_ns".into(), start_unix_ns.to_string());
+    m.insert("frames".into(), opts.frames.to_string());
+    if let Some(r) = opts.frame_rate_limit_hz {
+        m.insert("frame_rate_limit_hz".into(), r.to_string());
+    }
+    if let Some(r) = opts.image_rate_limit_hz {
+        m.insert("image_rate_limit_hz".into(), r.to_string());
+    }
+    m
 }
 
 /// The message kind in an envelope header, if the header is shoal's.

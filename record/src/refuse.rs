@@ -69,7 +69,10 @@ pub struct FuseSummary {
 
 /// The fleet a log was recorded with (its attachment), unless overridden.
 pub fn fleet_of(buf: &[u8], input: &Path) -> Result<Fleet, RecordError> {
-    let h = header(buf)?;
+    let h = header(buf).map_err(|source| RecordError::NotMcap {
+        path: input.to_path_buf(),
+        source,
+    })?;
     let text = h
         .fleet_toml
         .ok_or_else(|| RecordError::NoFleet(input.to_path_buf()))?;
@@ -77,11 +80,9 @@ pub fn fleet_of(buf: &[u8], input: &Path) -> Result<Fleet, RecordError> {
         .metadata
         .get("fleet_file")
         .map_or_else(|| PathBuf::from("fleet.toml"), PathBuf::from);
-    Fleet::parse(&text, &source).map_err(|e| {
-        RecordError::Format(format!(
-            "{}: fleet attached to the log: {e}",
-            input.display()
-        ))
+    Fleet::parse(&text, &source).map_err(|source| RecordError::AttachedFleet {
+        path: input.to_path_buf(),
+        source,
     })
 }
 
@@ -94,7 +95,10 @@ pub fn refuse(input: &Path, output: &Path, opts: &FuseOptions) -> Result<FuseSum
         Some(f) => f.clone(),
         None => fleet_of(&buf, input)?,
     };
-    let h = header(&buf)?;
+    let h = header(&buf).map_err(|source| RecordError::NotMcap {
+        path: input.to_path_buf(),
+        source,
+    })?;
     let keys = fleet.keys();
     let mut params = opts.params;
     params.record_solve_time = false;
@@ -189,7 +193,12 @@ pub fn refuse(input: &Path, output: &Path, opts: &FuseOptions) -> Result<FuseSum
             }
         }
         Err(ScanError::Visitor(e)) => return Err(e),
-        Err(e) => return Err(RecordError::Format(format!("{}: {e}", input.display()))),
+        Err(ScanError::NotMcap(source)) => {
+            return Err(RecordError::NotMcap {
+                path: input.to_path_buf(),
+                source,
+            })
+        }
     }
     writer.finish()?;
     summary.comparison = cmp.finish();
@@ -204,8 +213,10 @@ fn write_map(
     log_time: u64,
     stats: &RecorderStats,
 ) -> Result<(), RecordError> {
-    let bytes =
-        proto::encode(map).map_err(|e| RecordError::Format(format!("encoding a map: {e}")))?;
+    let bytes = proto::encode(map).map_err(|source| RecordError::Encode {
+        what: "map",
+        source,
+    })?;
     conv.write(writer, key, &bytes, log_time, stats)
 }
 

@@ -1,13 +1,13 @@
-//! Replay (`shoal replay`): republish a log's wire messages on Zenoh, byte
-//! for byte, with their original relative timing (log time), optionally
-//! faster or slower and within a time range.
+//! Replay (`shoal replay`): a log's wire messages, byte for byte, with their
+//! original relative timing (log time), optionally faster or slower and
+//! within a time range, sent to a [`ReplaySink`]; republishing them on
+//! Zenoh is `shoal_services::replay`.
 
 use crate::reader::{read_file, scan_wire, ScanError};
 use crate::recorder::envelope_kind;
 use crate::RecordError;
 use proto::MessageKind;
-use shoal_bus::{Bus, Publisher};
-use std::collections::HashMap;
+use std::collections::HashSet;
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
@@ -54,50 +54,27 @@ pub struct ReplaySummary {
     pub max_late_ms: f64,
 }
 
-/// One publisher per key; the type parameter of `Publisher` only matters for
-/// typed `put`, replay sends the recorded envelope bytes as they are.
-enum AnyPublisher {
-    Observation(Publisher<proto::Observation>),
-    FleetMap(Publisher<proto::FleetMap>),
-    CameraFrame(Publisher<proto::CameraFrame>),
-    SimTruth(Publisher<proto::SimTruth>),
-    NodeStatus(Publisher<proto::NodeStatus>),
-    VehicleCommand(Publisher<proto::VehicleCommand>),
+/// Where a replay sends a log's wire messages (Zenoh, in
+/// `shoal_services::replay`).
+pub trait ReplaySink {
+    /// Get ready to send `kind` envelopes on `key`; called once per key,
+    /// before its first message (for every wire channel of the file's summary
+    /// up front, when it has one).
+    fn declare(&mut self, key: &str, kind: MessageKind) -> Result<(), RecordError>;
+    /// Send one recorded envelope on `key`, byte for byte.
+    fn send(&mut self, key: &str, envelope: &[u8]) -> Result<(), RecordError>;
 }
 
-impl AnyPublisher {
-    fn declare(bus: &Bus, key: &str, kind: MessageKind) -> Result<AnyPublisher, RecordError> {
-        let k = key.to_string();
-        Ok(match kind {
-            MessageKind::Observation => AnyPublisher::Observation(bus.publisher(k)?),
-            MessageKind::FleetMap => AnyPublisher::FleetMap(bus.publisher(k)?),
-            MessageKind::CameraFrame => AnyPublisher::CameraFrame(bus.publisher(k)?),
-            MessageKind::SimTruth => AnyPublisher::SimTruth(bus.publisher(k)?),
-            MessageKind::NodeStatus => AnyPublisher::NodeStatus(bus.publisher(k)?),
-            MessageKind::VehicleCommand => AnyPublisher::VehicleCommand(bus.publisher(k)?),
-        })
-    }
-    fn put_bytes(&self, bytes: Vec<u8>) -> Result<(), shoal_bus::BusError> {
-        match self {
-            AnyPublisher::Observation(p) => p.put_bytes(bytes),
-            AnyPublisher::FleetMap(p) => p.put_bytes(bytes),
-            AnyPublisher::CameraFrame(p) => p.put_bytes(bytes),
-            AnyPublisher::SimTruth(p) => p.put_bytes(bytes),
-            AnyPublisher::NodeStatus(p) => p.put_bytes(bytes),
-            AnyPublisher::VehicleCommand(p) => p.put_bytes(bytes),
-        }
-    }
-}
-
-/// Republish `path` on `bus`; `stop` ends it early (Ctrl-C).
-pub fn replay(
-    bus: &Bus,
+/// Send `path`'s wire messages to `sink` with their original relative
+/// timing (scaled by `opts.rate`); `stop` ends it early (Ctrl-C).
+pub fn replay_into(
+    sink: &mut dyn ReplaySink,
     path: &Path,
     opts: &ReplayOptions,
     stop: &AtomicBool,
 ) -> Result<ReplaySummary, RecordError> {
     let buf = read_file(path)?;
-    let mut publishers: HashMap<String, AnyPublisher> = HashMap::new();
+    let mut declared: HashSet<String> = HashSet::new();
     let mut summary = ReplaySummary::default();
     let mut first_log: Option<u64> = None;
     let mut start: Option<(Instant, u64)> = None;
@@ -119,7 +96,8 @@ pub fn replay(
                         .as_ref()
                         .is_none_or(|p| c.topic.starts_with(p.as_str()))
                 {
-                    publishers.insert(c.topic.clone(), AnyPublisher::declare(bus, &c.topic, kind)?);
+                    sink.declare(&c.topic, kind)?;
+                    declared.insert(c.topic.clone());
                 }
             }
         }
@@ -160,12 +138,11 @@ pub fn replay(
             }
         }
         let key = channel.topic.as_str();
-        if !publishers.contains_key(key) {
-            publishers.insert(key.to_string(), AnyPublisher::declare(bus, key, kind)?);
+        if !declared.contains(key) {
+            sink.declare(key, kind)?;
+            declared.insert(key.to_string());
         }
-        if let Some(p) = publishers.get(key) {
-            p.put_bytes(data.to_vec())?;
-        }
+        sink.send(key, data)?;
         summary.messages += 1;
         summary.bytes += data.len() as u64;
         last_log = log_time;
@@ -174,11 +151,109 @@ pub fn replay(
     match res {
         Ok(_) | Err(ScanError::Visitor(RecordError::Interrupted)) => {}
         Err(ScanError::Visitor(e)) => return Err(e),
-        Err(e) => return Err(RecordError::Format(format!("{}: {e}", path.display()))),
+        Err(ScanError::NotMcap(source)) => {
+            return Err(RecordError::NotMcap {
+                path: path.to_path_buf(),
+                source,
+            })
+        }
     }
     if let Some((wall0, log0)) = start {
         summary.wall_time_s = wall0.elapsed().as_secs_f64();
         summary.log_span_s = last_log.saturating_sub(log0) as f64 * 1e-9;
     }
     Ok(summary)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::writer::{LogWriter, WriterOptions};
+    use std::collections::BTreeMap;
+
+    /// What a sink was given, in order.
+    #[derive(Default)]
+    struct Collect {
+        declared: Vec<(String, MessageKind)>,
+        sent: Vec<(String, Vec<u8>)>,
+    }
+
+    impl ReplaySink for Collect {
+        fn declare(&mut self, key: &str, kind: MessageKind) -> Result<(), RecordError> {
+            self.declared.push((key.to_string(), kind));
+            Ok(())
+        }
+        fn send(&mut self, key: &str, envelope: &[u8]) -> Result<(), RecordError> {
+            assert!(
+                self.declared.iter().any(|(k, _)| k == key),
+                "{key} sent before it was declared"
+            );
+            self.sent.push((key.to_string(), envelope.to_vec()));
+            Ok(())
+        }
+    }
+
+    /// Commands of vehicles 15 and 17 interleaved, 1 ms apart in log time.
+    fn command_log(path: &Path) -> Vec<(String, Vec<u8>)> {
+        let mut w =
+            LogWriter::create(path, &WriterOptions::default(), &BTreeMap::new(), None, 1).unwrap();
+        let mut written = Vec::new();
+        for i in 0..20u64 {
+            let vehicle = if i % 2 == 0 { 15 } else { 17 };
+            let cmd = proto::VehicleCommand {
+                vehicle,
+                stamp_ns: i,
+                velocity_body: [i as f64, 0.0, 0.0],
+                yaw_rate: 0.0,
+            };
+            let key = format!("shoal/paper/{vehicle}/cmd");
+            let bytes = proto::encode(&cmd).unwrap();
+            w.write_wire(
+                &key,
+                Some(MessageKind::VehicleCommand),
+                &bytes,
+                1_000_000 * (i + 1),
+                i,
+            )
+            .unwrap();
+            written.push((key, bytes));
+        }
+        w.finish().unwrap();
+        written
+    }
+
+    #[test]
+    fn replay_sends_every_envelope_unchanged_in_order_and_filters_by_key() {
+        let dir = std::env::temp_dir().join(format!("shoal-record-replay-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("commands.mcap");
+        let written = command_log(&path);
+        let fast = ReplayOptions {
+            rate: f64::INFINITY,
+            settle: Duration::ZERO,
+            ..ReplayOptions::default()
+        };
+        let mut all = Collect::default();
+        let s = replay_into(&mut all, &path, &fast, &AtomicBool::new(false)).unwrap();
+        assert_eq!(all.sent, written);
+        assert_eq!((s.messages, s.log_span_s), (20, 19e-3));
+        // Both keys come from the file's summary, before the first message.
+        let mut keys: Vec<&str> = all.declared.iter().map(|(k, _)| k.as_str()).collect();
+        keys.sort();
+        assert_eq!(keys, ["shoal/paper/15/cmd", "shoal/paper/17/cmd"]);
+
+        let only_17 = ReplayOptions {
+            key_prefix: Some("shoal/paper/17/".into()),
+            ..fast
+        };
+        let mut some = Collect::default();
+        replay_into(&mut some, &path, &only_17, &AtomicBool::new(false)).unwrap();
+        let expected: Vec<_> = written
+            .into_iter()
+            .filter(|(k, _)| k.contains("/17/"))
+            .collect();
+        assert_eq!(some.sent, expected);
+        assert_eq!(some.declared.len(), 1);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

@@ -242,8 +242,7 @@ impl LogWriter {
                 let sid = match self.fox_schemas.get(&schema) {
                     Some(&s) => s,
                     None => {
-                        let text = serde_json::to_vec(&schema.json_schema())
-                            .map_err(|e| RecordError::Json(e.to_string()))?;
+                        let text = serde_json::to_vec(&schema.json_schema())?;
                         let s = self
                             .w
                             .add_schema(schema.name(), "jsonschema", &text)
@@ -260,7 +259,7 @@ impl LogWriter {
                 c
             }
         };
-        let data = serde_json::to_vec(value).map_err(|e| RecordError::Json(e.to_string()))?;
+        let data = serde_json::to_vec(value)?;
         self.write(topic, channel, &data, log_time, publish_time)
     }
 

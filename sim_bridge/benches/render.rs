@@ -2,6 +2,9 @@
 //! camera in the paper fleet's line abreast (2 m), vehicle 17 (the far one)
 //! moved 0.5 m deeper so it shows below vehicle 15; water 0.5 /m, with noise.
 //!
+//! Also single markers at 600 mm (0.5 and 8.22 /m), the water alone with and
+//! without noise, and the paper's 2448x2048 Eq. (3) camera.
+//!
 //! Run: `cargo bench -p shoal-sim-bridge --bench render`.
 
 use criterion::{criterion_group, criterion_main, Criterion};
@@ -63,6 +66,42 @@ fn bench(c: &mut Criterion) {
         b.iter(|| {
             renderer
                 .render(&cam, &Pose::identity(), &scene, &murky, 0.0, 1)
+                .expect("render")
+        })
+    });
+    c.bench_function("render_1440x1080_marker_600mm_c0.5", |b| {
+        b.iter(|| {
+            renderer
+                .render(&cam, &Pose::identity(), &scene, &water, 0.0, 1)
+                .expect("render")
+        })
+    });
+    // The water alone (no marker), with and without the sensor's noise.
+    let empty = Scene::empty();
+    for (name, w) in [
+        ("render_1440x1080_empty_noiseless", water.noiseless()),
+        ("render_1440x1080_empty_noise", water),
+    ] {
+        c.bench_function(name, |b| {
+            b.iter(|| {
+                renderer
+                    .render(&cam, &Pose::identity(), &empty, &w, 0.0, 1)
+                    .expect("render")
+            })
+        });
+    }
+    // The paper's Eq. (3) camera, 2448x2048.
+    let eq3 = CameraModel::paper_eq3();
+    let far = Scene::single_marker(
+        CodeSet::Shoal,
+        17,
+        0.1,
+        facing_camera([0.0, 0.0, 0.8], [0.0, 0.35, 0.0]),
+    );
+    c.bench_function("render_2448x2048_marker_800mm_c8.22", |b| {
+        b.iter(|| {
+            renderer
+                .render(&eq3, &Pose::identity(), &far, &murky, 0.0, 1)
                 .expect("render")
         })
     });

@@ -1,9 +1,11 @@
 //! shoal's underwater world without a pool: a physically based image
 //! synthesizer (see `docs/water-model.md`), a swarm world with ground truth,
-//! an observation-level synthesizer for fusion at scale, and the Zenoh bridge
-//! that publishes it all as a real fleet would.
+//! and an observation-level synthesizer for fusion at scale. No Zenoh: the
+//! bridge that publishes it all as a real fleet would is `shoal_services::sim`.
 
-pub mod bridge;
+// A library reports failures as errors; an `unwrap()` that cannot fail says why with `expect`.
+#![warn(clippy::unwrap_used)]
+
 pub mod error;
 pub mod obs_synth;
 pub mod render;

@@ -1,18 +1,24 @@
-//! `shoal eval <experiment>`: the paper's measurements repeated on shoal (library: `shoal::eval`).
+//! `shoal eval <experiment>`: the paper's measurements repeated on shoal
+//! (library: `shoal::eval`); `shoal eval probe <name>`: the diagnostics
+//! (`shoal::eval::probe`).
 
 use anyhow::Context;
-use clap::Args;
+use clap::{Args, Subcommand};
 use shoal::eval::{self, EvalOptions, Experiment};
 use shoal_node::restore::Method;
 use std::path::PathBuf;
 
 #[derive(Debug, Args)]
+#[command(args_conflicts_with_subcommands = true, subcommand_negates_reqs = true)]
 pub struct EvalArgs {
-    /// features | accuracy | accuracy-yaw | accuracy-rmse | detection | restoration | calibrate-water | fit-noise | fusion | swarm
-    experiment: String,
+    #[command(subcommand)]
+    command: Option<EvalCmd>,
+    /// features | accuracy | accuracy-yaw | accuracy-rmse | detection | restoration | calibrate-water | fit-noise | fusion | swarm | real
+    #[arg(required = true)]
+    experiment: Option<String>,
     /// Output directory: CSV of every trial, plots (PNG, SVG), summary.json.
-    #[arg(long)]
-    out: PathBuf,
+    #[arg(long, required = true)]
+    out: Option<PathBuf>,
     /// The reduced run used in CI (well under a minute each in a debug build).
     #[arg(long)]
     quick: bool,
@@ -34,13 +40,35 @@ pub struct EvalArgs {
     /// Also save the first frame of every condition, raw and restored, as PNG under OUT/frames/.
     #[arg(long)]
     save_frames: bool,
+    /// Set a restoration parameter (a `RestoreParams` field) for every restorer of the experiment, e.g. `psf_px_per_unit=8`, `order=physical`; repeatable.
+    #[arg(long = "restore-param", value_name = "NAME=VALUE")]
+    restore_param: Vec<String>,
+    /// `real`: the folder of real recordings, one sub-folder with an eval.json each (default: $SHOAL_REAL_DATA, ../shared/data/real, data/real).
+    #[arg(long)]
+    data: Option<PathBuf>,
+    /// `real`: only this split of each recording (`dev` while tuning; `holdout` only for the final figure).
+    #[arg(long)]
+    split: Option<String>,
+}
+
+#[derive(Debug, Subcommand)]
+enum EvalCmd {
+    /// Diagnostics kept from development: one stage questioned on simulated (or recorded) data, printed as text.
+    #[command(subcommand)]
+    Probe(shoal::eval::probe::Probe),
 }
 
 pub fn run_eval(a: EvalArgs) -> anyhow::Result<()> {
-    let experiment: Experiment = a.experiment.parse()?;
+    if let Some(EvalCmd::Probe(p)) = &a.command {
+        return Ok(shoal::eval::probe::run(p)?);
+    }
+    let (Some(name), Some(out)) = (&a.experiment, &a.out) else {
+        anyhow::bail!("shoal eval needs an experiment and --out (or `probe <name>`)");
+    };
+    let experiment: Experiment = name.parse()?;
     let restore: Method = a.restore.parse()?;
     let opts = EvalOptions {
-        out: a.out.clone(),
+        out: out.clone(),
         quick: a.quick,
         frames: a.frames,
         seed: a.seed,
@@ -48,9 +76,12 @@ pub fn run_eval(a: EvalArgs) -> anyhow::Result<()> {
         progress: !a.no_progress,
         save_frames: a.save_frames,
         water: a.water.clone(),
+        data: a.data.clone(),
+        split: a.split.clone(),
+        restore_params: eval::restore_params::from_assignments(&a.restore_param)?,
     };
     let summary = eval::run(experiment, &opts).with_context(|| format!("eval {experiment}"))?;
     println!("{}", serde_json::to_string_pretty(&summary)?);
-    println!("wrote {}", a.out.join("summary.json").display());
+    println!("wrote {}", out.join("summary.json").display());
     Ok(())
 }

@@ -56,7 +56,7 @@ pub fn run_record(a: RecordArgs) -> anyhow::Result<()> {
         water_c_per_m: a.water,
         ..RecordOptions::default()
     };
-    let rec = shoal_record::Recorder::spawn(&bus, fleet, &a.out, opts)?;
+    let rec = shoal_services::recorder::Recorder::spawn(&bus, fleet, &a.out, opts)?;
     tracing::info!("recording to {}; Ctrl-C to stop", a.out.display());
     let started = std::time::Instant::now();
     wait_for_ctrl_c(|| {
@@ -145,7 +145,7 @@ pub fn run_replay(a: ReplayArgs) -> anyhow::Result<()> {
     for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
         let _ = signal_hook::flag::register(sig, stop.clone());
     }
-    let s = shoal_record::replay(
+    let s = shoal_services::replay::replay(
         &bus,
         &a.file,
         &ReplayOptions {

@@ -6,8 +6,8 @@
 use super::net::wait_for_ctrl_c;
 use anyhow::Context;
 use clap::Args;
-use shoal_bus::relay::{FaultPlan, Flap, Relay};
 use shoal_bus::{Bus, Connect};
+use shoal_services::relay::{FaultPlan, Flap, Relay};
 use std::net::ToSocketAddrs;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};

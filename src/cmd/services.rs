@@ -3,15 +3,16 @@
 use super::net::{wait_for_ctrl_c, NetArgs};
 use anyhow::{bail, Context};
 use clap::{Args, Subcommand};
-use shoal_bus::{Clock, ManualClock, WallClock};
-use shoal_fusion::service::{FusionConfig, Placement};
 use shoal_fusion::FusionParams;
 use shoal_node::pipeline::PipelineParams;
 use shoal_node::restore::Method;
-use shoal_node::service::{NodeConfig, Source};
+use shoal_node::source::LocalSource;
+use shoal_proto::clock::{Clock, ManualClock, WallClock};
 use shoal_proto::config::Fleet;
 use shoal_proto::messages::SimTruth;
-use shoal_sim_bridge::bridge::SimConfig;
+use shoal_services::fusion::{FusionConfig, Placement};
+use shoal_services::node::{NodeConfig, Source};
+use shoal_services::sim::SimConfig;
 use shoal_sim_bridge::render::{render_fleet_view, write_frame_pair, Renderer};
 use shoal_sim_bridge::water::WaterPresets;
 use shoal_sim_bridge::world::{Formation, SwarmWorld};
@@ -75,21 +76,21 @@ pub fn run_node(a: NodeArgs) -> anyhow::Result<()> {
             log = Some(path);
             Source::Zenoh
         }
-        Some(("images", dir)) => Source::Images {
+        Some(("images", dir)) => Source::Local(LocalSource::Images {
             dir: dir.into(),
             camera: a.camera_index,
             rate_hz: a.image_rate,
-        },
-        Some(("video", path)) => Source::Video {
+        }),
+        Some(("video", path)) => Source::Local(LocalSource::Video {
             path: path.into(),
             camera: a.camera_index,
-        },
-        Some(("camera", dev)) => Source::Live {
+        }),
+        Some(("camera", dev)) => Source::Local(LocalSource::Live {
             device: dev
                 .parse()
                 .with_context(|| format!("camera device {dev:?} is not a number"))?,
             camera: a.camera_index,
-        },
+        }),
         _ => bail!(
             "--source {:?}: expected zenoh, images:DIR, video:FILE, camera:DEVICE or mcap:FILE",
             a.source
@@ -120,7 +121,7 @@ pub fn run_node(a: NodeArgs) -> anyhow::Result<()> {
             a.vehicle,
             path.display()
         );
-        let s = shoal::rerun::rerun_node(&bus, cfg, &path, a.replay_rate, &stop)?;
+        let s = shoal::redetect::redetect(&bus, cfg, &path, a.replay_rate, &stop)?;
         println!(
             "vehicle {}: {} frames replayed, {} processed, {} dropped, {} observations published; mean pipeline {} in {:.1} s",
             a.vehicle,
@@ -134,7 +135,7 @@ pub fn run_node(a: NodeArgs) -> anyhow::Result<()> {
         );
         return Ok(());
     }
-    let node = shoal_node::service::spawn(&bus, cfg)?;
+    let node = shoal_services::node::spawn(&bus, cfg)?;
     tracing::info!("node {} running; Ctrl-C to stop", a.vehicle);
     wait_for_ctrl_c(|| false);
     node.stop();
@@ -190,7 +191,7 @@ pub fn run_fusion(a: FusionArgs) -> anyhow::Result<()> {
         }
         other => bail!("--clock {other:?}: expected wall or sim"),
     };
-    let handle = shoal_fusion::service::spawn(
+    let handle = shoal_services::fusion::spawn(
         &bus,
         FusionConfig {
             fleet,
@@ -349,7 +350,7 @@ pub fn run_sim(a: SimArgs) -> anyhow::Result<()> {
     let water = presets(&a.water_presets)?.get(a.water)?;
     let bus = a.net.open()?;
     let clock = Arc::new(ManualClock::new(0));
-    let sim = shoal_sim_bridge::bridge::spawn(
+    let sim = shoal_services::sim::spawn(
         &bus,
         SimConfig {
             fleet,

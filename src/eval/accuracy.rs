@@ -86,7 +86,7 @@ pub fn run_conditions(
         // One restorer per marker stream: HOIRM's ambient estimate follows its own frames.
         let mut restorers: BTreeMap<&'static str, _> = code_sets
             .iter()
-            .map(|c| (c.name(), make_restorer(opts.restore)))
+            .map(|c| (c.name(), make_restorer(opts.restore, &opts.restore_params)))
             .collect();
         for k in 0..frames {
             let mut rng = frame_rng(opts.seed, ci as u64, k as u64);

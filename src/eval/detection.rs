@@ -73,7 +73,10 @@ pub fn success_rates(
     let bar = opts.bar(waters.len() * frames, what);
     for (wi, &c) in waters.iter().enumerate() {
         let water = presets.get_with(c, knobs)?;
-        let mut restorers: Vec<_> = methods.iter().map(|&m| make_restorer(m)).collect();
+        let mut restorers: Vec<_> = methods
+            .iter()
+            .map(|&m| make_restorer(m, &opts.restore_params))
+            .collect();
         for k in 0..frames {
             let mut rng = frame_rng(opts.seed, 1000 + wi as u64, k as u64);
             let truth = jittered_pose(DISTANCE_M, [0.0; 3], JITTER_M, JITTER_RAD, &mut rng);

@@ -17,8 +17,10 @@
 //! | `calibrate-water` | Table 5's CLAHE row    | [`calibrate`]   |
 //! | `fusion`          | (shoal's own)          | [`fusion`]      |
 //! | `swarm`           | §6.3                   | [`swarm`]       |
+//! | `real`            | (real recordings)      | [`real`]        |
 //!
 //! `quick` runs a reduced version of each (seconds in a debug build) for CI.
+//! The development probes (`shoal eval probe <name>`) are in [`probe`].
 
 pub mod accuracy;
 pub mod calibrate;
@@ -27,13 +29,16 @@ pub mod features;
 pub mod fusion;
 pub mod noise;
 pub mod plot;
+pub mod probe;
+pub mod real;
 pub mod restoration;
+pub mod restore_params;
 pub mod scene;
 pub mod swarm;
 pub mod table;
 
 use indicatif::{ProgressBar, ProgressStyle};
-use shoal_node::restore::Method;
+use shoal_node::restore::{Method, RestoreParams};
 use shoal_sim_bridge::water::WaterPresets;
 use std::path::{Path, PathBuf};
 
@@ -50,10 +55,11 @@ pub enum Experiment {
     FitNoise,
     Fusion,
     Swarm,
+    Real,
 }
 
 impl Experiment {
-    pub const ALL: [Experiment; 10] = [
+    pub const ALL: [Experiment; 11] = [
         Experiment::Features,
         Experiment::Accuracy,
         Experiment::AccuracyYaw,
@@ -64,6 +70,7 @@ impl Experiment {
         Experiment::FitNoise,
         Experiment::Fusion,
         Experiment::Swarm,
+        Experiment::Real,
     ];
 
     pub fn name(self) -> &'static str {
@@ -78,6 +85,7 @@ impl Experiment {
             Experiment::FitNoise => "fit-noise",
             Experiment::Fusion => "fusion",
             Experiment::Swarm => "swarm",
+            Experiment::Real => "real",
         }
     }
 }
@@ -123,6 +131,13 @@ pub struct EvalOptions {
     /// Water presets file (`configs/water.toml` format, e.g. the output of
     /// `calibrate-water`); `None` = the built-in presets.
     pub water: Option<PathBuf>,
+    /// Root of the real recordings for `real` (`None`: [`real::data_root`]'s defaults).
+    pub data: Option<PathBuf>,
+    /// `real`: run only the named split of every recording (e.g. `dev` while tuning).
+    pub split: Option<String>,
+    /// Parameters of every restorer the experiment builds (tuning runs:
+    /// `--restore-param`, [`restore_params`]); default [`RestoreParams::default`].
+    pub restore_params: RestoreParams,
 }
 
 impl EvalOptions {
@@ -137,6 +152,9 @@ impl EvalOptions {
             progress: true,
             save_frames: false,
             water: None,
+            data: None,
+            split: None,
+            restore_params: RestoreParams::default(),
         }
     }
 
@@ -196,8 +214,16 @@ pub enum EvalError {
     Json(#[from] serde_json::Error),
     #[error("setting up the experiment: {0}")]
     Setup(String),
+    #[error("OpenCV: {0}")]
+    OpenCv(String),
     #[error("unknown experiment {name:?}; known: {known}")]
     UnknownExperiment { name: String, known: String },
+}
+
+impl From<opencv::Error> for EvalError {
+    fn from(e: opencv::Error) -> Self {
+        EvalError::OpenCv(e.to_string())
+    }
 }
 
 /// Run `experiment` into `opts.out`; returns the summary it wrote to `summary.json`.
@@ -218,6 +244,7 @@ pub fn run(experiment: Experiment, opts: &EvalOptions) -> Result<serde_json::Val
         Experiment::FitNoise => noise::run(opts)?,
         Experiment::Fusion => fusion::run(opts)?,
         Experiment::Swarm => swarm::run(opts)?,
+        Experiment::Real => real::run(opts)?,
     };
     if let Some(obj) = summary.as_object_mut() {
         obj.insert("experiment".into(), experiment.name().into());
@@ -236,6 +263,12 @@ pub fn run(experiment: Experiment, opts: &EvalOptions) -> Result<serde_json::Val
                 })
                 .into(),
         );
+        if opts.restore_params != RestoreParams::default() {
+            obj.insert(
+                "restore_params".into(),
+                format!("{:?}", opts.restore_params).into(),
+            );
+        }
         obj.insert(
             "build".into(),
             if cfg!(debug_assertions) {

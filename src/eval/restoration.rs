@@ -72,7 +72,10 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     let bar = opts.bar(WATERS.len() * frames, "restoration: frames");
     for (wi, &c) in WATERS.iter().enumerate() {
         let water = presets.get(c)?;
-        let mut restorers: Vec<_> = methods.iter().map(|&m| make_restorer(m)).collect();
+        let mut restorers: Vec<_> = methods
+            .iter()
+            .map(|&m| make_restorer(m, &opts.restore_params))
+            .collect();
         for k in 0..frames {
             let mut rng = frame_rng(opts.seed, 2000 + wi as u64, k as u64);
             let truth = jittered_pose(0.600, [0.0; 3], 0.002, 0.5f64.to_radians(), &mut rng);

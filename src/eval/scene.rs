@@ -136,9 +136,9 @@ pub fn render_marker(
     Ok(renderer.render(cam, &Pose::identity(), &scene, water, time_s, noise_seed)?)
 }
 
-/// A restorer of `method` with default parameters (HOIRM estimates the water itself).
-pub fn make_restorer(method: Method) -> Box<dyn Restorer> {
-    restorer(method, &RestoreParams::default())
+/// A restorer of `method` with `params` (by default HOIRM estimates the water itself).
+pub fn make_restorer(method: Method, params: &RestoreParams) -> Box<dyn Restorer> {
+    restorer(method, params)
 }
 
 /// Restore a rendered frame; returns the full-resolution restored `Mat`.

@@ -70,8 +70,16 @@ fn run_trial(
             pipelines.push((
                 v.id,
                 c as u8,
-                CameraPipeline::new(fleet.clone(), v.id, c as u8, PipelineParams::default())
-                    .map_err(setup)?,
+                CameraPipeline::new(
+                    fleet.clone(),
+                    v.id,
+                    c as u8,
+                    PipelineParams {
+                        restore_params: opts.restore_params.clone(),
+                        ..PipelineParams::default()
+                    },
+                )
+                .map_err(setup)?,
             ));
         }
     }

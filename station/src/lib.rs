@@ -16,6 +16,9 @@
 //! Both only listen to Zenoh, so `shoal replay LOG.mcap` drives them exactly
 //! as a live swarm does.
 
+// A library reports failures as errors; an `unwrap()` that cannot fail says why with `expect`.
+#![warn(clippy::unwrap_used)]
+
 extern crate shoal_proto as proto;
 
 pub mod http;

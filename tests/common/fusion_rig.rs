@@ -4,12 +4,13 @@
 
 #![allow(dead_code)] // each test binary uses a different part
 
-use shoal_bus::{client_of, free_port, Bus, Connect, ManualClock, Publisher};
-use shoal_fusion::service::{FusionConfig, FusionHandle, Placement};
+use shoal_bus::{client_of, free_port, Bus, Connect, Publisher};
 use shoal_fusion::FusionParams;
+use shoal_proto::clock::ManualClock;
 use shoal_proto::config::Fleet;
 use shoal_proto::messages::Observation;
 use shoal_proto::VehicleId;
+use shoal_services::fusion::{FusionConfig, FusionHandle, Placement};
 use std::collections::BTreeMap;
 use std::sync::Arc;
 
@@ -44,7 +45,7 @@ impl Rig {
         params: FusionParams,
         queue_capacity: usize,
     ) -> FusionHandle {
-        shoal_fusion::service::spawn(
+        shoal_services::fusion::spawn(
             &self.session(),
             FusionConfig {
                 fleet: self.fleet.clone(),

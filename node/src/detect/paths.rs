@@ -45,8 +45,12 @@ fn to_gray(frame: &Mat) -> Result<Mat, DetectError> {
 
 /// Detect markers of `codes` in every image or video in `paths`, writing one
 /// JSON object per line to `out`: `{"source", "frame", "codes", "id",
-/// "hamming", "corner_ids", "corners_px", "module_px"}` plus `"pose"`
-/// (`camera_from_marker` translation in metres, quaternion `[x, y, z, w]`,
+/// "hamming", "corner_ids", "corners_px", "module_px", "corner_fit",
+/// "corner_fit_reason", "squares"}` — the corner stage's choice
+/// ([`super::CornerChoice`]: e.g. `"corner_fit": "pattern"`,
+/// `"corner_fit_reason": {"why": "edges_weak", "step_dn": 7.4}`, and per
+/// square `{"first_corner", "found_by", "corners"}`) — plus
+/// `"camera_from_marker"` (translation in metres, quaternion `[x, y, z, w]`,
 /// RMS, 6x6 covariance, and the flipped alternative) when `camera` and
 /// `side_m` are given. A file that cannot be read gives `{"source", "error"}`.
 pub fn detect_paths(
@@ -162,6 +166,9 @@ fn detect_one(
             "corner_ids": d.corner_ids,
             "corners_px": d.corners_px,
             "module_px": d.module_px,
+            "corner_fit": d.corner_fit.fit,
+            "corner_fit_reason": d.corner_fit.reason,
+            "squares": d.corner_fit.squares,
         });
         if let (Some(cam), Some(side)) = (camera, side_m) {
             let pose = match estimate_pose(cam, &d.object_points(side), &d.corners_px, None) {

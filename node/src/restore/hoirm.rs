@@ -55,6 +55,23 @@ pub struct Hoirm {
     wiener: Wiener,
 }
 
+/// What every region of one frame is restored with
+/// ([`Hoirm::restore_one_region`]).
+struct RegionInputs<'a> {
+    gray: &'a Mat,
+    /// The ambient light at the coarse level, scaled by α (f32).
+    bl_coarse_f: &'a Mat,
+    water: &'a WaterEstimate,
+    /// Eq. (14)'s PSF for the water.
+    psf: GgPsf,
+    c: f64,
+    /// The global de-attenuation gain.
+    gain: f64,
+    /// CLAHE's clip limit over the gain.
+    clip: f64,
+    denoise_sigma: f64,
+}
+
 /// What HOIRM derived for one frame (for logs, tests and the docs).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct HoirmFrameParams {
@@ -252,6 +269,102 @@ impl Hoirm {
         Ok(level)
     }
 
+    /// The regions of interest of `gray` (`coarse` its coarse level), or
+    /// the whole frame without [`RestoreParams::roi_only`].
+    fn regions(
+        &self,
+        gray: &Mat,
+        coarse: &Mat,
+        water: &WaterEstimate,
+        psf: &GgPsf,
+    ) -> Result<Vec<Rect>, RestoreError> {
+        let full = gray.size()?;
+        if !self.params.roi_only {
+            return Ok(vec![Rect::new(0, 0, full.width, full.height)]);
+        }
+        let margin = FEATHER_PX + 8 + psf.radius_px() / 4;
+        let coarse_f = roi::coarse_level_f32(gray, coarse.size()?)?;
+        roi::find_rois(
+            &coarse_f,
+            COARSE_FACTOR,
+            full,
+            water.noise_sigma,
+            margin,
+            &self.params,
+        )
+    }
+
+    /// The names of the two local stages, in the order they run.
+    fn local_stage_names(&self) -> [&'static str; 2] {
+        match self.params.order {
+            StageOrder::Paper => ["de-attenuated (CLAHE)", "deblurred (Wiener)"],
+            StageOrder::Physical => ["deblurred (Wiener)", "de-attenuated (CLAHE)"],
+        }
+    }
+
+    /// Steps 3b./4. in one region `r` of the frame: the veil removed, the
+    /// PSF's width measured when the region's edges tell (pushed to
+    /// `measured_sigma`), denoised, de-attenuated and deblurred. Returns
+    /// the region after the first local stage and after both.
+    fn restore_one_region(
+        &mut self,
+        g: &RegionInputs<'_>,
+        r: Rect,
+        measured_sigma: &mut Vec<f64>,
+    ) -> Result<(Mat, Mat), RestoreError> {
+        let diff = veil_removed_region(g.gray, g.bl_coarse_f, r)?;
+        // The PSF's width from the region's own edges when they tell
+        // (else Eq. (14)'s σ from c), see `psf::edge_blur_sigma_px`.
+        let region_psf = if self.params.psf_sigma_from_image && g.denoise_sigma == 0.0 {
+            let est = psf::edge_blur_sigma_px(&diff, g.water.noise_sigma)?;
+            if let Some(s) = est {
+                measured_sigma.push(s);
+            }
+            // The estimate reads the sharpest component of the blur (a
+            // sharp unscattered core under a wide halo reads narrow), so
+            // it only overrides Eq. (14) when it finds the edges much
+            // sharper than Eq. (14)'s σ.
+            let trusted = est.filter(|s| *s < self.params.psf_trust_ratio * g.psf.sigma_px);
+            GgPsf {
+                p: g.psf.p,
+                sigma_px: trusted.map_or(g.psf.sigma_px, |s| s.max(self.params.psf_min_sigma_px)),
+            }
+        } else {
+            g.psf
+        };
+        // In a denoised region the NSR is the white-noise one of the
+        // region before smoothing (measured after it, the noise looks
+        // small and the filter would sharpen it back).
+        let nsr = if g.denoise_sigma > 0.0 {
+            let (mut mean, mut std) = (core::Scalar::default(), core::Scalar::default());
+            core::mean_std_dev(&diff, &mut mean, &mut std, &core::no_array())?;
+            let k =
+                self.params.nsr_gain * g.water.noise_sigma.powi(2) / (std[0] * std[0]).max(1e-6);
+            Some(k.clamp(self.params.nsr_min, self.params.nsr_max))
+        } else {
+            None
+        };
+        let view = finish_region(diff, g.gain, g.denoise_sigma)?;
+        // Denoised regions are deconvolved too, with the NSR of the
+        // region before smoothing (`deconv_when_denoised`); measured on the
+        // smoothed region the NSR is small and the filter sharpens the
+        // noise back (calibrated water, 12.20 /m: detection 0.20).
+        let deblur = (g.c >= self.params.deconv_min_c_per_m
+            && (g.denoise_sigma == 0.0 || self.params.deconv_when_denoised))
+            .then_some(&region_psf);
+        // A region smoothed by σ ≥ 2 px has nothing left above the half
+        // level's Nyquist frequency (a Gaussian of σ 2 passes 0.7 % at
+        // 1/4 cycle/px): deconvolve it there, on 4x smaller DFTs.
+        let level = if g.denoise_sigma >= 2.0 {
+            self.params
+                .deconv_level
+                .max(self.params.denoised_deconv_level)
+        } else {
+            self.params.deconv_level
+        };
+        self.restore_region(&view, g.clip, deblur, nsr, level)
+    }
+
     /// Restore one frame and also return the parameters derived for it.
     pub fn restore_with_params(
         &mut self,
@@ -285,21 +398,6 @@ impl Hoirm {
         if c < self.params.passthrough_below_c_per_m {
             // Clear water: nothing to restore (the ambient state above is
             // still updated, so it is current when the water turns).
-            if keep {
-                stages.push((
-                    "input (clear water: passed through)".to_string(),
-                    snapshot(gray)?,
-                ));
-            }
-            let restored = Restored {
-                image: gray.try_clone()?,
-                pyramid_level: 0,
-                level_image: None,
-                estimated_c_per_m: c,
-                backscatter: water.backscatter,
-                rois: Vec::new(),
-                stages: keep.then_some(stages),
-            };
             let frame_params = HoirmFrameParams {
                 water,
                 c_per_m: c,
@@ -310,7 +408,7 @@ impl Hoirm {
                 denoise_sigma_px: 0.0,
                 measured_psf_sigma_px: None,
             };
-            return Ok((restored, frame_params));
+            return Ok((passed_through(gray, keep, &frame_params)?, frame_params));
         }
         let mut bl = Mat::default();
         imgproc::resize(&bl_coarse, &mut bl, full, 0.0, 0.0, imgproc::INTER_LINEAR)?;
@@ -337,20 +435,7 @@ impl Hoirm {
         // the regions of interest (feathered into the globally restored
         // frame) or on the whole frame.
         let frame = Rect::new(0, 0, full.width, full.height);
-        let rois = if self.params.roi_only {
-            let margin = FEATHER_PX + 8 + psf.radius_px() / 4;
-            let coarse_f = roi::coarse_level_f32(gray, coarse.size()?)?;
-            roi::find_rois(
-                &coarse_f,
-                COARSE_FACTOR,
-                full,
-                water.noise_sigma,
-                margin,
-                &self.params,
-            )?
-        } else {
-            vec![frame]
-        };
+        let rois = self.regions(gray, &coarse, &water, &psf)?;
         let mut image = global.try_clone()?;
         let mut first_stage = if keep {
             Some(global.try_clone()?)
@@ -369,88 +454,31 @@ impl Hoirm {
         set_mean.convert_to(&mut bl_coarse_f, CV_32F, alpha, 0.0)?;
         let mut measured_sigma = Vec::new();
         for &r in &rois {
-            let diff = veil_removed_region(gray, &bl_coarse_f, r)?;
-            // The PSF's width from the region's own edges when they tell
-            // (else Eq. (14)'s σ from c), see `psf::edge_blur_sigma_px`.
-            let region_psf = if self.params.psf_sigma_from_image && denoise_sigma == 0.0 {
-                let est = psf::edge_blur_sigma_px(&diff, water.noise_sigma)?;
-                if let Some(s) = est {
-                    measured_sigma.push(s);
-                }
-                // The estimate reads the sharpest component of the blur (a
-                // sharp unscattered core under a wide halo reads narrow), so
-                // it only overrides Eq. (14) when it finds the edges much
-                // sharper than Eq. (14)'s σ.
-                let trusted = est.filter(|s| *s < self.params.psf_trust_ratio * psf.sigma_px);
-                GgPsf {
-                    p: psf.p,
-                    sigma_px: trusted.map_or(psf.sigma_px, |s| s.max(self.params.psf_min_sigma_px)),
-                }
-            } else {
-                psf
+            let region = RegionInputs {
+                gray,
+                bl_coarse_f: &bl_coarse_f,
+                water: &water,
+                psf,
+                c,
+                gain,
+                clip,
+                denoise_sigma,
             };
-            // In a denoised region the NSR is the white-noise one of the
-            // region before smoothing (measured after it, the noise looks
-            // small and the filter would sharpen it back).
-            let nsr = if denoise_sigma > 0.0 {
-                let (mut mean, mut std) = (core::Scalar::default(), core::Scalar::default());
-                core::mean_std_dev(&diff, &mut mean, &mut std, &core::no_array())?;
-                let k =
-                    self.params.nsr_gain * water.noise_sigma.powi(2) / (std[0] * std[0]).max(1e-6);
-                Some(k.clamp(self.params.nsr_min, self.params.nsr_max))
-            } else {
-                None
-            };
-            let view = finish_region(diff, gain, denoise_sigma)?;
-            // Denoised regions are deconvolved too, with the NSR of the
-            // region before smoothing (`deconv_when_denoised`); measured on the
-            // smoothed region the NSR is small and the filter sharpens the
-            // noise back (calibrated water, 12.20 /m: detection 0.20).
-            let deblur = (c >= self.params.deconv_min_c_per_m
-                && (denoise_sigma == 0.0 || self.params.deconv_when_denoised))
-                .then_some(&region_psf);
-            // A region smoothed by σ ≥ 2 px has nothing left above the half
-            // level's Nyquist frequency (a Gaussian of σ 2 passes 0.7 % at
-            // 1/4 cycle/px): deconvolve it there, on 4x smaller DFTs.
-            let level = if denoise_sigma >= 2.0 {
-                self.params
-                    .deconv_level
-                    .max(self.params.denoised_deconv_level)
-            } else {
-                self.params.deconv_level
-            };
-            let (first, last) = self.restore_region(&view, clip, deblur, nsr, level)?;
+            let (first, last) = self.restore_one_region(&region, r, &mut measured_sigma)?;
             feather_into(&mut image, &last, r, frame)?;
             if let Some(st) = first_stage.as_mut() {
                 feather_into(st, &first, r, frame)?;
             }
         }
         if let Some(st) = first_stage {
-            let name = match self.params.order {
-                StageOrder::Paper => "de-attenuated (CLAHE)",
-                StageOrder::Physical => "deblurred (Wiener)",
-            };
-            stages.push((name.to_string(), st));
-            let name = match self.params.order {
-                StageOrder::Paper => "deblurred (Wiener)",
-                StageOrder::Physical => "de-attenuated (CLAHE)",
-            };
-            stages.push((name.to_string(), snapshot(&image)?));
+            let [first, second] = self.local_stage_names();
+            stages.push((first.to_string(), st));
+            stages.push((second.to_string(), snapshot(&image)?));
         }
 
         // 5. Pyramid level for the detector.
         let pyramid_level = self.choose_level(&image, &rois, &psf)?;
-        let level_image = if pyramid_level > 0 {
-            let mut cur = image.try_clone()?;
-            for _ in 0..pyramid_level {
-                let mut down = Mat::default();
-                imgproc::pyr_down_def(&cur, &mut down)?;
-                cur = down;
-            }
-            Some(cur)
-        } else {
-            None
-        };
+        let level_image = level_image(&image, pyramid_level)?;
         if keep {
             if let Some(l) = &level_image {
                 let mut up = Mat::default();
@@ -479,6 +507,46 @@ impl Hoirm {
         };
         Ok((restored, frame_params))
     }
+}
+
+/// `image` reduced `level` times by the Gaussian pyramid; `None` at level 0.
+fn level_image(image: &Mat, level: u32) -> Result<Option<Mat>, RestoreError> {
+    if level == 0 {
+        return Ok(None);
+    }
+    let mut cur = image.try_clone()?;
+    for _ in 0..level {
+        let mut down = Mat::default();
+        imgproc::pyr_down_def(&cur, &mut down)?;
+        cur = down;
+    }
+    Ok(Some(cur))
+}
+
+/// The frame itself as its restoration (clear water), with the input as
+/// its one stage when `keep`.
+fn passed_through(
+    gray: &Mat,
+    keep: bool,
+    frame: &HoirmFrameParams,
+) -> Result<Restored, RestoreError> {
+    let stages = if keep {
+        vec![(
+            "input (clear water: passed through)".to_string(),
+            snapshot(gray)?,
+        )]
+    } else {
+        Vec::new()
+    };
+    Ok(Restored {
+        image: gray.try_clone()?,
+        pyramid_level: 0,
+        level_image: None,
+        estimated_c_per_m: frame.c_per_m,
+        backscatter: frame.water.backscatter,
+        rois: Vec::new(),
+        stages: keep.then_some(stages),
+    })
 }
 
 impl Restorer for Hoirm {

@@ -31,20 +31,10 @@ const BACKGROUND_SIGMA_PX: f64 = 3.0;
 /// Coarse components smaller than this many coarse pixels are noise specks.
 const MIN_COMPONENT_AREA: i32 = 8;
 
-/// Regions of interest at full resolution (`full` is the frame size,
-/// `factor` the coarse level's down-sampling, `noise_full` the frame's noise σ).
-/// Empty when nothing stands out; the whole frame when the regions would
-/// cover more than `roi_max_fraction` of it.
-pub fn find_rois(
-    coarse: &Mat,
-    factor: i32,
-    full: Size,
-    noise_full: f64,
-    margin_px: i32,
-    params: &RestoreParams,
-) -> Result<Vec<Rect>, RestoreError> {
-    let kernel =
-        imgproc::get_structuring_element(imgproc::MORPH_RECT, Size::new(3, 3), Point::new(-1, -1))?;
+/// The morphological gradient of the coarse level's detail (lightly
+/// smoothed, less its local mean), with a frame of [`BORDER_PX`] coarse
+/// pixels cleared.
+fn detail_gradient(coarse: &Mat, kernel: &Mat) -> Result<Mat, RestoreError> {
     // In f32 and lightly smoothed: the 8-bit coarse level's rounding turns a
     // smooth veil into 1-level steps, as strong as a turbid marker's edges.
     let mut coarse_f = Mat::default();
@@ -83,7 +73,7 @@ pub fn find_rois(
         &smooth,
         &mut grad,
         imgproc::MORPH_GRADIENT,
-        &kernel,
+        kernel,
         Point::new(-1, -1),
         1,
         BORDER_CONSTANT,
@@ -101,6 +91,24 @@ pub fn find_rois(
         imgproc::LINE_8,
         0,
     )?;
+    Ok(grad)
+}
+
+/// Regions of interest at full resolution (`full` is the frame size,
+/// `factor` the coarse level's down-sampling, `noise_full` the frame's noise σ).
+/// Empty when nothing stands out; the whole frame when the regions would
+/// cover more than `roi_max_fraction` of it.
+pub fn find_rois(
+    coarse: &Mat,
+    factor: i32,
+    full: Size,
+    noise_full: f64,
+    margin_px: i32,
+    params: &RestoreParams,
+) -> Result<Vec<Rect>, RestoreError> {
+    let kernel =
+        imgproc::get_structuring_element(imgproc::MORPH_RECT, Size::new(3, 3), Point::new(-1, -1))?;
+    let grad = detail_gradient(coarse, &kernel)?;
     let mut max_grad = 0.0;
     opencv::core::min_max_loc(
         &grad,

@@ -1,0 +1,123 @@
+//! Step 2 of the consistency checks: votes of consistent triangles of pairs.
+
+use super::{compose_variance_bound, mahalanobis2, trace6, PairCandidates};
+use crate::solver::{compose, difference};
+use proto::geometry::PoseWithCovariance;
+use proto::VehicleId;
+use std::collections::{BTreeMap, BTreeSet};
+
+/// Step 2: votes from consistent triangles (see the module docs). `pairs` must
+/// have `a < b` and be unique per pair.
+pub fn vote_triangles(pairs: &mut [PairCandidates], gate_chi2: f64) {
+    let index: BTreeMap<(VehicleId, VehicleId), usize> = pairs
+        .iter()
+        .enumerate()
+        .map(|(i, p)| ((p.a, p.b), i))
+        .collect();
+    let mut neighbours: BTreeMap<VehicleId, BTreeSet<VehicleId>> = BTreeMap::new();
+    for p in pairs.iter() {
+        neighbours.entry(p.a).or_default().insert(p.b);
+        neighbours.entry(p.b).or_default().insert(p.a);
+    }
+    let mut votes: Vec<Vec<usize>> = pairs.iter().map(|p| vec![0; p.clusters.len()]).collect();
+    for (&(a, b), &ab) in &index {
+        let (Some(na), Some(nb)) = (neighbours.get(&a), neighbours.get(&b)) else {
+            continue;
+        };
+        for &k in na.intersection(nb).filter(|&&k| k > b) {
+            let (bk, ak) = (index[&(b, k)], index[&(a, k)]);
+            let mut hit_ab = vec![false; pairs[ab].clusters.len()];
+            let mut hit_bk = vec![false; pairs[bk].clusters.len()];
+            let mut hit_ak = vec![false; pairs[ak].clusters.len()];
+            for (i, c_ab) in pairs[ab].clusters.iter().enumerate() {
+                for (j, c_bk) in pairs[bk].clusters.iter().enumerate() {
+                    let pose = c_ab.a_from_b * c_bk.a_from_b;
+                    let bound =
+                        compose_variance_bound(&c_ab.covariance, &c_bk.a_from_b, &c_bk.covariance);
+                    let mut composed: Option<PoseWithCovariance> = None;
+                    for (l, c_ak) in pairs[ak].clusters.iter().enumerate() {
+                        let r = difference(&pose, &c_ak.a_from_b);
+                        if r.norm_squared() > gate_chi2 * (bound + trace6(&c_ak.covariance)) {
+                            continue;
+                        }
+                        let composed = composed.get_or_insert_with(|| {
+                            compose(
+                                &PoseWithCovariance::new(c_ab.a_from_b, c_ab.covariance),
+                                &PoseWithCovariance::new(c_bk.a_from_b, c_bk.covariance),
+                            )
+                        });
+                        let d2 = mahalanobis2(
+                            &composed.pose,
+                            &composed.covariance,
+                            &c_ak.a_from_b,
+                            &c_ak.covariance,
+                        );
+                        if d2 <= gate_chi2 {
+                            hit_ab[i] = true;
+                            hit_bk[j] = true;
+                            hit_ak[l] = true;
+                        }
+                    }
+                }
+            }
+            for (p, hits) in [(ab, hit_ab), (bk, hit_bk), (ak, hit_ak)] {
+                for (c, h) in hits.into_iter().enumerate() {
+                    votes[p][c] += usize::from(h);
+                }
+            }
+        }
+    }
+    for (p, v) in pairs.iter_mut().zip(votes) {
+        for (c, n) in p.clusters.iter_mut().zip(v) {
+            c.votes = n;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::consistency::{cluster_pair, select};
+    use crate::consistency::{Candidate, ConsistencyParams};
+    use proto::geometry::{pose_from_xyz_rpy, Cov6, Pose};
+
+    fn cand(obs: usize, hyp: u8, p: Pose) -> Candidate {
+        Candidate::new(obs, hyp, p, Cov6::identity() * 1e-4).unwrap()
+    }
+
+    #[test]
+    fn triangle_votes_pick_the_consistent_flip() {
+        let truth =
+            |v: u32| pose_from_xyz_rpy([v as f64, 0.5 * v as f64, 0.0], [0.0, 0.0, 0.1 * v as f64]);
+        let rel = |a: u32, b: u32| truth(a).inverse() * truth(b);
+        let twin = pose_from_xyz_rpy([0.0, 0.0, 0.0], [0.6, 0.0, 0.0]);
+        let mut pairs = vec![
+            PairCandidates {
+                a: 1,
+                b: 2,
+                candidates: vec![cand(0, 0, rel(1, 2))],
+                clusters: vec![],
+            },
+            PairCandidates {
+                a: 2,
+                b: 3,
+                candidates: vec![cand(1, 0, rel(2, 3))],
+                clusters: vec![],
+            },
+            // Flipped primary, true alternative.
+            PairCandidates {
+                a: 1,
+                b: 3,
+                candidates: vec![cand(2, 0, twin * rel(1, 3)), cand(2, 1, rel(1, 3))],
+                clusters: vec![],
+            },
+        ];
+        for p in &mut pairs {
+            p.clusters = cluster_pair(&p.candidates, &ConsistencyParams::default());
+        }
+        vote_triangles(&mut pairs, 27.86);
+        let sel = select(&pairs, 1, 27.86);
+        let chosen = &pairs[2].clusters[sel.choice[2].unwrap()];
+        assert_eq!(pairs[2].candidates[chosen.members[0]].hypothesis, 1);
+    }
+}

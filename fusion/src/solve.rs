@@ -1,0 +1,118 @@
+//! [`Fusion::solve`] as its steps, each a module with its own input and
+//! output types:
+//!
+//! ```text
+//! window ─▶ frames ─▶ groups ─▶ motion ─▶ hypotheses ─▶ init ─▶ gate (LM ⇄ chi-square) ─▶ map
+//!          (age       (tracks    (velocity  (PCM clusters,  (graph,   (solver.rs, re-solve     (verdicts,
+//!          inflation)  cut by     of each    triangle votes, spanning  without the rejects)     vehicle states)
+//!                      time)      group)     spanning tree)  tree init)
+//! ```
+
+mod frames;
+mod gate;
+mod groups;
+mod hypotheses;
+mod init;
+mod map;
+pub(crate) mod motion;
+#[cfg(test)]
+pub(crate) mod testing;
+
+use crate::window::{ObservationKey, Stored};
+use crate::{seconds_to_ns, solver, Fusion, SolveStats};
+use proto::{FleetMap, VehicleId};
+use std::collections::BTreeSet;
+use std::time::Instant;
+
+/// Wall time since `t`, µs (0 when not measured).
+fn elapsed_us(t: Option<Instant>) -> u64 {
+    t.map_or(0, |t| t.elapsed().as_micros() as u64)
+}
+
+impl Fusion {
+    /// Fuse the window into a map at `now_ns` (the steps: see the crate docs).
+    pub fn solve(&mut self, now_ns: u64) -> FleetMap {
+        let started = self.params.record_solve_time.then(Instant::now);
+        let window_ns = seconds_to_ns(self.params.window_s);
+        self.stats.expired += self.window.evict(now_ns, window_ns) as u64;
+        let reference = self.fleet.reference_vehicle;
+        let consistency = &self.params.consistency;
+        let entries: Vec<(&ObservationKey, &Stored)> = self.window.entries.iter().collect();
+
+        let mut frames = frames::measured(&entries, now_ns, &self.params.age_inflation);
+        let groups = groups::group_tracks(&frames, consistency.gate_chi2, consistency.fuse_tracks);
+        let superseded = groups.superseded_frames(frames.len());
+        let moving_groups = motion::compensate(&mut frames, &groups, &self.params.motion);
+        let pairs = hypotheses::pair_candidates(&frames, &groups, consistency);
+        let prior = hypotheses::attitude_prior(&self.last_estimate, &pairs, now_ns, window_ns);
+        let hyps = hypotheses::choose(
+            pairs,
+            &frames,
+            &groups,
+            reference,
+            consistency.gate_chi2,
+            &prior,
+        );
+        let consistency_us = elapsed_us(started);
+
+        let lm_started = self.params.record_solve_time.then(Instant::now);
+        let gate_params = gate::GateParams {
+            chi2_gate: self.params.chi2_gate,
+            max_rounds: self.params.max_gate_rounds,
+            solver: solver::SolverParams {
+                robust: self.params.robust,
+                max_iterations: self.params.max_iterations,
+                ..solver::SolverParams::default()
+            },
+        };
+        let gated = gate::solve_and_gate(&frames, &groups, &hyps, reference, &gate_params);
+        let lm_us = elapsed_us(lm_started);
+
+        let verdicts = map::verdicts(&entries, &frames, &hyps.accepted, &gated, &superseded);
+        let in_window: BTreeSet<VehicleId> = entries
+            .iter()
+            .flat_map(|(_, s)| [s.obs.observer, s.target])
+            .collect();
+        let solve_stats = SolveStats {
+            window_observations: entries.len(),
+            moving_groups,
+            accepted: verdicts.accepted,
+            rejected: verdicts.rejected,
+            pairs: hyps.pairs.len(),
+            clusters: hyps.pairs.iter().map(|p| p.clusters.len()).sum(),
+            localized: gated.solution.len().max(1),
+            lm_iterations: gated.lm_iterations,
+            gate_rounds: gated.rounds,
+            solver_failed: gated.solver_failed,
+            consistency_us,
+            lm_us,
+        };
+        let edges = map::merge_pending(verdicts.edges, std::mem::take(&mut self.pending));
+        let mut ids: Vec<VehicleId> = self.fleet.vehicles.iter().map(|v| v.id).collect();
+        ids.sort_unstable();
+        let evidence = map::Evidence {
+            reference,
+            alive: &self.alive,
+            last_seen: &self.last_seen,
+            in_window: &in_window,
+            inflation: &self.params.age_inflation,
+            now_ns,
+        };
+        let vehicles =
+            map::vehicle_estimates(&ids, &evidence, &gated.solution, &mut self.last_estimate);
+
+        self.seq += 1;
+        self.stats.solves += 1;
+        self.stats.last_solve = solve_stats;
+        FleetMap {
+            fleet: self.fleet.name.clone(),
+            producer: self.producer.clone(),
+            seq: self.seq,
+            stamp_ns: now_ns,
+            reference,
+            vehicles,
+            edges,
+            solve_time_us: elapsed_us(started),
+        }
+    }
+}

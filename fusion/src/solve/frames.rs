@@ -1,0 +1,123 @@
+//! Step 1 of the solve: every admitted observation's hypotheses as measured
+//! (`observer_from_target`, not yet inverted into a pair's `a_from_b`), with
+//! its covariance grown by its age ([`AgeInflation`]). Admission itself (the
+//! window, clock skew, validity) happened on arrival, in `window.rs`.
+
+use crate::consistency::Candidate;
+use crate::solver;
+use crate::window::{ObservationKey, Stored};
+use crate::AgeInflation;
+use proto::geometry::{Cov6, Pose};
+use proto::VehicleId;
+use std::collections::BTreeMap;
+
+/// One camera's view of one marker ID: what the frames of a track share
+/// (observer, camera, code set, marker).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub(crate) struct TrackKey {
+    pub observer: VehicleId,
+    pub camera: u8,
+    pub codes: &'static str,
+    pub marker: u32,
+}
+
+/// One observation's hypotheses as measured, `observer_from_target` (in the
+/// [`Candidate`]'s `a_from_b`), with age-inflated covariances (`None`: absent
+/// or with a covariance that cannot be inverted). Candidates are numbered by
+/// the observation's index in the window.
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) struct Frame {
+    pub observer: VehicleId,
+    pub target: VehicleId,
+    pub stamp_ns: u64,
+    pub track: TrackKey,
+    pub hyps: [Option<Candidate>; 2],
+}
+
+impl Frame {
+    /// The vehicle pair, lower ID first.
+    pub fn pair(&self) -> (VehicleId, VehicleId) {
+        (
+            self.observer.min(self.target),
+            self.observer.max(self.target),
+        )
+    }
+
+    /// Squared Mahalanobis residual of hypothesis `h` against the solution
+    /// (NaN when either vehicle is not localized or the hypothesis is absent).
+    pub fn chi2(&self, h: usize, solution: &BTreeMap<VehicleId, (Pose, Cov6)>) -> f64 {
+        match (
+            self.hyps[h].as_ref(),
+            solution.get(&self.observer),
+            solution.get(&self.target),
+        ) {
+            (Some(c), Some(xo), Some(xt)) => {
+                solver::edge_chi2(&xo.0, &xt.0, &c.a_from_b, &c.information)
+            }
+            _ => f64::NAN,
+        }
+    }
+}
+
+/// The window's observations (in window order) as [`Frame`]s at `now_ns`:
+/// each hypothesis' covariance grown by the observation's age (a capture
+/// stamp after `now_ns`, within the allowed clock skew, counts as age 0).
+pub(crate) fn measured(
+    entries: &[(&ObservationKey, &Stored)],
+    now_ns: u64,
+    inflation: &AgeInflation,
+) -> Vec<Frame> {
+    entries
+        .iter()
+        .enumerate()
+        .map(|(i, (key, s))| {
+            let o = &s.obs;
+            let age_s = now_ns.saturating_sub(o.stamp_ns) as f64 * 1e-9;
+            let inflate = |c: &Cov6| inflation.inflate(c, age_s);
+            Frame {
+                observer: o.observer,
+                target: s.target,
+                stamp_ns: o.stamp_ns,
+                track: TrackKey {
+                    observer: key.observer,
+                    camera: key.camera,
+                    codes: key.codes,
+                    marker: key.marker,
+                },
+                hyps: [
+                    Candidate::new(i, 0, o.observer_from_target, inflate(&o.covariance)),
+                    o.alternative.as_ref().and_then(|alt| {
+                        Candidate::new(i, 1, alt.observer_from_target, inflate(&alt.covariance))
+                    }),
+                ],
+            }
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::solve::testing::{observation, stored};
+    use proto::geometry::pose_from_xyz_rpy;
+
+    #[test]
+    fn covariance_grows_with_age_and_a_future_stamp_is_age_zero() {
+        let pose = pose_from_xyz_rpy([2.0, 0.0, 0.0], [0.0, 0.0, 0.0]);
+        let now = 10_000_000_000;
+        let old = stored(observation(1, 0, 20, now - 1_000_000_000, pose), 2);
+        let early = stored(observation(1, 0, 20, now + 100_000_000, pose), 2);
+        let (k_old, k_early) = (ObservationKey::of(&old.obs), ObservationKey::of(&early.obs));
+        let inflation = AgeInflation::default();
+        let frames = measured(&[(&k_old, &old), (&k_early, &early)], now, &inflation);
+        let base = old.obs.covariance;
+        let c0 = frames[0].hyps[0].unwrap().covariance;
+        assert!((c0[(0, 0)] - base[(0, 0)] - inflation.translation_m2_per_s).abs() < 1e-15);
+        assert!((c0[(4, 4)] - base[(4, 4)] - inflation.rotation_rad2_per_s).abs() < 1e-15);
+        assert_eq!(frames[1].hyps[0].unwrap().covariance, base);
+        // Candidates are numbered by window index; no alternative, no second hypothesis.
+        assert_eq!(frames[1].hyps[0].unwrap().observation, 1);
+        assert!(frames[0].hyps[1].is_none());
+        assert_eq!(frames[0].pair(), (1, 2));
+    }
+}

@@ -1,0 +1,156 @@
+//! Step 4 of the solve: the pose graph to optimize, from the consistency
+//! checks' choice. One fused constraint per chosen pair inside the
+//! reference's spanning tree (its accepted groups, each without the frames
+//! the chi-square gate has rejected so far), the vehicles connected to the
+//! reference by them, and their initial poses from the spanning tree.
+
+use super::frames::Frame;
+use super::groups::TrackGroups;
+use super::hypotheses::Hypotheses;
+use crate::consistency;
+use crate::solver::Constraint;
+use proto::geometry::{Cov6, Pose};
+use proto::VehicleId;
+use std::collections::{BTreeMap, BTreeSet};
+
+/// The input of the Levenberg–Marquardt solve.
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) struct Graph {
+    /// Constraints among vehicles connected to the reference.
+    pub constraints: Vec<Constraint>,
+    /// `reference_from_vehicle` from the spanning tree, per connected vehicle.
+    pub initial: BTreeMap<VehicleId, Pose>,
+}
+
+/// The graph of [`Hypotheses`] without the hypotheses in `gated`
+/// ((frame, hypothesis) pairs).
+pub(crate) fn graph(
+    hyps: &Hypotheses,
+    groups: &TrackGroups,
+    frames: &[Frame],
+    gated: &BTreeSet<(usize, u8)>,
+    reference: VehicleId,
+) -> Graph {
+    let tree = &hyps.selection.trees[0];
+    let mut constraints = Vec::new();
+    for (pi, p) in hyps.pairs.iter().enumerate() {
+        if hyps.selection.choice[pi].is_none() {
+            continue;
+        }
+        if !tree.contains(p.a) || !tree.contains(p.b) {
+            continue;
+        }
+        // The accepted groups of the pair, each without its gated frames.
+        let items: Vec<(Pose, Cov6)> = hyps.accepted_groups[pi]
+            .iter()
+            .filter_map(|&(g, h, m)| {
+                let out: Vec<usize> = groups.members[g]
+                    .iter()
+                    .copied()
+                    .filter(|&i| gated.contains(&(i, h)))
+                    .collect();
+                if out.is_empty() {
+                    Some(p.candidates[m])
+                } else {
+                    groups.candidate(frames, g, h, &out)
+                }
+            })
+            .map(|cand| (cand.a_from_b, cand.information))
+            .collect();
+        if let Some((pose, cov)) = consistency::fuse(&items) {
+            constraints.push(Constraint {
+                a: p.a,
+                b: p.b,
+                a_from_b: pose,
+                covariance: cov,
+            });
+        }
+    }
+    let connected = connected_to(reference, &constraints);
+    constraints.retain(|c| connected.contains(&c.a));
+    let initial = tree
+        .poses()
+        .into_iter()
+        .filter(|(v, _)| connected.contains(v))
+        .collect();
+    Graph {
+        constraints,
+        initial,
+    }
+}
+
+/// Vehicles reachable from `root` through `constraints`.
+fn connected_to(root: VehicleId, constraints: &[Constraint]) -> BTreeSet<VehicleId> {
+    let mut seen = BTreeSet::from([root]);
+    loop {
+        let before = seen.len();
+        for c in constraints {
+            if seen.contains(&c.a) || seen.contains(&c.b) {
+                seen.insert(c.a);
+                seen.insert(c.b);
+            }
+        }
+        if seen.len() == before {
+            return seen;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::consistency::{ConsistencyParams, Prior};
+    use crate::solve::groups::group_tracks;
+    use crate::solve::hypotheses::{choose, pair_candidates};
+    use crate::solve::testing::frame;
+    use proto::geometry::pose_from_xyz_rpy;
+
+    const GATE: f64 = 27.86;
+
+    fn hypotheses(frames: &[Frame]) -> (TrackGroups, Hypotheses) {
+        let groups = group_tracks(frames, GATE, true);
+        let pairs = pair_candidates(frames, &groups, &ConsistencyParams::default());
+        let h = choose(pairs, frames, &groups, 1, GATE, &Prior::new());
+        (groups, h)
+    }
+
+    #[test]
+    fn a_gated_frame_leaves_its_pairs_constraint() {
+        let near = pose_from_xyz_rpy([2.0, 0.0, 0.0], [0.0, 0.0, 0.0]);
+        let off = pose_from_xyz_rpy([2.0, 0.02, 0.0], [0.0, 0.0, 0.0]);
+        let frames = vec![
+            frame(0, 1, 2, 0, near, None),
+            frame(1, 1, 2, 100_000_000, off, None),
+        ];
+        let (groups, h) = hypotheses(&frames);
+        let all = graph(&h, &groups, &frames, &BTreeSet::new(), 1);
+        assert_eq!(all.constraints.len(), 1);
+        let y = all.constraints[0].a_from_b.translation.vector.y;
+        assert!((y - 0.01).abs() < 1e-9, "the mean of both: {y}");
+        let without = graph(&h, &groups, &frames, &BTreeSet::from([(1, 0)]), 1);
+        let e = proto::geometry::difference(&without.constraints[0].a_from_b, &near);
+        assert!(e.norm() < 1e-12, "the first frame alone: {e}");
+        assert_eq!(
+            without.initial.keys().copied().collect::<Vec<_>>(),
+            vec![1, 2]
+        );
+    }
+
+    #[test]
+    fn vehicles_not_connected_to_the_reference_are_left_out() {
+        let p = pose_from_xyz_rpy([2.0, 0.0, 0.0], [0.0, 0.0, 0.0]);
+        // 1–2 seen; 3–4 seen only by each other.
+        let frames = vec![frame(0, 1, 2, 0, p, None), frame(1, 3, 4, 0, p, None)];
+        let (groups, h) = hypotheses(&frames);
+        assert_eq!(
+            h.selection.trees.len(),
+            2,
+            "a second tree grows from vehicle 3"
+        );
+        let g = graph(&h, &groups, &frames, &BTreeSet::new(), 1);
+        assert_eq!(g.constraints.len(), 1);
+        assert_eq!((g.constraints[0].a, g.constraints[0].b), (1, 2));
+        assert_eq!(g.initial.keys().copied().collect::<Vec<_>>(), vec![1, 2]);
+        assert!(proto::geometry::difference(&g.initial[&2], &p).norm() < 1e-12);
+    }
+}

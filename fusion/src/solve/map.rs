@@ -1,0 +1,310 @@
+//! Step 7 of the solve: the [`FleetMap`]'s contents. One edge report per
+//! hypothesis of every observation in the window (plus the rejections on
+//! arrival), and every fleet vehicle's estimate and state.
+//!
+//! [`FleetMap`]: proto::FleetMap
+
+use super::frames::Frame;
+use super::gate::{GatedSolution, Poses};
+use crate::window::{ObservationKey, Stored};
+use crate::{AgeInflation, ReasonCounts, NO_INFORMATION_VARIANCE};
+use proto::geometry::{Cov6, Pose};
+use proto::{EdgeReport, RejectReason, VehicleEstimate, VehicleId, VehicleState};
+use std::collections::{BTreeMap, BTreeSet};
+
+/// The verdicts of the window's observations.
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) struct Verdicts {
+    /// One per hypothesis (primary, then the alternative), window order.
+    pub edges: Vec<EdgeReport>,
+    /// Rejected hypotheses per reason.
+    pub rejected: ReasonCounts,
+    /// Accepted hypotheses.
+    pub accepted: usize,
+}
+
+/// Each hypothesis' verdict: gated → `ChiSquare`; accepted → `None`; of a
+/// superseded group → `Superseded`; the other hypothesis of an accepted one →
+/// `FlippedHypothesis`; otherwise `Inconsistent`. `chi2` against the solution.
+pub(crate) fn verdicts(
+    entries: &[(&ObservationKey, &Stored)],
+    frames: &[Frame],
+    accepted: &BTreeMap<(usize, u8), usize>,
+    gate: &GatedSolution,
+    superseded: &[bool],
+) -> Verdicts {
+    let mut out = Verdicts {
+        edges: Vec::new(),
+        rejected: ReasonCounts::default(),
+        accepted: 0,
+    };
+    let gated = &gate.gated;
+    for (i, (_, s)) in entries.iter().enumerate() {
+        let o = &s.obs;
+        let n_hyp = if o.alternative.is_some() { 2 } else { 1 };
+        let any_accepted =
+            (0..n_hyp).any(|h| accepted.contains_key(&(i, h)) && !gated.contains(&(i, h)));
+        for h in 0..n_hyp {
+            let verdict = if gated.contains(&(i, h)) {
+                Some(RejectReason::ChiSquare)
+            } else if accepted.contains_key(&(i, h)) {
+                None
+            } else if superseded[i] {
+                Some(RejectReason::Superseded)
+            } else if any_accepted {
+                Some(RejectReason::FlippedHypothesis)
+            } else {
+                Some(RejectReason::Inconsistent)
+            };
+            let chi2 = gate.chi2[i][usize::from(h)]
+                .unwrap_or_else(|| frames[i].chi2(usize::from(h), &gate.solution));
+            match &verdict {
+                Some(r) => out.rejected.add(r),
+                None => out.accepted += 1,
+            }
+            out.edges.push(EdgeReport {
+                observer: o.observer,
+                camera: o.camera,
+                target_marker: o.target_marker,
+                target_vehicle: Some(s.target),
+                stamp_ns: o.stamp_ns,
+                frame_seq: o.frame_seq,
+                rejected: verdict,
+                chi2,
+            });
+        }
+    }
+    out
+}
+
+/// `edges` with the rejections on arrival (`pending`) merged in, in the
+/// map's order: capture time, observer, camera, frame, marker (a stable
+/// sort: the reports of one detection keep their order, the pending ones
+/// after the window's, ordered by reason and chi2 among themselves).
+pub(crate) fn merge_pending(
+    mut edges: Vec<EdgeReport>,
+    mut pending: Vec<EdgeReport>,
+) -> Vec<EdgeReport> {
+    pending.sort_by_key(report_order);
+    edges.extend(pending);
+    edges.sort_by_key(|e| {
+        (
+            e.stamp_ns,
+            e.observer,
+            e.camera,
+            e.frame_seq,
+            e.target_marker,
+        )
+    });
+    edges
+}
+
+/// Total order of reports of the same detection (rejection reason, then chi2 bits).
+fn report_order(r: &EdgeReport) -> (u64, VehicleId, u8, u64, u32, Option<usize>, u64) {
+    (
+        r.stamp_ns,
+        r.observer,
+        r.camera,
+        r.frame_seq,
+        r.target_marker,
+        r.rejected.as_ref().map(ReasonCounts::index),
+        r.chi2.to_bits(),
+    )
+}
+
+/// What the map knows about the vehicles beyond this solve.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Evidence<'a> {
+    pub reference: VehicleId,
+    /// Liveliness per vehicle (absent: alive).
+    pub alive: &'a BTreeMap<VehicleId, bool>,
+    /// Newest capture stamp involving each vehicle.
+    pub last_seen: &'a BTreeMap<VehicleId, u64>,
+    /// Vehicles observing or observed in the window.
+    pub in_window: &'a BTreeSet<VehicleId>,
+    pub inflation: &'a AgeInflation,
+    pub now_ns: u64,
+}
+
+/// The estimate of every vehicle in `ids` (ascending): `Live` when localized
+/// and alive; `Stale` when localized but its token is gone, or not localized
+/// and seen before but not in the window; `Unobserved` when never seen, or in
+/// the window without an accepted path to the reference. A vehicle not
+/// localized reports its last fused pose (`last_estimate`: pose, covariance,
+/// last seen) with the covariance grown by the time since, or the identity
+/// with [`NO_INFORMATION_VARIANCE`]. Every localized vehicle's estimate
+/// replaces its entry in `last_estimate`.
+pub(crate) fn vehicle_estimates(
+    ids: &[VehicleId],
+    evidence: &Evidence<'_>,
+    solution: &Poses,
+    last_estimate: &mut BTreeMap<VehicleId, (Pose, Cov6, u64)>,
+) -> Vec<VehicleEstimate> {
+    let mut vehicles = Vec::with_capacity(ids.len());
+    for &v in ids {
+        let alive = evidence.alive.get(&v).copied().unwrap_or(true);
+        let live_or_stale = if alive {
+            VehicleState::Live
+        } else {
+            VehicleState::Stale
+        };
+        let last_seen_ns = evidence.last_seen.get(&v).copied().unwrap_or(0);
+        let (state, pose, covariance) = if v == evidence.reference {
+            (live_or_stale, Pose::identity(), Cov6::zeros())
+        } else if let Some((pose, cov)) = solution.get(&v) {
+            last_estimate.insert(v, (*pose, *cov, last_seen_ns));
+            (live_or_stale, *pose, *cov)
+        } else {
+            let state = if !alive {
+                VehicleState::Stale
+            } else if evidence.in_window.contains(&v) {
+                VehicleState::Unobserved
+            } else if last_seen_ns > 0 {
+                VehicleState::Stale
+            } else {
+                VehicleState::Unobserved
+            };
+            match last_estimate.get(&v) {
+                // The last fused pose, its covariance grown with the time since.
+                Some((pose, cov, seen)) => {
+                    let age_s = evidence.now_ns.saturating_sub(*seen) as f64 * 1e-9;
+                    (state, *pose, evidence.inflation.inflate(cov, age_s))
+                }
+                None => (
+                    state,
+                    Pose::identity(),
+                    Cov6::identity() * NO_INFORMATION_VARIANCE,
+                ),
+            }
+        };
+        vehicles.push(VehicleEstimate {
+            vehicle: v,
+            state,
+            reference_from_vehicle: pose,
+            covariance,
+            last_seen_ns,
+        });
+    }
+    vehicles
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::solve::testing::{frame, observation, stored, with_alternative};
+    use proto::geometry::pose_from_xyz_rpy;
+
+    #[test]
+    fn every_hypothesis_gets_the_verdict_of_the_step_that_decided_it() {
+        let p = pose_from_xyz_rpy([2.0, 0.0, 0.0], [0.0, 0.0, 0.0]);
+        let twin = pose_from_xyz_rpy([2.0, 0.0, 0.0], [0.0, 0.8, 0.0]);
+        // 0: accepted primary, its twin; 1: gated; 2: superseded; 3: inconsistent.
+        let obs = [
+            stored(with_alternative(observation(1, 0, 2, 0, p), twin), 2),
+            stored(observation(1, 0, 2, 1, p), 2),
+            stored(observation(1, 0, 2, 2, p), 2),
+            stored(observation(1, 1, 2, 3, p), 2),
+        ];
+        let keys: Vec<ObservationKey> = obs.iter().map(|s| ObservationKey::of(&s.obs)).collect();
+        let entries: Vec<(&ObservationKey, &Stored)> = keys.iter().zip(&obs).collect();
+        let frames: Vec<Frame> = (0..4).map(|i| frame(i, 1, 2, i as u64, p, None)).collect();
+        let accepted = BTreeMap::from([((0, 0), 0), ((1, 0), 0)]);
+        let gate = GatedSolution {
+            solution: Poses::from([
+                (1, (Pose::identity(), Cov6::zeros())),
+                (2, (p, Cov6::zeros())),
+            ]),
+            gated: BTreeSet::from([(1, 0)]),
+            chi2: vec![[Some(0.5), None], [Some(40.0), None], [None; 2], [None; 2]],
+            rounds: 1,
+            lm_iterations: 3,
+            solver_failed: false,
+        };
+        let v = verdicts(
+            &entries,
+            &frames,
+            &accepted,
+            &gate,
+            &[false, false, true, false],
+        );
+        let reasons: Vec<Option<RejectReason>> =
+            v.edges.iter().map(|e| e.rejected.clone()).collect();
+        use RejectReason::*;
+        assert_eq!(
+            reasons,
+            vec![
+                None,
+                Some(FlippedHypothesis),
+                Some(ChiSquare),
+                Some(Superseded),
+                Some(Inconsistent)
+            ]
+        );
+        assert_eq!(v.accepted, 1);
+        assert_eq!(v.rejected.total(), 4);
+        // The gate's chi2 where it judged, recomputed against the solution elsewhere.
+        assert_eq!((v.edges[0].chi2, v.edges[2].chi2), (0.5, 40.0));
+        assert!(v.edges[3].chi2.abs() < 1e-12);
+        assert!(
+            v.edges[1].chi2.is_nan(),
+            "the frame has no second hypothesis"
+        );
+    }
+
+    #[test]
+    fn vehicle_states_follow_localization_liveliness_and_the_window() {
+        let p = pose_from_xyz_rpy([2.0, 0.0, 0.0], [0.0, 0.0, 0.0]);
+        let now = 10_000_000_000;
+        // 1 reference; 2 localized; 3 in the window but unreachable; 4 never
+        // seen; 5 seen 3 s ago with a last pose; 6 localized, token gone.
+        let alive = BTreeMap::from([(6, false)]);
+        let last_seen = BTreeMap::from([
+            (1, now),
+            (2, now),
+            (3, now),
+            (5, now - 3_000_000_000),
+            (6, now),
+        ]);
+        let in_window = BTreeSet::from([1, 2, 3, 6]);
+        let inflation = AgeInflation::default();
+        let evidence = Evidence {
+            reference: 1,
+            alive: &alive,
+            last_seen: &last_seen,
+            in_window: &in_window,
+            inflation: &inflation,
+            now_ns: now,
+        };
+        let cov = Cov6::identity() * 1e-4;
+        let solution = Poses::from([
+            (1, (Pose::identity(), Cov6::zeros())),
+            (2, (p, cov)),
+            (6, (p, cov)),
+        ]);
+        let mut last = BTreeMap::from([(5, (p, cov, now - 3_000_000_000))]);
+        let est = vehicle_estimates(&[1, 2, 3, 4, 5, 6], &evidence, &solution, &mut last);
+        let states: Vec<VehicleState> = est.iter().map(|e| e.state).collect();
+        use VehicleState::*;
+        assert_eq!(
+            states,
+            vec![Live, Live, Unobserved, Unobserved, Stale, Stale]
+        );
+        assert_eq!(est[0].covariance, Cov6::zeros());
+        assert_eq!(est[1].reference_from_vehicle, p);
+        for e in [&est[2], &est[3]] {
+            assert_eq!(e.reference_from_vehicle, Pose::identity());
+            assert_eq!(e.covariance, Cov6::identity() * NO_INFORMATION_VARIANCE);
+        }
+        // The last pose, its covariance grown over the 3 s since.
+        assert_eq!(est[4].reference_from_vehicle, p);
+        let grown = inflation.inflate(&cov, 3.0);
+        assert!(
+            (est[4].covariance - grown).abs().max() < 1e-15,
+            "{}",
+            est[4].covariance
+        );
+        // Localized vehicles are remembered.
+        assert_eq!(last[&2], (p, cov, now));
+        assert!(!last.contains_key(&3));
+    }
+}

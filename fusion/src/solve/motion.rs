@@ -1,0 +1,205 @@
+//! Step 2, continued: a group whose frames show a significant relative
+//! velocity is brought to its newest frame's time ([`MotionModel`]), so that
+//! a manoeuvring vehicle is followed rather than outvoted by where it has been.
+
+use super::frames::Frame;
+use super::groups::TrackGroups;
+use crate::consistency::Candidate;
+use nalgebra::{SMatrix, SVector};
+use proto::geometry::Cov6;
+use serde::{Deserialize, Serialize};
+
+/// How a track's frames taken at different times are brought to one instant.
+///
+/// Within a group of a track (frames of one camera seeing one marker that
+/// agree with its newest frame), the relative pose is fitted as
+/// `ξ(t) = x + v·(t − t_newest)` in the tangent space at the newest frame
+/// (weighted least squares with the frames' information and a zero-mean
+/// prior on `v`). When `v` is significant (its squared Mahalanobis norm above
+/// `significance_chi2`), every frame is moved to `t_newest` along `v` and its
+/// covariance grows by `Δt²·Σ_v`; otherwise the frames are fused as they are
+/// (a static pair loses no precision to a velocity it does not have).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct MotionModel {
+    /// Switch (default true; false: frames are fused as if nothing moved).
+    pub enabled: bool,
+    /// Prior standard deviation of the relative linear velocity, m/s (default 0.5).
+    pub velocity_prior_m_s: f64,
+    /// Prior standard deviation of the relative angular velocity, rad/s (default 0.3).
+    pub angular_velocity_prior_rad_s: f64,
+    /// Gate on `vᵀ Σ_v⁻¹ v` above which the velocity is used (default 16.81 = χ²₆ at 99%).
+    pub significance_chi2: f64,
+}
+
+impl Default for MotionModel {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            velocity_prior_m_s: 0.5,
+            angular_velocity_prior_rad_s: 0.3,
+            significance_chi2: 16.81,
+        }
+    }
+}
+
+/// [`MotionModel`] on every group that is not superseded (nothing when the
+/// model is off); returns how many groups were moved.
+pub(crate) fn compensate(frames: &mut [Frame], groups: &TrackGroups, model: &MotionModel) -> usize {
+    if !model.enabled {
+        return 0;
+    }
+    groups
+        .members
+        .iter()
+        .zip(&groups.superseded)
+        .filter(|(_, &gone)| !gone)
+        .map(|(members, _)| usize::from(compensate_group(frames, members, model)))
+        .sum()
+}
+
+/// [`MotionModel`] on one group (`members` ascending in time): fits the
+/// relative velocity of each hypothesis and, when it is significant, moves
+/// every member to the newest member's time. Returns whether any hypothesis
+/// was moved.
+fn compensate_group(frames: &mut [Frame], members: &[usize], model: &MotionModel) -> bool {
+    let Some(&newest) = members.last() else {
+        return false;
+    };
+    if members.len() < 2 {
+        return false;
+    }
+    let t_n = frames[newest].stamp_ns;
+    let mut moved = false;
+    for h in 0..2 {
+        let Some(anchor) = frames[newest].hyps[h].map(|c| c.a_from_b) else {
+            continue;
+        };
+        let Some((v, cov_v)) = fit_velocity(frames, members, h, t_n, &anchor, model) else {
+            continue;
+        };
+        let significance = cov_v.cholesky().map_or(0.0, |c| v.dot(&c.solve(&v)));
+        if significance.is_nan() || significance <= model.significance_chi2 {
+            continue;
+        }
+        for &i in members {
+            let Some(c) = frames[i].hyps[h] else {
+                continue;
+            };
+            let d = -((t_n - frames[i].stamp_ns) as f64) * 1e-9;
+            let r = proto::geometry::difference(&c.a_from_b, &anchor);
+            let pose = proto::geometry::perturb(&anchor, &(r - v * d));
+            let grown = c.covariance + cov_v * (d * d);
+            frames[i].hyps[h] = Candidate::new(c.observation, c.hypothesis, pose, grown);
+        }
+        moved = true;
+    }
+    moved
+}
+
+/// The weighted least-squares fit of `[x; v]` (12 unknowns) to hypothesis
+/// `h` of `members`, in the tangent space at `anchor` (the newest frame, at
+/// `t_n`): the velocity and its covariance. `None` with fewer than two frames
+/// having the hypothesis, or normal equations that cannot be factored.
+fn fit_velocity(
+    frames: &[Frame],
+    members: &[usize],
+    h: usize,
+    t_n: u64,
+    anchor: &proto::geometry::Pose,
+    model: &MotionModel,
+) -> Option<(SVector<f64, 6>, Cov6)> {
+    let mut a = SMatrix::<f64, 12, 12>::zeros();
+    let mut b = SVector::<f64, 12>::zeros();
+    let mut used = 0;
+    for &i in members {
+        let Some(c) = &frames[i].hyps[h] else {
+            continue;
+        };
+        let d = -((t_n - frames[i].stamp_ns) as f64) * 1e-9;
+        let r = proto::geometry::difference(&c.a_from_b, anchor);
+        let w = c.information;
+        let wr = w * r;
+        let mut block = |r0: usize, c0: usize, m: Cov6| {
+            let mut view = a.fixed_view_mut::<6, 6>(r0, c0);
+            view += m;
+        };
+        block(0, 0, w);
+        block(0, 6, w * d);
+        block(6, 0, w * d);
+        block(6, 6, w * (d * d));
+        let mut top = b.fixed_rows_mut::<6>(0);
+        top += wr;
+        let mut bottom = b.fixed_rows_mut::<6>(6);
+        bottom += wr * d;
+        used += 1;
+    }
+    if used < 2 {
+        return None;
+    }
+    for k in 0..3 {
+        a[(6 + k, 6 + k)] += model.velocity_prior_m_s.powi(-2);
+        a[(9 + k, 9 + k)] += model.angular_velocity_prior_rad_s.powi(-2);
+    }
+    let ch = a.cholesky()?;
+    let sol = ch.solve(&b);
+    let cov = ch.inverse();
+    let v: SVector<f64, 6> = sol.fixed_rows::<6>(6).into_owned();
+    let cov_v: Cov6 = cov.fixed_view::<6, 6>(6, 6).into_owned();
+    Some((v, cov_v))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::solve::groups::group_tracks;
+    use crate::solve::testing::frame;
+    use proto::geometry::pose_from_xyz_rpy;
+
+    const FRAME_NS: u64 = 100_000_000;
+
+    /// A track of `n` frames (σ = 1 cm) whose target drifts along y at `speed_m_s`.
+    fn drifting(n: usize, speed_m_s: f64) -> Vec<Frame> {
+        (0..n)
+            .map(|k| {
+                let y = speed_m_s * k as f64 * 0.1;
+                let p = pose_from_xyz_rpy([2.0, y, 0.0], [0.0, 0.0, 0.0]);
+                frame(k, 1, 2, k as u64 * FRAME_NS, p, None)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_drifting_track_is_moved_to_its_newest_frame() {
+        // 2 cm/s over 20 frames: 3.8 cm of drift, 3.8σ (one group: within
+        // the gate of the newest frame), a velocity ~5σ from zero (significant).
+        let mut frames = drifting(20, 0.02);
+        let groups = group_tracks(&frames, 27.86, true);
+        assert_eq!(groups.members.len(), 1);
+        assert_eq!(compensate(&mut frames, &groups, &MotionModel::default()), 1);
+        let newest_y = 0.02 * 1.9;
+        for f in &frames {
+            let y = f.hyps[0].unwrap().a_from_b.translation.vector.y;
+            // Within 0.1 mm (0.3% of the drift): the velocity prior pulls the fit slightly towards rest.
+            assert!((y - newest_y).abs() < 1e-4, "{y} vs {newest_y}");
+        }
+        // The oldest frame's covariance grew with its distance in time.
+        let (old, new) = (frames[0].hyps[0].unwrap(), frames[19].hyps[0].unwrap());
+        assert!(old.covariance[(1, 1)] > new.covariance[(1, 1)]);
+    }
+
+    #[test]
+    fn a_still_track_and_a_disabled_model_move_nothing() {
+        let mut frames = drifting(20, 0.0);
+        let before = frames.clone();
+        let groups = group_tracks(&frames, 27.86, true);
+        assert_eq!(compensate(&mut frames, &groups, &MotionModel::default()), 0);
+        assert_eq!(frames, before);
+        let mut moving = drifting(20, 0.02);
+        let off = MotionModel {
+            enabled: false,
+            ..MotionModel::default()
+        };
+        let groups = group_tracks(&moving, 27.86, true);
+        assert_eq!(compensate(&mut moving, &groups, &off), 0);
+    }
+}

@@ -1,0 +1,320 @@
+//! Stage 2 of the detector, **read codes** (paper §5, the 10x10 grid):
+//! every quad is tried as the *code square* (the black border around the
+//! data bits). A homography maps its module grid into the image, each
+//! module's mean grey level is compared with a threshold halfway between the
+//! black border's and the white ring's (or quiet zone's) means, and the data
+//! bits are matched to the table under all four rotations, correcting at most
+//! the code set's correction budget. A code that does not match is dropped,
+//! never guessed.
+//!
+//! Input: [`Quad`]s and the detection image. Output: [`CodeSquare`]s — the
+//! ID, the bits corrected, and the code square's corners refined by the
+//! corner stage ([`super::corners`]), one per marker — and the quads that
+//! read no code.
+
+use super::corners::FittedSquare;
+use super::geom::{apply, dist, homography_4, mean_side, Px};
+use super::quads::Quad;
+use super::DetectParams;
+use crate::mat::GrayView;
+use shoal_proto::marker::{rotate_code, CodeSet, MarkerId};
+
+/// A decoded code square: which marker, how it read, where it is.
+#[derive(Debug, Clone)]
+pub struct CodeSquare {
+    pub id: MarkerId,
+    /// Bits corrected when decoding.
+    pub hamming: u32,
+    /// The refined code square, corners in upright order (TL, TR, BR, BL).
+    pub square: FittedSquare,
+    /// Mean module size (px) of the refined square.
+    pub module_px: f64,
+}
+
+/// A code read from one quad, before refinement.
+#[derive(Debug, Clone, Copy)]
+struct Code {
+    id: MarkerId,
+    hamming: u32,
+    /// The quad's corners in upright order (TL, TR, BR, BL).
+    upright: [Px; 4],
+}
+
+/// The code table of one [`CodeSet`] under all four rotations, and the
+/// correction budget.
+#[derive(Debug, Clone)]
+pub struct CodeReader {
+    codes: CodeSet,
+    /// `(rotated bits, id, k)` for every code and quarter turn `k`.
+    rotated: Vec<(u64, MarkerId, usize)>,
+    correction_bits: u32,
+    min_contrast: f64,
+    max_border_error_rate: f64,
+}
+
+impl CodeReader {
+    pub fn new(codes: CodeSet, params: &DetectParams) -> CodeReader {
+        let n = codes.data_side();
+        let rotated: Vec<(u64, MarkerId, usize)> = (0..codes.len() as MarkerId)
+            .filter_map(|id| codes.code(id).ok().map(|c| (id, c)))
+            .flat_map(|(id, c)| (0..4).map(move |k| (rotate_code(c, n, k), id, k)))
+            .collect();
+        let correction_bits = params.max_correction_bits.unwrap_or_else(|| {
+            codes
+                .table()
+                .max_correction_bits
+                .max(unique_decoding_radius(&rotated))
+        });
+        CodeReader {
+            codes,
+            rotated,
+            correction_bits,
+            min_contrast: params.min_contrast,
+            max_border_error_rate: params.max_border_error_rate,
+        }
+    }
+
+    /// The code set has a code table (the generated tables may be absent).
+    pub fn has_codes(&self) -> bool {
+        !self.rotated.is_empty()
+    }
+
+    /// Bits corrected at most.
+    pub fn correction_bits(&self) -> u32 {
+        self.correction_bits
+    }
+
+    /// Read every quad of `quads` as a code square, refine the ones that
+    /// read with `refine(corners, module px)` and merge them into `found`;
+    /// returns the quads that read no code. The same marker is usually found
+    /// several times (threshold windows, both sides of a thin dark band), and
+    /// refinement pulls all of them onto the same edges: one entry per
+    /// marker, the fewest corrected bits kept.
+    pub fn decode(
+        &self,
+        view: &GrayView<'_>,
+        quads: &[Quad],
+        mut refine: impl FnMut(&[Px; 4], f64) -> FittedSquare,
+        found: &mut Vec<CodeSquare>,
+    ) -> Vec<Quad> {
+        let m = (self.codes.data_side() + 2) as f64;
+        let mut undecoded = Vec::new();
+        for q in quads {
+            let Some(code) = self.read(view, q) else {
+                undecoded.push(*q);
+                continue;
+            };
+            let (id, hamming) = (code.id, code.hamming);
+            let rough_module = mean_side(&code.upright) / m;
+            // Already found from another contour of the same square: skip the refinement.
+            if found.iter().any(|f| {
+                f.id == id
+                    && f.hamming <= hamming
+                    && dist(f.square.corners[0], code.upright[0]) < 0.5 * rough_module
+            }) {
+                continue;
+            }
+            let square = refine(&code.upright, rough_module);
+            let module_px = mean_side(&square.corners) / m;
+            let corner = square.corners[0];
+            let decoded = CodeSquare {
+                id,
+                hamming,
+                square,
+                module_px,
+            };
+            match found
+                .iter_mut()
+                .find(|f| f.id == id && dist(f.square.corners[0], corner) < 0.5 * module_px)
+            {
+                Some(f) if hamming < f.hamming => *f = decoded,
+                Some(_) => {}
+                None => found.push(decoded),
+            }
+        }
+        undecoded
+    }
+
+    /// The code inside `quad` taken as the code square, or `None` when it
+    /// reads no code of the table within the correction budget.
+    fn read(&self, view: &GrayView<'_>, quad: &Quad) -> Option<Code> {
+        let n = self.codes.data_side();
+        let m = n + 2; // code square: black border + data
+        let ms = m as f64;
+        let cells = [[0.0, 0.0], [ms, 0.0], [ms, ms], [0.0, ms]];
+        let hmat = homography_4(&cells, &quad.pts)?;
+        let module_px = mean_side(&quad.pts) / ms;
+        // Sub-samples per module side: more for big modules, at most 4x4.
+        let s = (module_px / 3.0).clamp(1.0, 4.0) as usize;
+        let cell_mean = |r: i32, c: i32| -> f64 {
+            let mut acc = 0.0;
+            for i in 0..s {
+                for j in 0..s {
+                    // The central 60% of the module, away from blurred module edges.
+                    let fy = 0.2 + 0.6 * (i as f64 + 0.5) / s as f64;
+                    let fx = 0.2 + 0.6 * (j as f64 + 0.5) / s as f64;
+                    let p = apply(&hmat, [f64::from(c) + fx, f64::from(r) + fy]);
+                    acc += view.sample(p[0], p[1]);
+                }
+            }
+            acc / (s * s) as f64
+        };
+        let mi = m as i32;
+        // Border ring (black) and the ring one module outside (white: the
+        // enhanced marker's white ring, or the quiet zone of the others).
+        let border: Vec<f64> = ring_cells(mi, 0)
+            .into_iter()
+            .map(|(r, c)| cell_mean(r, c))
+            .collect();
+        let outside: Vec<f64> = ring_cells(mi, 1)
+            .into_iter()
+            .filter_map(|(r, c)| {
+                let p = apply(&hmat, [f64::from(c) + 0.5, f64::from(r) + 0.5]);
+                view.contains(p[0], p[1], 1.0).then(|| cell_mean(r, c))
+            })
+            .collect();
+        let thr = self.threshold(&border, &outside)?;
+        let mut bits = 0u64;
+        for r in 0..n {
+            for c in 0..n {
+                bits = (bits << 1) | u64::from(cell_mean(r as i32 + 1, c as i32 + 1) > thr);
+            }
+        }
+        let (hamming, id, k) = self.best_match(bits)?;
+        // Seen rotated clockwise k times: the upright corner i sits at quad corner (i + k) mod 4.
+        let upright = std::array::from_fn(|i| quad.pts[(i + k) % 4]);
+        Some(Code {
+            id,
+            hamming,
+            upright,
+        })
+    }
+
+    /// The grey level between black and white, from the border modules'
+    /// and the surrounding ring's means; `None` when the contrast is too low
+    /// or too many of them read the wrong colour.
+    fn threshold(&self, border: &[f64], outside: &[f64]) -> Option<f64> {
+        if outside.len() < border.len() / 2 {
+            return None;
+        }
+        let black = median(border);
+        let white = median(outside);
+        if white - black < self.min_contrast {
+            return None;
+        }
+        let thr = 0.5 * (black + white);
+        let bad_border = border.iter().filter(|&&v| v > thr).count();
+        let bad_outside = outside.iter().filter(|&&v| v < thr).count();
+        let rate = self.max_border_error_rate;
+        if bad_border as f64 > rate * border.len() as f64
+            || bad_outside as f64 > rate * outside.len() as f64
+        {
+            return None;
+        }
+        Some(thr)
+    }
+
+    /// The nearest code to `bits` under all rotations: `(bits corrected,
+    /// id, quarter turns)`; `None` beyond the budget or when two IDs tie.
+    fn best_match(&self, bits: u64) -> Option<(u32, MarkerId, usize)> {
+        let mut best: Option<(u32, MarkerId, usize)> = None;
+        let mut tie = false;
+        for &(code, id, k) in &self.rotated {
+            let d = (code ^ bits).count_ones();
+            match best {
+                Some((bd, bid, _)) if d == bd && bid != id => tie = true,
+                Some((bd, _, _)) if d >= bd => {}
+                _ => {
+                    best = Some((d, id, k));
+                    tie = false;
+                }
+            }
+        }
+        let (d, id, k) = best?;
+        if d > self.correction_bits || (tie && d > 0) {
+            return None;
+        }
+        Some((d, id, k))
+    }
+}
+
+/// The module cells (row, column) of the ring `k` modules outside the
+/// border of an `m`-module code square (`k = 0`: the border itself).
+fn ring_cells(m: i32, k: i32) -> Vec<(i32, i32)> {
+    let (lo, hi) = (-k, m - 1 + k);
+    let mut v = Vec::new();
+    for c in lo..=hi {
+        v.push((lo, c));
+        v.push((hi, c));
+    }
+    for r in lo + 1..hi {
+        v.push((r, lo));
+        v.push((r, hi));
+    }
+    v
+}
+
+/// Bits that can be corrected without ambiguity in the codes actually in use
+/// (`(d_min − 1) / 2` over all IDs and rotations). OpenCV's figure for
+/// `DICT_4X4_1000` is 0, but the 50 codes of the enhanced marker's set are
+/// farther apart, as OpenCV's own `DICT_4X4_50` (1 bit) says.
+fn unique_decoding_radius(rotated: &[(u64, MarkerId, usize)]) -> u32 {
+    let mut dmin = u32::MAX;
+    for (i, a) in rotated.iter().enumerate() {
+        for b in &rotated[i + 1..] {
+            if a.1 != b.1 {
+                dmin = dmin.min((a.0 ^ b.0).count_ones());
+            }
+        }
+    }
+    // A code equal to its own rotation is ambiguous in orientation: count that too.
+    for a in rotated {
+        for b in rotated {
+            if a.1 == b.1 && a.2 != b.2 && a.0 == b.0 {
+                return 0;
+            }
+        }
+    }
+    if dmin == u32::MAX {
+        0
+    } else {
+        dmin.saturating_sub(1) / 2
+    }
+}
+
+fn median(v: &[f64]) -> f64 {
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    if s.is_empty() {
+        return f64::NAN;
+    }
+    s[s.len() / 2]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn enhanced_set_corrects_one_bit_like_opencv_4x4_50() {
+        let reader = CodeReader::new(CodeSet::Shoal, &DetectParams::default());
+        assert_eq!(reader.correction_bits(), 1);
+        let reader = CodeReader::new(CodeSet::AprilTag36h11, &DetectParams::default());
+        assert!(reader.correction_bits() >= 2);
+    }
+
+    #[test]
+    fn the_border_ring_and_the_ring_outside_it_go_round_the_square() {
+        // A 6-module code square: 20 border cells, 28 one module outside.
+        let border = ring_cells(6, 0);
+        let outside = ring_cells(6, 1);
+        assert_eq!(border.len(), 20);
+        assert_eq!(outside.len(), 28);
+        assert!(border
+            .iter()
+            .all(|&(r, c)| r == 0 || r == 5 || c == 0 || c == 5));
+        assert!(outside
+            .iter()
+            .all(|&(r, c)| r == -1 || r == 6 || c == -1 || c == 6));
+    }
+}

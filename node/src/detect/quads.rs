@@ -1,0 +1,240 @@
+//! Stage 1 of the detector, **find quads** (paper §5, "shape, size, and
+//! edge proximity"): adaptive mean threshold(s) of the detection image (dark
+//! = foreground), all contours, polygon approximation; kept when they are
+//! convex quadrilaterals of sufficient size, clear of the image border.
+//!
+//! Input: the detection image and [`DetectParams`]. Output: [`Quad`]s in
+//! full-resolution pixels. Frames wider than
+//! [`DetectParams::full_res_max_width`] are searched at half size; small
+//! quads that read no code there are searched again at full resolution in a
+//! window around them ([`full_res_quads`], the per-marker pyramid level).
+
+use super::geom::{mean_side, min_side, signed_area2, Px};
+use super::{DetectError, DetectParams};
+use crate::mat::GrayView;
+use opencv::core::{Mat, Point, Size, ToInputArray, Vector};
+use opencv::imgproc;
+use opencv::prelude::*;
+
+/// A convex quad, clockwise on screen, in full-resolution pixels.
+#[derive(Debug, Clone, Copy)]
+pub struct Quad {
+    pub pts: [Px; 4],
+}
+
+impl Quad {
+    /// True when `other` has the same corners as this quad (in any cyclic
+    /// order) within a tenth of its mean side: the same square found twice.
+    fn same_as(&self, other: &[Px; 4]) -> bool {
+        same_quad(&self.pts, other, 0.1 * mean_side(other))
+    }
+}
+
+/// Candidate quads from the contours of one pyramid level of `gray` (half
+/// size when wider than [`DetectParams::full_res_max_width`]).
+pub fn find_quads(
+    params: &DetectParams,
+    gray: &(impl MatTraitConst + ToInputArray),
+) -> Result<Vec<Quad>, DetectError> {
+    let (level, scale) = if gray.cols() > params.full_res_max_width {
+        let mut half = Mat::default();
+        imgproc::resize(
+            gray,
+            &mut half,
+            Size::new(gray.cols() / 2, gray.rows() / 2),
+            0.0,
+            0.0,
+            imgproc::INTER_AREA,
+        )?;
+        (half, 2.0)
+    } else {
+        (gray.try_clone()?, 1.0)
+    };
+    let mut quads: Vec<Quad> = Vec::new();
+    quads_of_level(params, &level, scale, [0.0, 0.0], &mut quads)?;
+    Ok(quads)
+}
+
+/// The quads of one image (`level`, `scale` full-resolution pixels per
+/// pixel, its top-left at `offset` in full-resolution pixels), appended to
+/// `quads` unless already there.
+fn quads_of_level(
+    params: &DetectParams,
+    level: &Mat,
+    scale: f64,
+    offset: Px,
+    quads: &mut Vec<Quad>,
+) -> Result<(), DetectError> {
+    let mut bin = Mat::default();
+    let mut approx: Vector<Point> = Vector::new();
+    for &win in &params.threshold_windows {
+        let win = (win.max(3)) | 1;
+        imgproc::adaptive_threshold(
+            level,
+            &mut bin,
+            255.0,
+            imgproc::ADAPTIVE_THRESH_MEAN_C,
+            imgproc::THRESH_BINARY_INV,
+            win,
+            params.threshold_offset,
+        )?;
+        let mut contours: Vector<Vector<Point>> = Vector::new();
+        imgproc::find_contours(
+            &bin,
+            &mut contours,
+            imgproc::RETR_LIST,
+            imgproc::CHAIN_APPROX_SIMPLE,
+            Point::new(0, 0),
+        )?;
+        for c in contours.iter() {
+            let Some(q) = contour_quad(params, level, scale, &c, &mut approx)? else {
+                continue;
+            };
+            // Level pixel centres to full-resolution pixel centres.
+            let q = q.map(|c| {
+                [
+                    (c[0] + 0.5) * scale - 0.5 + offset[0],
+                    (c[1] + 0.5) * scale - 0.5 + offset[1],
+                ]
+            });
+            // The same square found by another threshold window: keep one.
+            if quads.iter().any(|o| o.same_as(&q)) {
+                continue;
+            }
+            quads.push(Quad { pts: q });
+        }
+    }
+    Ok(())
+}
+
+/// The contour `c` of `level` as a convex quad, clockwise, in level
+/// pixels; `None` when it is not one, is too small or too large, or comes
+/// closer than [`DetectParams::border_margin_px`] to the border. `approx`
+/// is scratch space for the polygon.
+fn contour_quad(
+    params: &DetectParams,
+    level: &Mat,
+    scale: f64,
+    c: &Vector<Point>,
+    approx: &mut Vector<Point>,
+) -> Result<Option<[Px; 4]>, DetectError> {
+    let (w, h) = (f64::from(level.cols()), f64::from(level.rows()));
+    let min_side_lvl = params.min_code_side_px / scale;
+    if c.len() < 4 {
+        return Ok(None);
+    }
+    let perim = imgproc::arc_length(c, true)?;
+    if perim < 4.0 * min_side_lvl || perim > 2.0 * (w + h) {
+        return Ok(None);
+    }
+    imgproc::approx_poly_dp(c, approx, params.approx_epsilon * perim, true)?;
+    if approx.len() != 4 || !imgproc::is_contour_convex(&*approx)? {
+        return Ok(None);
+    }
+    let mut q = [[0.0; 2]; 4];
+    for (i, pt) in approx.iter().enumerate() {
+        q[i] = [f64::from(pt.x), f64::from(pt.y)];
+    }
+    let margin = params.border_margin_px / scale;
+    if q.iter().any(|c| {
+        c[0] < margin || c[1] < margin || c[0] > w - 1.0 - margin || c[1] > h - 1.0 - margin
+    }) {
+        return Ok(None);
+    }
+    if min_side(&q) < min_side_lvl {
+        return Ok(None);
+    }
+    if signed_area2(&q) < 0.0 {
+        q.swap(1, 3);
+    }
+    Ok(Some(q))
+}
+
+/// The per-marker pyramid level: on a downsampled frame a small marker's
+/// code square (a module of 2 px or less) blurs into its frame and no
+/// contour separates them, while the frame's outline is still found. Every
+/// such small quad of `undecoded` (it read no code) is searched again at
+/// full resolution in a window around it (at most
+/// [`DetectParams::max_full_res_regions`], smallest first: the large ones
+/// were readable at the level). Returns the quads not already in `quads`.
+pub fn full_res_quads(
+    params: &DetectParams,
+    view: &GrayView<'_>,
+    undecoded: &[Quad],
+    quads: &[Quad],
+) -> Result<Vec<Quad>, DetectError> {
+    let max_side = params.full_res_region_max_side_px;
+    let mut small: Vec<(f64, &Quad)> = undecoded
+        .iter()
+        .map(|q| (mean_side(&q.pts), q))
+        .filter(|(s, _)| *s <= max_side)
+        .collect();
+    small.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let (cols, rows) = (view.width as i32, view.height as i32);
+    let mut done: Vec<opencv::core::Rect> = Vec::new();
+    let mut extra: Vec<Quad> = Vec::new();
+    for (side, q) in small.into_iter().take(params.max_full_res_regions) {
+        let pad = 0.5 * side + 4.0;
+        let x0 = q.pts.iter().map(|c| c[0]).fold(f64::INFINITY, f64::min) - pad;
+        let y0 = q.pts.iter().map(|c| c[1]).fold(f64::INFINITY, f64::min) - pad;
+        let x1 = q.pts.iter().map(|c| c[0]).fold(f64::NEG_INFINITY, f64::max) + pad;
+        let y1 = q.pts.iter().map(|c| c[1]).fold(f64::NEG_INFINITY, f64::max) + pad;
+        let (x0, y0) = ((x0.floor() as i32).max(0), (y0.floor() as i32).max(0));
+        let (x1, y1) = ((x1.ceil() as i32).min(cols), (y1.ceil() as i32).min(rows));
+        if x1 - x0 < 8 || y1 - y0 < 8 {
+            continue;
+        }
+        let rect = opencv::core::Rect::new(x0, y0, x1 - x0, y1 - y0);
+        // Nested quads (a frame's outer and inner outline) share one window.
+        if done.iter().any(|d| (*d & rect) == rect) {
+            continue;
+        }
+        done.push(rect);
+        let mut data = Vec::with_capacity((rect.width * rect.height) as usize);
+        for y in y0..y1 {
+            data.extend_from_slice(&view.row(y as usize)[x0 as usize..x1 as usize]);
+        }
+        let roi = crate::mat::gray_to_mat(&shoal_proto::image::GrayImage {
+            width: rect.width as u32,
+            height: rect.height as u32,
+            data,
+        })?;
+        let mut found: Vec<Quad> = Vec::new();
+        quads_of_level(
+            params,
+            &roi,
+            1.0,
+            [f64::from(x0), f64::from(y0)],
+            &mut found,
+        )?;
+        for f in found {
+            if !quads.iter().chain(extra.iter()).any(|o| o.same_as(&f.pts)) {
+                extra.push(f);
+            }
+        }
+    }
+    Ok(extra)
+}
+
+/// True when two quads have the same corners (in any cyclic order) within `tol`.
+pub fn same_quad(a: &[Px; 4], b: &[Px; 4], tol: f64) -> bool {
+    a.iter()
+        .all(|p| b.iter().any(|q| super::geom::dist(*p, *q) < tol))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn same_quad_ignores_the_starting_corner() {
+        let a = [[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]];
+        let b = [a[2], a[3], a[0], a[1]];
+        assert!(same_quad(&a, &b, 0.5));
+        assert!(!same_quad(
+            &a,
+            &[[0.0, 0.0], [9.0, 0.0], [10.0, 10.0], [0.0, 10.0]],
+            0.5
+        ));
+    }
+}

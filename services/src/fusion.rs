@@ -1,0 +1,215 @@
+//! The fusion service (`shoal fusion`): subscribes to every vehicle's
+//! observations and liveliness, solves at a fixed rate, publishes the fleet
+//! map and serves the newest one to late joiners (a Zenoh queryable).
+//! Also [`MapClient`], the subscription half of the controller API. The
+//! fusion itself is `shoal_fusion::Fusion`.
+
+use shoal_bus::{Bus, BusError, Publisher, Subscription, Worker};
+use shoal_fusion::{Fusion, FusionParams, FusionStats, LatestMap, MapView};
+use shoal_proto::clock::Clock;
+use shoal_proto::config::Fleet;
+use shoal_proto::queue::DropOldestQueue;
+use shoal_proto::{FleetMap, KeyKind, Observation, VehicleId};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+/// Central (ground station) or on one vehicle (decentralized).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Placement {
+    /// Hears every vehicle; publishes on `shoal/<fleet>/map`.
+    Central,
+    /// Runs on this vehicle from what it hears; publishes on `shoal/<fleet>/map/<vehicle>`.
+    OnVehicle(VehicleId),
+}
+
+#[derive(Debug, Clone)]
+pub struct FusionConfig {
+    pub fleet: Arc<Fleet>,
+    pub params: FusionParams,
+    pub placement: Placement,
+    /// Maps published per second.
+    pub rate_hz: f64,
+    /// Observations buffered between solves before the oldest are dropped.
+    pub queue_capacity: usize,
+}
+
+/// A running fusion service.
+pub struct FusionHandle {
+    worker: Worker,
+    latest: Arc<Mutex<Option<FleetMap>>>,
+    stats: Arc<Mutex<FusionStats>>,
+    dropped: Arc<AtomicU64>,
+    rejected: Arc<AtomicU64>,
+    maps: Arc<AtomicU64>,
+}
+
+impl std::fmt::Debug for FusionHandle {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("FusionHandle").finish()
+    }
+}
+
+impl FusionHandle {
+    /// The newest map this instance produced.
+    pub fn latest(&self) -> Option<FleetMap> {
+        self.latest.lock().ok().and_then(|g| g.clone())
+    }
+    pub fn stats(&self) -> FusionStats {
+        self.stats.lock().map(|g| g.clone()).unwrap_or_default()
+    }
+    /// Observations dropped because fusion fell behind (its queue overflowed).
+    pub fn observations_dropped(&self) -> u64 {
+        self.dropped.load(Ordering::Relaxed)
+    }
+    /// Observations refused before fusion saw them (undecodable, wrong
+    /// schema version, invalid content), as the subscription counted them.
+    pub fn observations_rejected(&self) -> u64 {
+        self.rejected.load(Ordering::Relaxed)
+    }
+    /// Maps published so far.
+    pub fn maps_published(&self) -> u64 {
+        self.maps.load(Ordering::Relaxed)
+    }
+    pub fn stop(self) {
+        self.worker.stop();
+    }
+}
+
+/// Start fusion on `bus`, taking `now` from `clock`.
+pub fn spawn(
+    bus: &Bus,
+    cfg: FusionConfig,
+    clock: Arc<dyn Clock>,
+) -> Result<FusionHandle, BusError> {
+    let keys = cfg.fleet.keys();
+    let (producer, map_key) = match cfg.placement {
+        Placement::Central => ("central".to_string(), keys.map()),
+        Placement::OnVehicle(v) => (v.to_string(), keys.map_of(&v.to_string())),
+    };
+    let observations: Subscription<Observation> =
+        bus.subscribe(&keys.all_observations(), cfg.queue_capacity)?;
+    let liveliness: DropOldestQueue<(String, bool)> = DropOldestQueue::new(1024);
+    let l = liveliness.clone();
+    let watch = bus.watch_liveliness(&keys.all_alive(), move |k, alive| {
+        l.push((k.to_string(), alive));
+    })?;
+    let publisher: Publisher<FleetMap> = bus.publisher(map_key.clone())?;
+    let latest: Arc<Mutex<Option<FleetMap>>> = Arc::default();
+    let latest_bytes: Arc<Mutex<Option<Vec<u8>>>> = Arc::default();
+    let lb = latest_bytes.clone();
+    let queryable = bus.serve_latest(map_key, move || lb.lock().ok().and_then(|g| g.clone()))?;
+    let stats: Arc<Mutex<FusionStats>> = Arc::default();
+    let (latest2, stats2) = (latest.clone(), stats.clone());
+    let (dropped, maps) = (Arc::new(AtomicU64::new(0)), Arc::new(AtomicU64::new(0)));
+    let (dropped2, maps2) = (dropped.clone(), maps.clone());
+    let rejected = Arc::new(AtomicU64::new(0));
+    let rejected2 = rejected.clone();
+    let mut fusion = Fusion::new(&cfg.fleet, cfg.params, &producer);
+    let period = Duration::from_secs_f64(1.0 / cfg.rate_hz.max(0.1));
+    let bus = bus.clone();
+    let worker = Worker::spawn(format!("fusion-{producer}"), move |stop2| {
+        let _keep = (watch, queryable, bus);
+        let mut next = Instant::now();
+        while !stop2.load(Ordering::Relaxed) {
+            let now = clock.now_ns();
+            for (key, alive) in liveliness.drain() {
+                if let Ok(KeyKind::Alive { vehicle }) = keys.parse(&key) {
+                    fusion.set_alive(vehicle, alive, now);
+                }
+            }
+            dropped2.store(observations.dropped(), Ordering::Relaxed);
+            rejected2.store(observations.stats().rejected(), Ordering::Relaxed);
+            for r in observations.drain() {
+                match keys.parse(&r.key) {
+                    Ok(KeyKind::Observations { vehicle }) => {
+                        if let Err(reason) = fusion.ingest(r.msg, vehicle, now) {
+                            tracing::debug!("observation on {} rejected: {reason:?}", r.key);
+                        }
+                    }
+                    _ => tracing::warn!("observation on unexpected key {}", r.key),
+                }
+            }
+            if Instant::now() >= next {
+                next += period;
+                let map = fusion.solve(now);
+                match shoal_proto::encode(&map) {
+                    Ok(bytes) => {
+                        match publisher.put_bytes(bytes.clone()) {
+                            Ok(()) => {
+                                maps2.fetch_add(1, Ordering::Relaxed);
+                            }
+                            Err(e) => tracing::warn!("publishing map: {e}"),
+                        }
+                        if let Ok(mut g) = latest_bytes.lock() {
+                            *g = Some(bytes);
+                        }
+                    }
+                    Err(e) => tracing::error!("encoding map: {e}"),
+                }
+                if let Ok(mut g) = latest2.lock() {
+                    *g = Some(map);
+                }
+                if let Ok(mut g) = stats2.lock() {
+                    *g = fusion.stats();
+                }
+                // Don't try to catch up after a stall: one map per period at most.
+                if next < Instant::now() {
+                    next = Instant::now() + period;
+                }
+            }
+            std::thread::sleep(Duration::from_millis(5).min(period));
+        }
+    })
+    .map_err(|source| BusError::Thread {
+        what: "fusion",
+        source,
+    })?;
+    Ok(FusionHandle {
+        worker,
+        latest,
+        stats,
+        dropped,
+        rejected,
+        maps,
+    })
+}
+
+/// The controller-side API: the newest fleet map, from the live topic or,
+/// for a late joiner, from fusion's queryable.
+pub struct MapClient {
+    sub: Subscription<FleetMap>,
+    latest: LatestMap,
+}
+
+impl std::fmt::Debug for MapClient {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("MapClient").finish()
+    }
+}
+
+impl MapClient {
+    /// Subscribe to the central map of `fleet` and ask for the current one.
+    pub fn connect(bus: &Bus, fleet: &Fleet) -> Result<MapClient, BusError> {
+        let keys = fleet.keys();
+        let sub = bus.subscribe(&keys.map(), 4)?;
+        let latest =
+            LatestMap::new(bus.query_latest::<FleetMap>(&keys.map(), Duration::from_millis(300))?);
+        Ok(MapClient { sub, latest })
+    }
+
+    /// The newest map received so far (non-blocking).
+    pub fn latest(&mut self) -> Option<&MapView> {
+        self.latest
+            .offer(self.sub.drain().into_iter().map(|r| r.msg));
+        self.latest.view()
+    }
+
+    /// Wait up to `timeout` for a map newer than the current one.
+    pub fn wait_newer(&mut self, timeout: Duration) -> Option<&MapView> {
+        if let Some(r) = self.sub.recv_timeout(timeout) {
+            self.latest.replace(r.msg);
+        }
+        self.latest()
+    }
+}

@@ -1,0 +1,682 @@
+//! Fault injection for shoal's fault tests and trials: a TCP relay that
+//! degrades the link between two Zenoh routers, and a message-level fault
+//! model for the transport boundary.
+//!
+//! What each fault **means** (TCP is a reliable byte stream, so packet-level
+//! faults do not exist above it; this relay models what they become):
+//!
+//! | fault | [`Relay`] (byte stream between two routers) |
+//! |---|---|
+//! | delay | every chunk read is written `latency` later |
+//! | jitter | plus a uniform `0..jitter` per chunk; order is kept (a chunk never overtakes the previous one), so jitter shows as head-of-line blocking, as on a real TCP link |
+//! | packet loss | a lost segment on TCP is retransmitted: with probability `loss_stall_probability` per chunk, the chunk (and everything behind it) is held `loss_stall` longer (Linux's minimum RTO is 200 ms) |
+//! | link loss / partition | [`LinkSwitch::cut`]: every open connection is shut down (both peers see the session break) and new ones are closed on accept until [`LinkSwitch::heal`]; Zenoh's routers then reconnect on their own |
+//! | flapping link | [`Flap`]: the link is cut for `down` every `period` |
+//!
+//! Message-level loss, duplication and reordering (a vehicle's radio
+//! retransmitting, two paths to the ground station, a store-and-forward
+//! hop) cannot be made by bending a TCP stream without corrupting it; they
+//! are applied to the messages themselves before publishing, by
+//! [`MessageFaults`], which counts each fault so a test can check that the
+//! receiver neither double-counts nor misses them.
+//!
+//! Everything is seeded and uses std threads only (no async runtime).
+
+use std::io::{Read, Write};
+use std::net::{Shutdown, SocketAddr, TcpListener, TcpStream};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::mpsc;
+use std::sync::{Arc, Mutex};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+/// Errors of the relay.
+#[derive(Debug, thiserror::Error)]
+pub enum RelayError {
+    #[error("relay cannot listen on {addr}: {source}")]
+    Bind {
+        addr: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("relay cannot start a thread: {0}")]
+    Thread(#[source] std::io::Error),
+    #[error("fault plan: {0}")]
+    Plan(String),
+}
+
+/// The link is cut for `down` at the start of every `period`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Flap {
+    pub period: Duration,
+    pub down: Duration,
+}
+
+/// Faults of the byte stream (see the module docs for what each means).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FaultPlan {
+    /// Added to every chunk, each direction.
+    pub latency: Duration,
+    /// Plus uniform `0..jitter` per chunk (order kept).
+    pub jitter: Duration,
+    /// Probability per chunk of a retransmission stall (a lost TCP segment).
+    pub loss_stall_probability: f64,
+    /// Length of such a stall.
+    pub loss_stall: Duration,
+    /// Periodic link cuts.
+    pub flap: Option<Flap>,
+    /// Seed of the relay's random stream.
+    pub seed: u64,
+}
+
+impl Default for FaultPlan {
+    /// A clean link.
+    fn default() -> Self {
+        Self {
+            latency: Duration::ZERO,
+            jitter: Duration::ZERO,
+            loss_stall_probability: 0.0,
+            loss_stall: Duration::from_millis(200),
+            flap: None,
+            seed: 1,
+        }
+    }
+}
+
+impl FaultPlan {
+    /// Say what is wrong with the plan, if anything.
+    pub fn validate(&self) -> Result<(), RelayError> {
+        if !(0.0..=1.0).contains(&self.loss_stall_probability) {
+            return Err(RelayError::Plan(format!(
+                "loss_stall_probability {} is not in [0, 1]",
+                self.loss_stall_probability
+            )));
+        }
+        if let Some(f) = self.flap {
+            if f.period.is_zero() || f.down >= f.period {
+                return Err(RelayError::Plan(format!(
+                    "flap: down {:?} must be shorter than a non-zero period {:?}",
+                    f.down, f.period
+                )));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// SplitMix64: a tiny seeded generator (the relay needs no more).
+#[derive(Debug, Clone)]
+pub struct SplitMix64(u64);
+
+impl SplitMix64 {
+    pub fn new(seed: u64) -> Self {
+        Self(seed)
+    }
+    pub fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+    /// Uniform in `[0, 1)`.
+    pub fn unit(&mut self) -> f64 {
+        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
+    }
+    /// Uniform in `0..n` (`n > 0`).
+    pub fn below(&mut self, n: usize) -> usize {
+        (self.unit() * n as f64) as usize % n.max(1)
+    }
+}
+
+/// Counters of a relay.
+#[derive(Debug, Default)]
+pub struct RelayStats {
+    pub connections: AtomicU64,
+    /// Connections closed on accept because the link was cut.
+    pub refused: AtomicU64,
+    /// Open connections shut down by a cut.
+    pub cut: AtomicU64,
+    pub bytes_forwarded: AtomicU64,
+    pub chunks_forwarded: AtomicU64,
+    pub stalls: AtomicU64,
+}
+
+/// The link's switch: cut (partition) and heal, from any thread.
+#[derive(Debug, Clone)]
+pub struct LinkSwitch {
+    inner: Arc<SwitchInner>,
+}
+
+#[derive(Debug)]
+struct SwitchInner {
+    up: AtomicBool,
+    open: Mutex<Vec<TcpStream>>,
+    stats: Arc<RelayStats>,
+}
+
+impl LinkSwitch {
+    fn new(stats: Arc<RelayStats>) -> Self {
+        Self {
+            inner: Arc::new(SwitchInner {
+                up: AtomicBool::new(true),
+                open: Mutex::new(Vec::new()),
+                stats,
+            }),
+        }
+    }
+    pub fn is_up(&self) -> bool {
+        self.inner.up.load(Ordering::SeqCst)
+    }
+    /// Partition: shut down every open connection and refuse new ones.
+    pub fn cut(&self) {
+        self.inner.up.store(false, Ordering::SeqCst);
+        if let Ok(mut open) = self.inner.open.lock() {
+            for s in open.drain(..) {
+                if s.shutdown(Shutdown::Both).is_ok() {
+                    self.inner.stats.cut.fetch_add(1, Ordering::Relaxed);
+                }
+            }
+        }
+    }
+    /// Heal: accept connections again.
+    pub fn heal(&self) {
+        self.inner.up.store(true, Ordering::SeqCst);
+    }
+    fn register(&self, streams: [&TcpStream; 2]) -> bool {
+        let Ok(mut open) = self.inner.open.lock() else {
+            return false;
+        };
+        // Checked under the lock so a concurrent cut cannot miss these.
+        if !self.is_up() {
+            return false;
+        }
+        for s in streams {
+            if let Ok(c) = s.try_clone() {
+                open.push(c);
+            }
+        }
+        true
+    }
+}
+
+/// A running fault-injecting TCP relay: accepts on `listen`, connects each
+/// accepted connection to `upstream`, and forwards both directions under a
+/// [`FaultPlan`]. Stops (closing everything) when dropped.
+#[derive(Debug)]
+pub struct Relay {
+    local: SocketAddr,
+    switch: LinkSwitch,
+    stats: Arc<RelayStats>,
+    stop: Arc<AtomicBool>,
+    threads: Vec<JoinHandle<()>>,
+}
+
+impl Relay {
+    /// Start relaying `listen` → `upstream`.
+    pub fn start(listen: &str, upstream: SocketAddr, plan: FaultPlan) -> Result<Relay, RelayError> {
+        plan.validate()?;
+        let listener = TcpListener::bind(listen).map_err(|source| RelayError::Bind {
+            addr: listen.to_string(),
+            source,
+        })?;
+        let local = listener.local_addr().map_err(|source| RelayError::Bind {
+            addr: listen.to_string(),
+            source,
+        })?;
+        listener
+            .set_nonblocking(true)
+            .map_err(|source| RelayError::Bind {
+                addr: listen.to_string(),
+                source,
+            })?;
+        let stats = Arc::new(RelayStats::default());
+        let switch = LinkSwitch::new(stats.clone());
+        let stop = Arc::new(AtomicBool::new(false));
+        let mut threads = Vec::new();
+        let (sw, st, stp) = (switch.clone(), stats.clone(), stop.clone());
+        threads.push(
+            std::thread::Builder::new()
+                .name("relay-accept".into())
+                .spawn(move || accept_loop(listener, upstream, plan, sw, st, stp))
+                .map_err(RelayError::Thread)?,
+        );
+        if let Some(flap) = plan.flap {
+            let (sw, stp) = (switch.clone(), stop.clone());
+            threads.push(
+                std::thread::Builder::new()
+                    .name("relay-flap".into())
+                    .spawn(move || flap_loop(flap, sw, stp))
+                    .map_err(RelayError::Thread)?,
+            );
+        }
+        Ok(Relay {
+            local,
+            switch,
+            stats,
+            stop,
+            threads,
+        })
+    }
+
+    /// Where the relay listens (the port, if `listen` asked for port 0).
+    pub fn local_addr(&self) -> SocketAddr {
+        self.local
+    }
+    /// Cut and heal the link.
+    pub fn switch(&self) -> &LinkSwitch {
+        &self.switch
+    }
+    pub fn stats(&self) -> &RelayStats {
+        &self.stats
+    }
+}
+
+impl Drop for Relay {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::SeqCst);
+        self.switch.cut();
+        for t in self.threads.drain(..) {
+            shoal_bus::join_reporting(t);
+        }
+    }
+}
+
+fn flap_loop(flap: Flap, switch: LinkSwitch, stop: Arc<AtomicBool>) {
+    let sleep_until = |until: Instant| {
+        while Instant::now() < until && !stop.load(Ordering::SeqCst) {
+            std::thread::sleep(Duration::from_millis(10));
+        }
+    };
+    let mut start = Instant::now() + flap.period - flap.down;
+    while !stop.load(Ordering::SeqCst) {
+        sleep_until(start);
+        if stop.load(Ordering::SeqCst) {
+            return;
+        }
+        tracing::debug!("relay: link down for {:?}", flap.down);
+        switch.cut();
+        sleep_until(start + flap.down);
+        switch.heal();
+        start += flap.period;
+    }
+}
+
+fn accept_loop(
+    listener: TcpListener,
+    upstream: SocketAddr,
+    plan: FaultPlan,
+    switch: LinkSwitch,
+    stats: Arc<RelayStats>,
+    stop: Arc<AtomicBool>,
+) {
+    let mut seed = SplitMix64::new(plan.seed);
+    while !stop.load(Ordering::SeqCst) {
+        let (down, peer) = match listener.accept() {
+            Ok(c) => c,
+            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
+                std::thread::sleep(Duration::from_millis(10));
+                continue;
+            }
+            Err(e) => {
+                tracing::warn!("relay accept: {e}");
+                std::thread::sleep(Duration::from_millis(50));
+                continue;
+            }
+        };
+        if !switch.is_up() {
+            stats.refused.fetch_add(1, Ordering::Relaxed);
+            let _ = down.shutdown(Shutdown::Both);
+            continue;
+        }
+        let _ = down.set_nonblocking(false);
+        let up = match TcpStream::connect_timeout(&upstream, Duration::from_secs(2)) {
+            Ok(s) => s,
+            Err(e) => {
+                tracing::debug!("relay: upstream {upstream} for {peer}: {e}");
+                let _ = down.shutdown(Shutdown::Both);
+                continue;
+            }
+        };
+        let _ = down.set_nodelay(true);
+        let _ = up.set_nodelay(true);
+        if !switch.register([&down, &up]) {
+            stats.refused.fetch_add(1, Ordering::Relaxed);
+            let _ = down.shutdown(Shutdown::Both);
+            let _ = up.shutdown(Shutdown::Both);
+            continue;
+        }
+        stats.connections.fetch_add(1, Ordering::Relaxed);
+        for (from, to) in [(&down, &up), (&up, &down)] {
+            let (Ok(from), Ok(to)) = (from.try_clone(), to.try_clone()) else {
+                let _ = down.shutdown(Shutdown::Both);
+                let _ = up.shutdown(Shutdown::Both);
+                break;
+            };
+            let rng = SplitMix64::new(seed.next_u64());
+            let (sw, st) = (switch.clone(), stats.clone());
+            if let Err(e) = std::thread::Builder::new()
+                .name("relay-pump".into())
+                .spawn(move || pump(from, to, plan, rng, sw, st))
+            {
+                tracing::warn!("relay: cannot start a pump: {e}");
+                let _ = down.shutdown(Shutdown::Both);
+                let _ = up.shutdown(Shutdown::Both);
+            }
+        }
+    }
+}
+
+/// One direction: a reader that stamps each chunk with its due time and a
+/// writer that sends it then, never before the previous chunk.
+fn pump(
+    mut from: TcpStream,
+    mut to: TcpStream,
+    plan: FaultPlan,
+    mut rng: SplitMix64,
+    switch: LinkSwitch,
+    stats: Arc<RelayStats>,
+) {
+    let (tx, rx) = mpsc::channel::<(Instant, Vec<u8>)>();
+    let writer_stats = stats.clone();
+    let writer_switch = switch.clone();
+    let writer = std::thread::Builder::new()
+        .name("relay-write".into())
+        .spawn(move || {
+            for (due, chunk) in rx {
+                let now = Instant::now();
+                if due > now {
+                    std::thread::sleep(due - now);
+                }
+                if !writer_switch.is_up() || to.write_all(&chunk).is_err() {
+                    break;
+                }
+                writer_stats
+                    .bytes_forwarded
+                    .fetch_add(chunk.len() as u64, Ordering::Relaxed);
+                writer_stats
+                    .chunks_forwarded
+                    .fetch_add(1, Ordering::Relaxed);
+            }
+            let _ = to.shutdown(Shutdown::Both);
+        });
+    let Ok(writer) = writer else {
+        let _ = from.shutdown(Shutdown::Both);
+        return;
+    };
+    let mut last_due = Instant::now();
+    let mut buf = vec![0u8; 64 * 1024];
+    loop {
+        let n = match from.read(&mut buf) {
+            Ok(0) | Err(_) => break,
+            Ok(n) => n,
+        };
+        if !switch.is_up() {
+            break;
+        }
+        let mut extra = plan.latency;
+        if !plan.jitter.is_zero() {
+            extra += plan.jitter.mul_f64(rng.unit());
+        }
+        if plan.loss_stall_probability > 0.0 && rng.unit() < plan.loss_stall_probability {
+            stats.stalls.fetch_add(1, Ordering::Relaxed);
+            extra += plan.loss_stall;
+        }
+        let due = (Instant::now() + extra).max(last_due);
+        last_due = due;
+        if tx.send((due, buf[..n].to_vec())).is_err() {
+            break;
+        }
+    }
+    drop(tx);
+    let _ = from.shutdown(Shutdown::Both);
+    shoal_bus::join_reporting(writer);
+}
+
+/// Faults applied to whole messages at the transport boundary.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MessageFaultPlan {
+    /// Probability a message is lost.
+    pub loss: f64,
+    /// Probability a (delivered) message is delivered twice.
+    pub duplicate: f64,
+    /// Messages are shuffled within consecutive windows of this many (0 or 1: order kept).
+    pub reorder_window: usize,
+    pub seed: u64,
+}
+
+impl Default for MessageFaultPlan {
+    fn default() -> Self {
+        Self {
+            loss: 0.0,
+            duplicate: 0.0,
+            reorder_window: 0,
+            seed: 1,
+        }
+    }
+}
+
+/// What [`MessageFaults`] did.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct MessageFaultStats {
+    pub offered: u64,
+    pub lost: u64,
+    /// Extra copies delivered.
+    pub duplicated: u64,
+    /// Messages delivered at a different position than offered.
+    pub reordered: u64,
+    pub delivered: u64,
+}
+
+/// Applies a [`MessageFaultPlan`] to batches of messages, deterministically for a seed.
+#[derive(Debug, Clone)]
+pub struct MessageFaults {
+    plan: MessageFaultPlan,
+    rng: SplitMix64,
+    stats: MessageFaultStats,
+}
+
+impl MessageFaults {
+    pub fn new(plan: MessageFaultPlan) -> Self {
+        Self {
+            rng: SplitMix64::new(plan.seed),
+            plan,
+            stats: MessageFaultStats::default(),
+        }
+    }
+
+    /// The batch as it arrives: some lost, some twice, shuffled within windows.
+    pub fn apply<T: Clone>(&mut self, batch: Vec<T>) -> Vec<T> {
+        self.stats.offered += batch.len() as u64;
+        let mut out: Vec<(usize, T)> = Vec::with_capacity(batch.len());
+        for (i, m) in batch.into_iter().enumerate() {
+            if self.rng.unit() < self.plan.loss {
+                self.stats.lost += 1;
+                continue;
+            }
+            if self.rng.unit() < self.plan.duplicate {
+                self.stats.duplicated += 1;
+                out.push((i, m.clone()));
+            }
+            out.push((i, m));
+        }
+        let w = self.plan.reorder_window;
+        if w > 1 {
+            for window in out.chunks_mut(w) {
+                for k in (1..window.len()).rev() {
+                    let j = self.rng.below(k + 1);
+                    window.swap(k, j);
+                }
+            }
+            let mut sorted: Vec<usize> = out.iter().map(|(i, _)| *i).collect();
+            sorted.sort_unstable();
+            self.stats.reordered += out
+                .iter()
+                .zip(&sorted)
+                .filter(|((i, _), s)| i != *s)
+                .count() as u64;
+        }
+        self.stats.delivered += out.len() as u64;
+        out.into_iter().map(|(_, m)| m).collect()
+    }
+
+    pub fn stats(&self) -> MessageFaultStats {
+        self.stats
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn echo_server() -> (SocketAddr, JoinHandle<()>) {
+        let l = TcpListener::bind("127.0.0.1:0").unwrap();
+        let addr = l.local_addr().unwrap();
+        let t = std::thread::spawn(move || {
+            for s in l.incoming().take(4) {
+                let Ok(mut s) = s else { return };
+                std::thread::spawn(move || {
+                    let mut buf = [0u8; 4096];
+                    while let Ok(n) = s.read(&mut buf) {
+                        if n == 0 || s.write_all(&buf[..n]).is_err() {
+                            break;
+                        }
+                    }
+                });
+            }
+        });
+        (addr, t)
+    }
+
+    fn round_trip(addr: SocketAddr, payload: &[u8]) -> std::io::Result<(Vec<u8>, Duration)> {
+        let mut s = TcpStream::connect(addr)?;
+        s.set_read_timeout(Some(Duration::from_secs(5)))?;
+        let t0 = Instant::now();
+        s.write_all(payload)?;
+        let mut got = vec![0u8; payload.len()];
+        s.read_exact(&mut got)?;
+        Ok((got, t0.elapsed()))
+    }
+
+    #[test]
+    fn delayed_jittery_stream_arrives_intact_and_in_order() {
+        let (echo, _t) = echo_server();
+        let plan = FaultPlan {
+            latency: Duration::from_millis(40),
+            jitter: Duration::from_millis(20),
+            loss_stall_probability: 0.3,
+            loss_stall: Duration::from_millis(30),
+            ..FaultPlan::default()
+        };
+        let relay = Relay::start("127.0.0.1:0", echo, plan).unwrap();
+        let payload: Vec<u8> = (0..200_000u32).map(|i| (i * 7 % 251) as u8).collect();
+        let (got, rtt) = round_trip(relay.local_addr(), &payload).unwrap();
+        assert_eq!(got, payload, "bytes changed or reordered through the relay");
+        // Both directions delayed at least the latency.
+        assert!(rtt >= Duration::from_millis(80), "round trip {rtt:?}");
+        // The writer counts a chunk just after writing it: give it a moment.
+        let t0 = Instant::now();
+        while relay.stats().bytes_forwarded.load(Ordering::Relaxed) < 400_000
+            && t0.elapsed() < Duration::from_secs(2)
+        {
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        assert_eq!(
+            relay.stats().bytes_forwarded.load(Ordering::Relaxed),
+            400_000
+        );
+    }
+
+    #[test]
+    fn cut_link_breaks_sessions_and_refuses_until_healed() {
+        let (echo, _t) = echo_server();
+        let relay = Relay::start("127.0.0.1:0", echo, FaultPlan::default()).unwrap();
+        let mut s = TcpStream::connect(relay.local_addr()).unwrap();
+        s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+        s.write_all(b"ping").unwrap();
+        let mut b = [0u8; 4];
+        s.read_exact(&mut b).unwrap();
+        relay.switch().cut();
+        // The open session ends (EOF or reset), it does not hang.
+        let r = s.read(&mut b);
+        assert!(matches!(r, Ok(0) | Err(_)), "{r:?}");
+        // A new session is closed at once while cut.
+        let mut s2 = TcpStream::connect(relay.local_addr()).unwrap();
+        s2.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+        let _ = s2.write_all(b"ping");
+        assert!(matches!(s2.read(&mut b), Ok(0) | Err(_)));
+        relay.switch().heal();
+        let (got, _) = round_trip(relay.local_addr(), b"pong").unwrap();
+        assert_eq!(&got, b"pong");
+        assert!(relay.stats().cut.load(Ordering::Relaxed) >= 1);
+        assert!(relay.stats().refused.load(Ordering::Relaxed) >= 1);
+    }
+
+    #[test]
+    fn flapping_link_is_down_for_its_share_of_each_period() {
+        let (echo, _t) = echo_server();
+        let plan = FaultPlan {
+            flap: Some(Flap {
+                period: Duration::from_millis(300),
+                down: Duration::from_millis(100),
+            }),
+            ..FaultPlan::default()
+        };
+        let relay = Relay::start("127.0.0.1:0", echo, plan).unwrap();
+        let (mut up, mut down) = (0u32, 0u32);
+        let t0 = Instant::now();
+        while t0.elapsed() < Duration::from_millis(1200) {
+            if relay.switch().is_up() {
+                up += 1;
+            } else {
+                down += 1;
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        let share = f64::from(down) / f64::from(up + down);
+        assert!((0.15..0.55).contains(&share), "down {share:.2} of the time");
+    }
+
+    #[test]
+    fn invalid_plans_are_refused() {
+        let bad = FaultPlan {
+            loss_stall_probability: 1.5,
+            ..FaultPlan::default()
+        };
+        assert!(matches!(bad.validate(), Err(RelayError::Plan(_))));
+        let bad = FaultPlan {
+            flap: Some(Flap {
+                period: Duration::from_secs(1),
+                down: Duration::from_secs(2),
+            }),
+            ..FaultPlan::default()
+        };
+        assert!(bad.validate().is_err());
+    }
+
+    #[test]
+    fn message_faults_count_what_they_do_and_repeat_for_a_seed() {
+        let plan = MessageFaultPlan {
+            loss: 0.1,
+            duplicate: 0.2,
+            reorder_window: 5,
+            seed: 42,
+        };
+        let mut a = MessageFaults::new(plan);
+        let mut b = MessageFaults::new(plan);
+        let input: Vec<u32> = (0..1000).collect();
+        let out_a = a.apply(input.clone());
+        assert_eq!(out_a, b.apply(input.clone()));
+        let s = a.stats();
+        assert_eq!(s.offered, 1000);
+        assert_eq!(s.delivered, out_a.len() as u64);
+        assert_eq!(s.delivered, 1000 - s.lost + s.duplicated);
+        assert!(s.lost > 50 && s.lost < 150, "{s:?}");
+        assert!(s.duplicated > 120 && s.duplicated < 280, "{s:?}");
+        assert!(s.reordered > 0);
+        let mut unique = out_a.clone();
+        unique.sort_unstable();
+        unique.dedup();
+        assert_eq!(unique.len() as u64, 1000 - s.lost);
+    }
+}

@@ -1,0 +1,253 @@
+//! The simulator on Zenoh (`shoal sim`): steps the swarm world, renders every
+//! selected camera of every vehicle, and publishes frames, ground truth and
+//! the simulation clock exactly as a real fleet's camera drivers would; takes
+//! vehicle commands from formation controllers.
+//!
+//! **Plugging in another simulator** (Gazebo, Stonefish, HoloOcean): publish,
+//! with any Zenoh binding, envelopes (`docs/wire.md`) of
+//! - `CameraFrame` (Mono8) on `shoal/<fleet>/<vehicle>/cam/<k>/frame` for every
+//!   camera `k` of the fleet file, stamped with the simulation time;
+//! - optionally `SimTruth` on `shoal/<fleet>/sim/truth` (for error figures);
+//!
+//! and subscribe to `VehicleCommand` on `shoal/<fleet>/*/cmd`. Nothing else in
+//! shoal knows which simulator is running. The world and the renderer are
+//! `shoal_sim_bridge`'s.
+
+use shoal_bus::{Bus, BusError, Publisher, Subscription};
+use shoal_proto::clock::ManualClock;
+use shoal_proto::config::Fleet;
+use shoal_proto::messages::{
+    CameraFrame, CameraInfo, PixelFormat, SimTruth, VehicleCommand, VehicleId,
+};
+use shoal_proto::{KeyKind, Keys};
+use shoal_sim_bridge::render::{render_fleet_view, Renderer};
+use shoal_sim_bridge::water::WaterParams;
+use shoal_sim_bridge::world::{Formation, Mode, SwarmWorld};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Arc;
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+#[derive(Debug, Clone)]
+pub struct SimConfig {
+    pub fleet: Arc<Fleet>,
+    pub water: WaterParams,
+    pub formation: Formation,
+    pub spacing_m: f64,
+    pub seed: u64,
+    /// Camera frames per simulated second (every selected camera).
+    pub frame_rate_hz: f64,
+    /// Names of the cameras to render (`None`: all of each vehicle's cameras).
+    pub cameras: Option<Vec<String>>,
+    /// Simulated seconds per wall-clock second; 0 runs as fast as rendering allows.
+    pub time_scale: f64,
+    /// Stop after this much simulated time (`None`: until stopped).
+    pub duration_s: Option<f64>,
+    /// Vehicles driven by commands from the start (closed loop).
+    pub commanded: Vec<VehicleId>,
+}
+
+/// Counters of a running simulator.
+#[derive(Debug, Default)]
+pub struct SimStats {
+    pub ticks: AtomicU64,
+    pub frames_published: AtomicU64,
+    /// Ticks whose frames were not rendered because rendering fell behind the wall clock.
+    pub ticks_skipped: AtomicU64,
+    pub commands_applied: AtomicU64,
+    pub commands_rejected: AtomicU64,
+    /// Sum of render time (µs) and count, for the mean.
+    pub render_us: AtomicU64,
+}
+
+pub struct SimHandle {
+    stop: Arc<AtomicBool>,
+    thread: Option<JoinHandle<Result<(), String>>>,
+    stats: Arc<SimStats>,
+    finished: Arc<AtomicBool>,
+}
+
+impl std::fmt::Debug for SimHandle {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SimHandle")
+            .field("stats", &self.stats)
+            .finish()
+    }
+}
+
+impl SimHandle {
+    pub fn stats(&self) -> &Arc<SimStats> {
+        &self.stats
+    }
+    /// True once `duration_s` of simulated time has been run.
+    pub fn finished(&self) -> bool {
+        self.finished.load(Ordering::Relaxed)
+    }
+    /// Stop and report the loop's error, if it failed.
+    pub fn stop(mut self) -> Result<(), String> {
+        self.stop.store(true, Ordering::Relaxed);
+        match self.thread.take().map(|t| t.join()) {
+            Some(Ok(r)) => r,
+            Some(Err(_)) => Err("simulator thread panicked".into()),
+            None => Ok(()),
+        }
+    }
+}
+
+impl Drop for SimHandle {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        if let Some(t) = self.thread.take() {
+            shoal_bus::join_reporting(t);
+        }
+    }
+}
+
+/// A selected camera: (vehicle, camera index, its calibration, publisher).
+type SimCamera = (VehicleId, u8, CameraInfo, Publisher<CameraFrame>);
+
+/// Every camera of the fleet that `cfg.cameras` selects (all when unset), with its publisher.
+fn selected_cameras(bus: &Bus, cfg: &SimConfig, keys: &Keys) -> Result<Vec<SimCamera>, BusError> {
+    let mut cams: Vec<SimCamera> = Vec::new();
+    for v in &cfg.fleet.vehicles {
+        for c in &v.cameras {
+            let selected = cfg
+                .cameras
+                .as_ref()
+                .is_none_or(|names| names.iter().any(|n| n == &c.name));
+            if selected {
+                let info = CameraInfo {
+                    model: c.model,
+                    body_from_camera: c.body_from_camera,
+                };
+                cams.push((
+                    v.id,
+                    c.index,
+                    info,
+                    bus.publisher(keys.frame(v.id, c.index))?,
+                ));
+            }
+        }
+    }
+    Ok(cams)
+}
+
+/// Sleep until simulated time `t_s` is due on the wall clock (scaled by
+/// `cfg.time_scale`; 0 runs unpaced); true when already more than one tick
+/// (`dt`) behind, so the tick's rendering is skipped.
+fn pace(cfg: &SimConfig, started: Instant, t_s: f64, dt: f64) -> bool {
+    if cfg.time_scale > 0.0 {
+        let due = Duration::from_secs_f64(t_s / cfg.time_scale);
+        let now = started.elapsed();
+        if now < due {
+            std::thread::sleep(due - now);
+            false
+        } else {
+            now - due > Duration::from_secs_f64(dt / cfg.time_scale)
+        }
+    } else {
+        false
+    }
+}
+
+/// Start the simulator on `bus`; `clock` follows simulation time.
+pub fn spawn(bus: &Bus, cfg: SimConfig, clock: Arc<ManualClock>) -> Result<SimHandle, BusError> {
+    let keys = cfg.fleet.keys();
+    let mut world = SwarmWorld::new(&cfg.fleet, cfg.formation, cfg.spacing_m, cfg.seed);
+    for &v in &cfg.commanded {
+        if let Err(e) = world.set_mode(v, Mode::Commanded) {
+            tracing::warn!("simulator: {e}");
+        }
+    }
+    let cams = selected_cameras(bus, &cfg, &keys)?;
+    let truth_pub: Publisher<SimTruth> = bus.publisher(keys.truth())?;
+    let commands: Subscription<VehicleCommand> = bus.subscribe(&keys.all_commands(), 64)?;
+    let stop = Arc::new(AtomicBool::new(false));
+    let finished = Arc::new(AtomicBool::new(false));
+    let stats = Arc::new(SimStats::default());
+    let (stop2, finished2, stats2) = (stop.clone(), finished.clone(), stats.clone());
+    let bus = bus.clone();
+    let thread = std::thread::Builder::new()
+        .name("sim".into())
+        .spawn(move || -> Result<(), String> {
+            let _session = bus;
+            let mut renderer = Renderer::new();
+            let dt = 1.0 / cfg.frame_rate_hz.max(0.1);
+            let started = Instant::now();
+            let mut tick = 0u64;
+            while !stop2.load(Ordering::Relaxed) {
+                for r in commands.drain() {
+                    let arrived_on = keys.parse(&r.key);
+                    let ok = matches!(arrived_on, Ok(KeyKind::Command { vehicle }) if vehicle == r.msg.vehicle)
+                        && world.apply_command(&r.msg).is_ok();
+                    let counter = if ok { &stats2.commands_applied } else { &stats2.commands_rejected };
+                    counter.fetch_add(1, Ordering::Relaxed);
+                }
+                if tick > 0 {
+                    world.step(dt);
+                }
+                let t_s = world.time_s();
+                let stamp_ns = world.time_ns();
+                let truth = world.truth();
+                // Pace to the wall clock; skip rendering (not time) when behind.
+                let behind = pace(&cfg, started, t_s, dt);
+                // The frames of this tick are captured now: time has reached their stamp.
+                clock.advance_to(stamp_ns);
+                let mut visible = Vec::new();
+                if behind {
+                    stats2.ticks_skipped.fetch_add(1, Ordering::Relaxed);
+                } else {
+                    for (v, k, info, publisher) in &cams {
+                        let seed = cfg.seed ^ (tick << 20) ^ ((*v as u64) << 8) ^ *k as u64;
+                        let t0 = Instant::now();
+                        let out = render_fleet_view(&mut renderer, &cfg.fleet, &truth, *v, *k, &cfg.water, t_s, tick, seed)
+                            .map_err(|e| format!("rendering vehicle {v} camera {k}: {e}"))?;
+                        stats2.render_us.fetch_add(t0.elapsed().as_micros() as u64, Ordering::Relaxed);
+                        let frame = CameraFrame {
+                            vehicle: *v,
+                            camera: *k,
+                            seq: tick,
+                            stamp_ns,
+                            info: *info,
+                            format: PixelFormat::Mono8,
+                            data: out.image.data,
+                        };
+                        match publisher.put(&frame) {
+                            Ok(()) => {
+                                stats2.frames_published.fetch_add(1, Ordering::Relaxed);
+                            }
+                            Err(e) => tracing::warn!("simulator: {e}"),
+                        }
+                        visible.extend(out.visible);
+                    }
+                }
+                let msg = SimTruth {
+                    stamp_ns,
+                    tick,
+                    water_c_per_m: cfg.water.c_per_m,
+                    vehicles: truth,
+                    visible,
+                };
+                if let Err(e) = truth_pub.put(&msg) {
+                    tracing::warn!("simulator: {e}");
+                }
+                stats2.ticks.fetch_add(1, Ordering::Relaxed);
+                tick += 1;
+                if cfg.duration_s.is_some_and(|d| t_s >= d) {
+                    finished2.store(true, Ordering::Relaxed);
+                    break;
+                }
+            }
+            Ok(())
+        })
+        .map_err(|source| BusError::Thread {
+        what: "simulator",
+        source,
+    })?;
+    Ok(SimHandle {
+        stop,
+        thread: Some(thread),
+        stats,
+        finished,
+    })
+}
