@@ -6,7 +6,7 @@
 
 use anyhow::{anyhow, Context};
 use serde::Serialize;
-use shoal_bus::{client_of, free_port, Bus, Connect, Subscription};
+use shoal_bus::{client_of, free_port, Bus, Connect, Publisher, Received, Subscription};
 use shoal_fusion::formation::FormationController;
 use shoal_fusion::FusionParams;
 use shoal_node::pipeline::PipelineParams;
@@ -293,6 +293,159 @@ impl SimulatedSwarm {
     }
 }
 
+/// Start the recorder on `sw` when `cfg.log` asks for a log (before the simulator starts).
+fn start_recorder(
+    cfg: &DemoConfig,
+    sw: &SimulatedSwarm,
+) -> anyhow::Result<Option<shoal_services::recorder::RecorderHandle>> {
+    let Some(path) = &cfg.log else {
+        return Ok(None);
+    };
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    }
+    let opts = shoal_record::RecordOptions {
+        frames: cfg.log_frames,
+        water_c_per_m: Some(cfg.water_c_per_m),
+        fleet_toml: Some(match &cfg.fleet {
+            Some(p) => std::fs::read_to_string(p)
+                .with_context(|| format!("cannot read {}", p.display()))?,
+            None => PAPER_FLEET.to_string(),
+        }),
+        ..Default::default()
+    };
+    Ok(Some(shoal_services::recorder::Recorder::spawn(
+        &sw.session()?,
+        sw.fleet.clone(),
+        path,
+        opts,
+    )?))
+}
+
+/// What the demo's observer collects while the trial runs.
+#[derive(Debug, Default)]
+struct TrialWatch {
+    /// The newest ground truth (at most `TRUTHS_KEPT`), oldest first.
+    truths: VecDeque<SimTruth>,
+    /// When each tick's truth arrived, until a map uses that tick's frames.
+    tick_published: BTreeMap<u64, Instant>,
+    /// Sum (ms) and count of tick-to-map latencies.
+    e2e: (f64, usize),
+    maps: Vec<FleetMap>,
+}
+
+/// Ground truth messages kept for scoring: the newest, so a long run's memory stays bounded.
+const TRUTHS_KEPT: usize = 2000;
+
+impl TrialWatch {
+    fn add_truth(&mut self, t: Received<SimTruth>) {
+        self.tick_published
+            .entry(t.msg.stamp_ns)
+            .or_insert(t.received_at);
+        self.truths.push_back(t.msg);
+        if self.truths.len() > TRUTHS_KEPT {
+            self.truths.pop_front();
+        }
+    }
+
+    /// Keep a map, and time from each tick's truth to the first map with its frames.
+    fn add_map(&mut self, r: Received<FleetMap>) {
+        let stamps: std::collections::BTreeSet<u64> = r
+            .msg
+            .edges
+            .iter()
+            .filter(|e| e.rejected.is_none())
+            .map(|e| e.stamp_ns)
+            .collect();
+        for st in stamps {
+            if let Some(t0) = self.tick_published.remove(&st) {
+                self.e2e.0 += r.received_at.saturating_duration_since(t0).as_secs_f64() * 1e3;
+                self.e2e.1 += 1;
+            }
+        }
+        self.maps.push(r.msg);
+    }
+}
+
+/// Edges of `map` accepted, rejected (other than as flip twins), and
+/// rejected as flip twins; zeros without a map.
+fn verdict_counts(map: Option<&FleetMap>) -> (usize, usize, usize) {
+    map.map(|m| {
+        let count = |f: &dyn Fn(&Option<RejectReason>) -> bool| {
+            m.edges.iter().filter(|e| f(&e.rejected)).count()
+        };
+        (
+            count(&|r| r.is_none()),
+            count(&|r| {
+                r.as_ref()
+                    .is_some_and(|r| *r != RejectReason::FlippedHypothesis)
+            }),
+            count(&|r| r.as_ref() == Some(&RejectReason::FlippedHypothesis)),
+        )
+    })
+    .unwrap_or((0, 0, 0))
+}
+
+/// The formation controller of a closed-loop demo: steers the followers
+/// from the newest fused map, every `COMMAND_PERIOD`, over its own session.
+struct ControlLoop {
+    _bus: Bus,
+    map_client: MapClient,
+    publishers: BTreeMap<VehicleId, Publisher<VehicleCommand>>,
+    /// Set from the first ground truth (the formation to hold); none in open loop.
+    controller: Option<FormationController>,
+    last_command: Instant,
+}
+
+/// How often the controller sends its commands.
+const COMMAND_PERIOD: Duration = Duration::from_millis(200);
+
+impl ControlLoop {
+    fn connect(bus: Bus, fleet: &Fleet, followers: &[VehicleId]) -> anyhow::Result<ControlLoop> {
+        let map_client = MapClient::connect(&bus, fleet)?;
+        let mut publishers = BTreeMap::new();
+        for &v in followers {
+            publishers.insert(v, bus.publisher::<VehicleCommand>(fleet.keys().command(v))?);
+        }
+        Ok(ControlLoop {
+            _bus: bus,
+            map_client,
+            publishers,
+            controller: None,
+            last_command: Instant::now(),
+        })
+    }
+
+    /// Send the controller's commands when a period has passed and there is a map.
+    fn step(&mut self) {
+        let (Some(c), Some(view)) = (&self.controller, self.map_client.latest()) else {
+            return;
+        };
+        if self.last_command.elapsed() < COMMAND_PERIOD {
+            return;
+        }
+        self.last_command = Instant::now();
+        for cmd in c.commands(view) {
+            if let Some(p) = self.publishers.get(&cmd.vehicle) {
+                if let Err(e) = p.put(&cmd) {
+                    tracing::warn!("controller: {e}");
+                }
+            }
+        }
+    }
+}
+
+/// Close the log and summarize it.
+fn stop_recorder(r: shoal_services::recorder::RecorderHandle) -> anyhow::Result<LogSummary> {
+    let sum = r.stop()?;
+    Ok(LogSummary {
+        path: sum.path.clone(),
+        messages: sum.wire_messages,
+        dropped: sum.dropped,
+        file_bytes: sum.file_bytes,
+    })
+}
+
 /// Run the demo; `on_progress(sim_s, total_s, status)` is called as simulated time advances.
 pub fn run(
     cfg: &DemoConfig,
@@ -315,28 +468,7 @@ pub fn run(
             vec![]
         },
         |sw| {
-            if let Some(path) = &cfg.log {
-                if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-                    std::fs::create_dir_all(dir)
-                        .with_context(|| format!("cannot create {}", dir.display()))?;
-                }
-                let opts = shoal_record::RecordOptions {
-                    frames: cfg.log_frames,
-                    water_c_per_m: Some(cfg.water_c_per_m),
-                    fleet_toml: Some(match &cfg.fleet {
-                        Some(p) => std::fs::read_to_string(p)
-                            .with_context(|| format!("cannot read {}", p.display()))?,
-                        None => PAPER_FLEET.to_string(),
-                    }),
-                    ..Default::default()
-                };
-                recorder = Some(shoal_services::recorder::Recorder::spawn(
-                    &sw.session()?,
-                    sw.fleet.clone(),
-                    path,
-                    opts,
-                )?);
-            }
+            recorder = start_recorder(cfg, sw)?;
             Ok(())
         },
     )?;
@@ -344,79 +476,33 @@ pub fn run(
     let observer_bus = swarm.session()?;
     let truth_sub: Subscription<SimTruth> = observer_bus.subscribe(&fleet.keys().truth(), 256)?;
     let map_sub: Subscription<FleetMap> = observer_bus.subscribe(&fleet.keys().map(), 256)?;
-    let controller_bus = swarm.session()?;
-    let mut map_client = MapClient::connect(&controller_bus, &fleet)?;
-    let mut cmd_pubs = BTreeMap::new();
-    for &v in &followers {
-        cmd_pubs.insert(
-            v,
-            controller_bus.publisher::<VehicleCommand>(fleet.keys().command(v))?,
-        );
-    }
+    let mut control = ControlLoop::connect(swarm.session()?, &fleet, &followers)?;
 
-    let mut truths: VecDeque<SimTruth> = VecDeque::new();
-    let mut tick_published: BTreeMap<u64, Instant> = BTreeMap::new();
-    let mut e2e = (0.0f64, 0usize);
-    let mut maps: Vec<FleetMap> = Vec::new();
-    let mut controller: Option<FormationController> = None;
-    let mut last_cmd = Instant::now();
+    let mut watch = TrialWatch::default();
     while !swarm.sim_finished() {
         std::thread::sleep(Duration::from_millis(50));
         for t in truth_sub.drain() {
-            tick_published
-                .entry(t.msg.stamp_ns)
-                .or_insert(t.received_at);
-            if controller.is_none() && cfg.closed_loop {
-                controller = Some(formation_from_truth(&fleet, &t.msg));
+            if control.controller.is_none() && cfg.closed_loop {
+                control.controller = Some(formation_from_truth(&fleet, &t.msg));
             }
-            truths.push_back(t.msg);
-            if truths.len() > 2000 {
-                truths.pop_front();
-            }
+            watch.add_truth(t);
         }
         for r in map_sub.drain() {
-            let stamps: std::collections::BTreeSet<u64> = r
-                .msg
-                .edges
+            watch.add_map(r);
+        }
+        control.step();
+        let live = watch.maps.last().map_or(0, |m| {
+            m.vehicles
                 .iter()
-                .filter(|e| e.rejected.is_none())
-                .map(|e| e.stamp_ns)
-                .collect();
-            for st in stamps {
-                if let Some(t0) = tick_published.remove(&st) {
-                    e2e.0 += r.received_at.saturating_duration_since(t0).as_secs_f64() * 1e3;
-                    e2e.1 += 1;
-                }
-            }
-            maps.push(r.msg);
-        }
-        if let (Some(c), Some(view)) = (&controller, map_client.latest()) {
-            if last_cmd.elapsed() >= Duration::from_millis(200) {
-                last_cmd = Instant::now();
-                for cmd in c.commands(view) {
-                    if let Some(p) = cmd_pubs.get(&cmd.vehicle) {
-                        if let Err(e) = p.put(&cmd) {
-                            tracing::warn!("controller: {e}");
-                        }
-                    }
-                }
-            }
-        }
-        let live = maps
-            .last()
-            .map(|m| {
-                m.vehicles
-                    .iter()
-                    .filter(|v| v.state == VehicleState::Live)
-                    .count()
-            })
-            .unwrap_or(0);
+                .filter(|v| v.state == VehicleState::Live)
+                .count()
+        });
         on_progress(
             clock.now_ns() as f64 * 1e-9,
             cfg.duration_s,
             &format!(
                 "{} maps, {live}/{} vehicles localized",
-                maps.len(),
+                watch.maps.len(),
                 fleet.vehicles.len()
             ),
         );
@@ -428,6 +514,12 @@ pub fn run(
     }
     // Give the pipeline a moment to drain the last frames.
     std::thread::sleep(Duration::from_millis(500));
+    let TrialWatch {
+        mut truths,
+        mut maps,
+        e2e,
+        ..
+    } = watch;
     maps.extend(map_sub.drain().into_iter().map(|r| r.msg));
     truths.extend(truth_sub.drain().into_iter().map(|r| r.msg));
     let frames_processed = swarm.nodes().map(|n| n.stats().frames_processed()).sum();
@@ -441,38 +533,12 @@ pub fn run(
         .filter_map(|n| n.stats().mean_latency_ms())
         .collect();
     let (sim_ticks, sim_ticks_skipped) = swarm.shutdown()?;
-    let log = match recorder {
-        Some(r) => {
-            let sum = r.stop()?;
-            Some(LogSummary {
-                path: sum.path.clone(),
-                messages: sum.wire_messages,
-                dropped: sum.dropped,
-                file_bytes: sum.file_bytes,
-            })
-        }
-        None => None,
-    };
+    let log = recorder.map(stop_recorder).transpose()?;
 
     let half = maps.len() / 2;
     let evaluated = &maps[half..];
     let pairs = pair_errors(&fleet, evaluated, &truths);
-    let (acc, rej, twins) = evaluated
-        .last()
-        .map(|m| {
-            let count = |f: &dyn Fn(&Option<RejectReason>) -> bool| {
-                m.edges.iter().filter(|e| f(&e.rejected)).count()
-            };
-            (
-                count(&|r| r.is_none()),
-                count(&|r| {
-                    r.as_ref()
-                        .is_some_and(|r| *r != RejectReason::FlippedHypothesis)
-                }),
-                count(&|r| r.as_ref() == Some(&RejectReason::FlippedHypothesis)),
-            )
-        })
-        .unwrap_or((0, 0, 0));
+    let (acc, rej, twins) = verdict_counts(evaluated.last());
     Ok(DemoSummary {
         pairs,
         frames_processed,

@@ -228,6 +228,10 @@ fn check_errors(
 /// what it can hear (its own observations only; the far side's vehicles
 /// Stale at their last pose). Heal: the three maps converge to one.
 #[test]
+#[allow(
+    clippy::too_many_lines,
+    reason = "one fault scenario in order (steady state, cut, heal, convergence), each phase asserting on what the previous one left"
+)]
 fn decentralized_maps_split_under_partition_and_converge_after_heal() {
     /// The convergence bound stated in docs/results.md: the 2 s window must
     /// refill with observations every side heard, plus router reconnection.
@@ -423,6 +427,10 @@ fn decentralized_maps_split_under_partition_and_converge_after_heal() {
 /// jitters (+0–100 ms) and stalls (5% of chunks held 200 ms: lost segments)
 /// the vehicles' link, which is also cut twice for 0.5 s.
 #[test]
+#[allow(
+    clippy::too_many_lines,
+    reason = "one fault scenario in order (impaired link, two cuts, recovery), each phase asserting on what the previous one left"
+)]
 fn central_map_stays_within_bound_under_delay_jitter_stalls_and_link_cuts() {
     let fleet = fleet();
     let ids: Vec<u32> = fleet.vehicles.iter().map(|v| v.id).collect();

@@ -191,6 +191,10 @@ fn shoal(args: &[&str]) -> (bool, String) {
 }
 
 #[test]
+#[allow(
+    clippy::too_many_lines,
+    reason = "one end-to-end scenario across two network namespaces: setup, then five numbered phases (kills, restarts, a cut link), each on the processes the previous phase left running"
+)]
 fn separate_processes_in_namespaces_survive_kills_restarts_and_a_cut_link() {
     let ns = match TwoNamespaces::create() {
         Ok(ns) => ns,

@@ -208,6 +208,10 @@ impl FusionRig {
 }
 
 #[test]
+#[allow(
+    clippy::too_many_lines,
+    reason = "one sequence of hostile messages against one running fusion service, each rejection counted against the counts the previous step left"
+)]
 fn fusion_counts_every_hostile_observation_and_keeps_fusing() {
     let rig = FusionRig::start();
     let keys = rig.fleet.keys();

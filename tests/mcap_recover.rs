@@ -31,6 +31,10 @@ fn count_messages(buf: &[u8]) -> (u64, shoal_record::reader::ScanOutcome) {
 }
 
 #[test]
+#[allow(
+    clippy::too_many_lines,
+    reason = "one scenario in order: record, SIGKILL the recorder, read the damaged file, recover it, read it again"
+)]
 fn sigkilled_recorder_leaves_a_readable_file_that_recover_fixes() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let fleet_path = root.join("configs/fleets/paper.toml");

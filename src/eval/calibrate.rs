@@ -105,6 +105,14 @@ pub fn water_toml_with_knobs(knobs: &WaterKnobs, note: &str) -> String {
     out
 }
 
+/// The searched knobs to 4 decimals: which candidates were already tried.
+fn knob_key(k: &WaterKnobs) -> String {
+    format!(
+        "{:.4} {:.4} {:.4} {:.4}",
+        k.backscatter_scale, k.noise_scale, k.psf_width_scale, k.forward_scatter_scale
+    )
+}
+
 pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     let frames = opts.count(2, 20);
     let budget = if opts.quick { 3 } else { 40 };
@@ -155,10 +163,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     let (mut best_rates, mut best_loss) = evaluate(&best)?;
     let mut used = 1;
     let mut tried = std::collections::BTreeSet::new();
-    tried.insert(format!(
-        "{:.4} {:.4} {:.4} {:.4}",
-        best.backscatter_scale, best.noise_scale, best.psf_width_scale, best.forward_scatter_scale
-    ));
+    tried.insert(knob_key(&best));
     'search: for step in [4.0f64, 2.0, std::f64::consts::SQRT_2, 2f64.powf(0.25)] {
         let mut improved = true;
         while improved {
@@ -176,14 +181,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
                     let cand = with(best, name, v);
                     // Each candidate once: the loss is deterministic, and a pass that
                     // improved would otherwise re-try the moves already rejected.
-                    let key = format!(
-                        "{:.4} {:.4} {:.4} {:.4}",
-                        cand.backscatter_scale,
-                        cand.noise_scale,
-                        cand.psf_width_scale,
-                        cand.forward_scatter_scale
-                    );
-                    if !tried.insert(key) {
+                    if !tried.insert(knob_key(&cand)) {
                         continue;
                     }
                     let (rates, l) = evaluate(&cand)?;
@@ -199,13 +197,26 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
         }
     }
     log.write(&opts.out.join("calibration.csv"))?;
+    write_calibration(opts, frames, used, &best, &best_rates, best_loss)
+}
+
+/// Write the fitted knobs as `water-calibrated.toml`, print them, and
+/// return the run's JSON summary (`used` evaluations of the loss).
+fn write_calibration(
+    opts: &EvalOptions,
+    frames: usize,
+    used: usize,
+    best: &WaterKnobs,
+    best_rates: &[f64],
+    best_loss: (f64, f64),
+) -> Result<Value, EvalError> {
     let within = best_loss.0 <= TOLERANCE;
     let note = format!(
         "fitted by `shoal eval calibrate-water` ({frames} frames per water, seed {}): CLAHE + shoal's detector success {:?} vs Table 5's {:?}, max deviation {:.2}",
         opts.seed, best_rates, PAPER_CLAHE, best_loss.0
     );
     let toml_path = opts.out.join("water-calibrated.toml");
-    std::fs::write(&toml_path, water_toml_with_knobs(&best, &note)).map_err(|source| {
+    std::fs::write(&toml_path, water_toml_with_knobs(best, &note)).map_err(|source| {
         EvalError::Io {
             path: toml_path.clone(),
             source,
@@ -228,7 +239,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     );
     let per: Map<String, Value> = WATERS
         .iter()
-        .zip(&best_rates)
+        .zip(best_rates)
         .zip(PAPER_CLAHE)
         .map(|((c, r), p)| {
             (

@@ -139,6 +139,17 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     bar.finish_and_clear();
     csv.write(&opts.out.join("restoration.csv"))?;
 
+    summarize(opts, frames, &methods, &sums)
+}
+
+/// Mean SSIM, PSNR and CNR per method and water from `sums[method][water] =
+/// (ssim, psnr, cnr, n)`, beside the paper's, with their bar plots.
+fn summarize(
+    opts: &EvalOptions,
+    frames: usize,
+    methods: &[Method],
+    sums: &[Vec<[f64; 4]>],
+) -> Result<Value, EvalError> {
     let mean = |mi: usize, wi: usize, q: usize| {
         let a = sums[mi][wi];
         (a[3] > 0.0).then(|| a[q] / a[3])

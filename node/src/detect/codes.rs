@@ -19,6 +19,14 @@ use super::DetectParams;
 use crate::mat::GrayView;
 use shoal_proto::marker::{rotate_code, CodeSet, MarkerId};
 
+
+/// The default correction budget never exceeds AprilTag 3's own default
+/// (`DEFAULT_BITS_CORRECTED`): each further bit multiplies the chance that a
+/// foreign pattern reads as a code (tag36h11's radius of 5 bits accepts ~1.5 %
+/// of random 36-bit patterns, 2 bits ~2·10⁻⁵), and on real photos the 3–5-bit
+/// reads were other tags' faces (docs/real-data.md).
+pub const DEFAULT_CORRECTION_CAP_BITS: u32 = 2;
+
 /// A decoded code square: which marker, how it read, where it is.
 #[derive(Debug, Clone)]
 pub struct CodeSquare {
@@ -64,6 +72,7 @@ impl CodeReader {
                 .table()
                 .max_correction_bits
                 .max(unique_decoding_radius(&rotated))
+                .min(DEFAULT_CORRECTION_CAP_BITS)
         });
         CodeReader {
             codes,
@@ -142,8 +151,22 @@ impl CodeReader {
         let m = n + 2; // code square: black border + data
         let ms = m as f64;
         let cells = [[0.0, 0.0], [ms, 0.0], [ms, ms], [0.0, ms]];
-        let hmat = homography_4(&cells, &quad.pts)?;
-        let module_px = mean_side(&quad.pts) / ms;
+        // The square's true edge lies `inset_px` outside the traced polygon;
+        // on small markers that is a third of a module, enough to misread bits.
+        let side = mean_side(&quad.pts);
+        let grow = (side + 2.0 * quad.inset_px) / side;
+        let centre = [
+            quad.pts.iter().map(|p| p[0]).sum::<f64>() / 4.0,
+            quad.pts.iter().map(|p| p[1]).sum::<f64>() / 4.0,
+        ];
+        let outer = quad.pts.map(|p| {
+            [
+                centre[0] + grow * (p[0] - centre[0]),
+                centre[1] + grow * (p[1] - centre[1]),
+            ]
+        });
+        let hmat = homography_4(&cells, &outer)?;
+        let module_px = mean_side(&outer) / ms;
         // Sub-samples per module side: more for big modules, at most 4x4.
         let s = (module_px / 3.0).clamp(1.0, 4.0) as usize;
         let cell_mean = |r: i32, c: i32| -> f64 {

@@ -45,7 +45,8 @@ pub struct DetectParams {
     /// Bits corrected at most; `None` = the larger of the code table's
     /// `max_correction_bits` and the unique-decoding radius `(d_min − 1) / 2`
     /// of the IDs in use (1 bit for the enhanced marker's 50 codes, as OpenCV's
-    /// `DICT_4X4_50`; the 1000-code table's own figure is 0).
+    /// `DICT_4X4_50`; the 1000-code table's own figure is 0), at most
+    /// [`super::codes::DEFAULT_CORRECTION_CAP_BITS`] (AprilTag 3's default).
     pub max_correction_bits: Option<u32>,
     pub refinement: Refinement,
     /// Given the raw frame beside the restored one
@@ -83,7 +84,9 @@ impl Default for DetectParams {
             threshold_windows: vec![19],
             threshold_offset: 3.0,
             full_res_max_width: 1000,
-            min_code_side_px: 14.0,
+            // 36h11's 8-module black square at ~1.1 px per module: AprilTag 3
+            // reads tags this small on real photos (docs/real-data.md).
+            min_code_side_px: 9.0,
             // A 10-module enhanced frame whose 2-module ring is ≤ ~4 px at half size.
             full_res_region_max_side_px: 90.0,
             max_full_res_regions: 24,

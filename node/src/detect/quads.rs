@@ -20,6 +20,10 @@ use opencv::prelude::*;
 #[derive(Debug, Clone, Copy)]
 pub struct Quad {
     pub pts: [Px; 4],
+    /// How far inside the dark region's edge the polygon runs: contours
+    /// trace the centres of the region's boundary pixels, half a pixel of
+    /// the level they were found on (full-resolution pixels).
+    pub inset_px: f64,
 }
 
 impl Quad {
@@ -101,7 +105,10 @@ fn quads_of_level(
             if quads.iter().any(|o| o.same_as(&q)) {
                 continue;
             }
-            quads.push(Quad { pts: q });
+            quads.push(Quad {
+                pts: q,
+                inset_px: 0.5 * scale,
+            });
         }
     }
     Ok(())

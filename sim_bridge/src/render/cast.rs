@@ -83,7 +83,7 @@ pub(super) fn sample_offsets(n: usize) -> Vec<(f64, f64)> {
 
 impl Renderer {
     /// Ray-cast every pixel inside some ROI.
-    fn cast(
+    pub(super) fn cast(
         &mut self,
         cam: &CameraModel,
         objects: &Objects,
@@ -103,7 +103,6 @@ impl Renderer {
                 fine_objects[i] = r.fine;
             }
         }
-        let nsamples = self.offsets.len() as f64;
         let mut prev: Vec<(usize, usize, Vec<LatticePoint>)> = Vec::new();
         for y in 0..h {
             spans.clear();
@@ -171,43 +170,16 @@ impl Renderer {
                     let hit_c = objects.trace_in(&pixel_ids, centre.0, centre.1);
                     let corners = [top[k].1, top[k + 1].1, bottom[k + 1].1, bottom[k].1];
                     let kind = classify_pixel(objects, &hit_c, &corners, &fine_objects);
-                    let s = if let PixelKind::Uniform = kind {
-                        medium.sample(hit_c, centre.0, centre.1)
-                    } else if let (PixelKind::PlateEdge(white), Some(h)) = (kind, hit_c) {
-                        // Exact area coverage of the modules under the pixel.
-                        let plate = &objects.plates[h.object as usize];
-                        let mix = |a: f64, b: f64| white * a + (1.0 - white) * b;
-                        let cos_i = h.lamp_geom
-                            / if h.radiance > 0.5 * plate.shade {
-                                trace::ALBEDO_WHITE
-                            } else {
-                                trace::ALBEDO_BLACK
-                            };
-                        let hit = Hit {
-                            radiance: plate.shade * mix(trace::ALBEDO_WHITE, trace::ALBEDO_BLACK),
-                            lamp_geom: cos_i * mix(trace::ALBEDO_WHITE, trace::ALBEDO_BLACK),
-                            ..h
-                        };
-                        medium.sample(Some(hit), centre.0, centre.1)
-                    } else {
-                        let mut acc = Sample::default();
-                        for &(du, dv) in &self.offsets {
-                            let r = trace::ray_from(cam, u + du, v + dv, centre);
-                            let s = medium.sample(objects.trace_in(&pixel_ids, r.0, r.1), r.0, r.1);
-                            acc.clean += s.clean;
-                            acc.direct += s.direct;
-                            acc.scatter += s.scatter;
-                            acc.veil += s.veil;
-                            acc.lamp += s.lamp;
-                        }
-                        Sample {
-                            clean: acc.clean / nsamples,
-                            direct: acc.direct / nsamples,
-                            scatter: acc.scatter / nsamples,
-                            veil: acc.veil / nsamples,
-                            lamp: acc.lamp / nsamples,
-                        }
-                    };
+                    let s = self.pixel_sample(
+                        cam,
+                        objects,
+                        &pixel_ids,
+                        kind,
+                        hit_c,
+                        centre,
+                        (u, v),
+                        medium,
+                    );
                     let i = y * w + x;
                     self.clean[i] = s.clean as f32;
                     self.direct[i] = s.direct as f32;
@@ -218,6 +190,60 @@ impl Renderer {
                 next_prev.push((x0, x1, bottom));
             }
             prev = next_prev;
+        }
+    }
+
+    /// The sample of one pixel of class `kind`: its centre sample, the exact
+    /// module coverage of a plate edge, or the mean of the supersampling
+    /// offsets around pixel centre `(u, v)` (ray `centre`, hit `hit_c`).
+    fn pixel_sample(
+        &self,
+        cam: &CameraModel,
+        objects: &Objects,
+        ids: &[u32],
+        kind: PixelKind,
+        hit_c: Option<Hit>,
+        centre: (f64, f64),
+        (u, v): (f64, f64),
+        medium: &Medium,
+    ) -> Sample {
+        let nsamples = self.offsets.len() as f64;
+        if let PixelKind::Uniform = kind {
+            medium.sample(hit_c, centre.0, centre.1)
+        } else if let (PixelKind::PlateEdge(white), Some(h)) = (kind, hit_c) {
+            // Exact area coverage of the modules under the pixel.
+            let plate = &objects.plates[h.object as usize];
+            let mix = |a: f64, b: f64| white * a + (1.0 - white) * b;
+            let cos_i = h.lamp_geom
+                / if h.radiance > 0.5 * plate.shade {
+                    trace::ALBEDO_WHITE
+                } else {
+                    trace::ALBEDO_BLACK
+                };
+            let hit = Hit {
+                radiance: plate.shade * mix(trace::ALBEDO_WHITE, trace::ALBEDO_BLACK),
+                lamp_geom: cos_i * mix(trace::ALBEDO_WHITE, trace::ALBEDO_BLACK),
+                ..h
+            };
+            medium.sample(Some(hit), centre.0, centre.1)
+        } else {
+            let mut acc = Sample::default();
+            for &(du, dv) in &self.offsets {
+                let r = trace::ray_from(cam, u + du, v + dv, centre);
+                let s = medium.sample(objects.trace_in(ids, r.0, r.1), r.0, r.1);
+                acc.clean += s.clean;
+                acc.direct += s.direct;
+                acc.scatter += s.scatter;
+                acc.veil += s.veil;
+                acc.lamp += s.lamp;
+            }
+            Sample {
+                clean: acc.clean / nsamples,
+                direct: acc.direct / nsamples,
+                scatter: acc.scatter / nsamples,
+                veil: acc.veil / nsamples,
+                lamp: acc.lamp / nsamples,
+            }
         }
     }
 }
@@ -348,4 +374,3 @@ fn pixel_is_uniform(
     }
     plate.uniform(c0, c1, r0, r1)
 }
-

@@ -28,15 +28,14 @@ pub use visibility::{all_corners_in_frame, visible_in_view};
 
 use crate::error::SimError;
 use crate::water::WaterParams;
-use nalgebra::{Point3, Vector3};
-use optics::{blur_add, quantize_with_noise, Ambient, LampIntegral, Psf, Rect};
+use cast::{sample_offsets, Medium};
+use nalgebra::Vector3;
+use optics::{blur_add, quantize_with_noise, Ambient, LampIntegral, Psf};
+use roi::{hull_roi, plate_roi, psf_groups, Roi};
 use shoal_proto::config::Fleet;
 use shoal_proto::geometry::pose_is_finite;
-use shoal_proto::{
-    CameraModel, CodeSet, GrayImage, MarkerId, Pose, VehicleId, VehicleTruth, VisibleMarker,
-};
-use std::path::Path;
-use trace::{Hit, Hull, Objects, Plate};
+use shoal_proto::{CameraModel, GrayImage, Pose, VehicleId, VehicleTruth, VisibleMarker};
+use visibility::{build_objects, visible_markers};
 
 /// One rendered frame: the underwater image, its clean twin (same view, no
 /// water, no noise, no vignetting; background black), and the ground truth
@@ -314,4 +313,3 @@ pub fn render_fleet_view(
     }
     Ok(out)
 }
-

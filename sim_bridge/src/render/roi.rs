@@ -168,7 +168,11 @@ pub(super) fn hull_roi(cam: &CameraModel, hl: &Hull) -> Option<Roi> {
 
 /// Groups of overlapping ROIs (after dilating each by its PSF radius), each
 /// with one PSF range: the area-weighted mean of its members' ranges.
-pub(super) fn psf_groups(cam: &CameraModel, water: &WaterParams, rois: &[Option<Roi>]) -> Vec<(Rect, f64)> {
+pub(super) fn psf_groups(
+    cam: &CameraModel,
+    water: &WaterParams,
+    rois: &[Option<Roi>],
+) -> Vec<(Rect, f64)> {
     let (w, h) = (cam.width as usize, cam.height as usize);
     let f = 0.5 * (cam.fx + cam.fy);
     let mut groups: Vec<(Rect, f64, f64)> = Vec::new(); // rect, Σ area·range, Σ area
@@ -203,4 +207,3 @@ pub(super) fn psf_groups(cam: &CameraModel, water: &WaterParams, rois: &[Option<
         .map(|(r, ar, a)| (r, ar / a.max(1e-12)))
         .collect()
 }
-

@@ -151,4 +151,3 @@ pub fn facing_camera(xyz_m: [f64; 3], rpy: [f64; 3]) -> Pose {
     shoal_proto::geometry::pose_from_xyz_rpy(xyz_m, rpy)
         * shoal_proto::geometry::pose_from_xyz_rpy([0.0; 3], [std::f64::consts::PI, 0.0, 0.0])
 }
-

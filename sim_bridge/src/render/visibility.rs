@@ -92,7 +92,11 @@ pub fn visible_in_view(
 /// Markers whose front face is at least partly visible: projected corners
 /// (in `CodeSet::corners_3d` order) and the fraction of the black square's
 /// face that is in frame, facing the camera and not occluded.
-pub(super) fn visible_markers(cam: &CameraModel, scene: &Scene, objects: &Objects) -> Vec<VisibleMarker> {
+pub(super) fn visible_markers(
+    cam: &CameraModel,
+    scene: &Scene,
+    objects: &Objects,
+) -> Vec<VisibleMarker> {
     let mut out = Vec::new();
     let k = 12usize;
     for (m, plate) in scene.markers.iter().zip(&objects.plates) {
@@ -161,4 +165,3 @@ pub fn all_corners_in_frame(cam: &CameraModel, v: &VisibleMarker) -> bool {
                 && c[1] <= cam.height as f64 - 0.5
         })
 }
-

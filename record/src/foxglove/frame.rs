@@ -1,0 +1,159 @@
+//! Camera frames: read in place from their envelope and written as PNG
+//! `CompressedImage` messages.
+
+use super::{camera_frame, camera_topic, msg, t, FoxgloveMessage, FoxgloveSchema};
+use proto::config::Fleet;
+use proto::{PixelFormat, VehicleId};
+use serde_json::json;
+
+/// The fields of a `CameraFrame` envelope the recorder needs, read in place
+/// at the offsets pinned by `docs/wire.md` (no copy of the pixels; decoding
+/// the whole frame through serde costs more than encoding its PNG).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FrameView<'a> {
+    pub vehicle: VehicleId,
+    pub camera: u8,
+    pub seq: u64,
+    pub stamp_ns: u64,
+    pub width: u32,
+    pub height: u32,
+    pub format: PixelFormat,
+    pub data: &'a [u8],
+}
+
+impl<'a> FrameView<'a> {
+    /// Byte offsets in the payload (after the 12-byte envelope header).
+    const FORMAT_AT: usize = 4 + 1 + 8 + 8 + (2 * 4 + 4 * 8 + 5 * 8) + 7 * 8;
+    const DATA_AT: usize = Self::FORMAT_AT + 4 + 8;
+
+    /// `None` unless `envelope` is a well-formed `CameraFrame` whose pixel count agrees with its size.
+    pub fn parse(envelope: &'a [u8]) -> Option<FrameView<'a>> {
+        let header = proto::codec::peek_header(envelope).ok()?;
+        if header.kind != proto::MessageKind::CameraFrame {
+            return None;
+        }
+        let p = envelope.get(proto::codec::HEADER_LEN..)?;
+        let u32_at = |o: usize| {
+            p.get(o..o + 4)
+                .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        };
+        let u64_at = |o: usize| {
+            p.get(o..o + 8)
+                .map(|b| u64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]))
+        };
+        let format = match u32_at(Self::FORMAT_AT)? {
+            0 => PixelFormat::Mono8,
+            1 => PixelFormat::Rgb8,
+            _ => return None,
+        };
+        let (width, height) = (u32_at(21)?, u32_at(25)?);
+        let len = usize::try_from(u64_at(Self::FORMAT_AT + 4)?).ok()?;
+        let want = (width as usize)
+            .checked_mul(height as usize)?
+            .checked_mul(format.channels())?;
+        if len != want || p.len() != Self::DATA_AT + len {
+            return None;
+        }
+        Some(FrameView {
+            vehicle: u32_at(0)?,
+            camera: p[4],
+            seq: u64_at(5)?,
+            stamp_ns: u64_at(13)?,
+            width,
+            height,
+            format,
+            data: &p[Self::DATA_AT..],
+        })
+    }
+}
+
+/// A camera frame as a PNG `CompressedImage` (Foxglove decodes PNG in the browser).
+pub fn camera_image(
+    fleet: &Fleet,
+    f: &FrameView<'_>,
+) -> Result<FoxgloveMessage, image::ImageError> {
+    let color = match f.format {
+        PixelFormat::Mono8 => image::ExtendedColorType::L8,
+        PixelFormat::Rgb8 => image::ExtendedColorType::Rgb8,
+    };
+    let mut png = Vec::with_capacity(f.data.len() / 2);
+    // Fast deflate: frames arrive at camera rate; zstd on the chunk does the rest.
+    let encoder = image::codecs::png::PngEncoder::new_with_quality(
+        &mut png,
+        image::codecs::png::CompressionType::Fast,
+        image::codecs::png::FilterType::Sub,
+    );
+    image::ImageEncoder::write_image(encoder, f.data, f.width, f.height, color)?;
+    Ok(msg(
+        format!("{}/image", camera_topic(fleet, f.vehicle, f.camera)),
+        FoxgloveSchema::CompressedImage,
+        json!({"timestamp": t(f.stamp_ns), "frame_id": camera_frame(fleet, f.vehicle, f.camera), "data": base64(&png), "format": "png"}),
+    ))
+}
+
+/// Standard base64 with padding (RFC 4648 §4), Foxglove's JSON encoding of `bytes`.
+pub fn base64(bytes: &[u8]) -> String {
+    use base64::Engine;
+    base64::engine::general_purpose::STANDARD.encode(bytes)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proto::geometry::Pose;
+
+    #[test]
+    fn base64_matches_rfc4648_vectors() {
+        for (plain, enc) in [
+            ("", ""),
+            ("f", "Zg=="),
+            ("fo", "Zm8="),
+            ("foo", "Zm9v"),
+            ("foob", "Zm9vYg=="),
+            ("fooba", "Zm9vYmE="),
+            ("foobar", "Zm9vYmFy"),
+        ] {
+            assert_eq!(base64(plain.as_bytes()), enc);
+        }
+    }
+
+    #[test]
+    fn frame_view_reads_what_the_codec_wrote() {
+        let f = proto::CameraFrame {
+            vehicle: 15,
+            camera: 3,
+            seq: 9,
+            stamp_ns: 123_456,
+            info: proto::CameraInfo {
+                model: proto::CameraModel {
+                    width: 4,
+                    height: 2,
+                    fx: 5.0,
+                    fy: 5.0,
+                    cx: 2.0,
+                    cy: 1.0,
+                    distortion: [0.1; 5],
+                },
+                body_from_camera: Pose::identity(),
+            },
+            format: PixelFormat::Rgb8,
+            data: (0..24).collect(),
+        };
+        let bytes = proto::encode(&f).unwrap();
+        let v = FrameView::parse(&bytes).unwrap();
+        assert_eq!(
+            (v.vehicle, v.camera, v.seq, v.stamp_ns, v.width, v.height, v.format),
+            (15, 3, 9, 123_456, 4, 2, PixelFormat::Rgb8)
+        );
+        assert_eq!(v.data, &f.data[..]);
+        assert!(FrameView::parse(&bytes[..bytes.len() - 1]).is_none());
+        let obs_like = proto::encode(&proto::VehicleCommand {
+            vehicle: 1,
+            stamp_ns: 2,
+            velocity_body: [0.0; 3],
+            yaw_rate: 0.0,
+        })
+        .unwrap();
+        assert!(FrameView::parse(&obs_like).is_none());
+    }
+}
