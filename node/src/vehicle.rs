@@ -7,6 +7,7 @@
 //! and publishes what they produce; [`LocalInput`] feeds one from a
 //! [`crate::source`] reader thread (a folder of images, a video, a camera).
 
+use crate::detect::CornerFitCounts;
 use crate::mat::gray_as_mat;
 use crate::pipeline::CameraPipeline;
 use opencv::prelude::*;
@@ -73,6 +74,8 @@ struct CameraCounters {
     frames_dropped: AtomicU64,
     frames_invalid: AtomicU64,
     detections: AtomicU64,
+    /// Detections since start by the corner fit that ran.
+    corner_fits: Mutex<CornerFitCounts>,
     /// Sums over the current status period: (frames, restore, detect, pose ms).
     period: Mutex<(u64, f64, f64, f64)>,
 }
@@ -154,6 +157,15 @@ impl NodeStats {
                     restore_ms: mean(r),
                     detect_ms: mean(d),
                     pose_ms: mean(p),
+                    corner_fits: c
+                        .corner_fits
+                        .lock()
+                        .map(|f| {
+                            f.nonzero()
+                                .map(|(fit, n)| (fit.name().to_string(), n))
+                                .collect()
+                        })
+                        .unwrap_or_default(),
                 }
             })
             .collect();
@@ -252,6 +264,9 @@ pub fn spawn_camera<E: std::fmt::Display>(
                     counters
                         .detections
                         .fetch_add(out.detections as u64, Ordering::Relaxed);
+                    if let Ok(mut fits) = counters.corner_fits.lock() {
+                        fits.merge(&out.corner_fits);
+                    }
                     for reason in &out.pose_failures {
                         tracing::debug!("camera {i}: {reason}");
                     }
@@ -344,5 +359,69 @@ mod tests {
         assert_eq!(status.cameras[0].frames_in, 2);
         assert_eq!(status.cameras[0].frames_invalid, 5);
         assert_eq!(status.cameras[1].frames_in, 0);
+    }
+
+    #[test]
+    fn the_status_counts_detections_by_corner_fit() {
+        use shoal_sim_bridge::render::{render_fleet_view, Renderer};
+        use shoal_sim_bridge::water::WaterPresets;
+        use shoal_sim_bridge::world::{Formation, SwarmWorld};
+        let fleet = paper_fleet();
+        let vehicle = fleet.vehicle(10).unwrap().clone();
+        let truth = SwarmWorld::new(&fleet, Formation::Line, 2.0, 1).truth();
+        let water = WaterPresets::builtin().get(0.5).unwrap();
+        // Vehicle 10's starboard camera sees vehicle 15's marker 2 m away.
+        let view = render_fleet_view(
+            &mut Renderer::new(),
+            &fleet,
+            &truth,
+            10,
+            4,
+            &water,
+            0.0,
+            0,
+            1,
+        )
+        .unwrap();
+        let stats = Arc::new(NodeStats::new(&vehicle.cameras));
+        let pipeline =
+            CameraPipeline::new(fleet.clone(), 10, 4, PipelineParams::default()).unwrap();
+        let input = LocalInput::new(4);
+        let mut frame = samples::camera_frame();
+        frame.camera = 4;
+        frame.info.model = vehicle.cameras[4].model;
+        frame.data = view.image.data.clone();
+        input.queue.push(frame);
+        let stop = Arc::new(AtomicBool::new(false));
+        let thread = spawn_camera(
+            10,
+            4,
+            pipeline,
+            Box::new(input),
+            |_: &Observation| -> Result<(), String> { Ok(()) },
+            stats.clone(),
+            stop.clone(),
+        )
+        .unwrap();
+        let deadline = Instant::now() + Duration::from_secs(60);
+        while stats.frames_processed() < 1 && Instant::now() < deadline {
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        stop.store(true, Ordering::Relaxed);
+        thread.join().unwrap();
+        let cam = &stats.status_report(10, Instant::now(), 1.0).cameras[4];
+        assert!(cam.detections >= 1, "{cam:?}");
+        let by_fit: u64 = cam.corner_fits.iter().map(|(_, n)| n).sum();
+        assert_eq!(
+            by_fit, cam.detections,
+            "every detection has its fit: {cam:?}"
+        );
+        assert!(
+            cam.corner_fits.iter().all(|(name, n)| *n > 0
+                && crate::detect::CornerFit::ALL
+                    .iter()
+                    .any(|f| f.name() == name)),
+            "{cam:?}"
+        );
     }
 }

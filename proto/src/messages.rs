@@ -391,6 +391,10 @@ pub struct CameraStatus {
     pub restore_ms: f32,
     pub detect_ms: f32,
     pub pose_ms: f32,
+    /// Detections since start by the corner fit that gave their corners, by
+    /// the names `shoal detect` prints as `corner_fit` (`pattern`,
+    /// `raw_sides`, …); fits that never ran are left out.
+    pub corner_fits: Vec<(String, u64)>,
 }
 
 /// Periodic health report of a vehicle node.

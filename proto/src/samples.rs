@@ -126,6 +126,7 @@ pub fn node_status() -> NodeStatus {
             camera: 0,
             name: "forward".into(),
             frames_in: 10,
+            corner_fits: vec![("raw_sides".into(), 7), ("pattern".into(), 2)],
             ..Default::default()
         }],
         observations_sent: 3,
