@@ -62,6 +62,11 @@ pub struct Manifest {
     pub name: String,
     #[serde(default)]
     pub description: String,
+    /// Where the frames and the ground truth come from (repository, commit, paths).
+    #[serde(default)]
+    pub source: String,
+    #[serde(default)]
+    pub license: String,
     pub underwater: bool,
     /// Code set name (`apriltag16h5`, `aruco6x6_250`, …).
     pub codes: String,
@@ -81,6 +86,10 @@ pub struct Manifest {
     /// Detectors whose output the ground truth is (e.g. `apriltag3`).
     #[serde(default)]
     pub truth_from: Vec<String>,
+    /// The folder under the data root with the frames (default: the
+    /// manifest's file stem; recordings that share frames name one folder).
+    #[serde(default)]
+    pub folder: Option<String>,
     /// IDs that are there (seen in the frames) but whose place the truth
     /// does not give: their reads are neither scored nor false.
     #[serde(default)]
@@ -237,19 +246,65 @@ fn runners(
     Ok(out)
 }
 
-/// The folders under `root` that hold an `eval.json`, sorted by name.
-pub fn find_recordings(root: &Path) -> Result<Vec<PathBuf>, EvalError> {
-    let entries = std::fs::read_dir(root).map_err(|source| EvalError::Io {
-        path: root.to_path_buf(),
-        source,
-    })?;
-    let mut dirs: Vec<PathBuf> = entries
-        .filter_map(Result::ok)
-        .map(|e| e.path())
-        .filter(|p| p.join("eval.json").is_file())
-        .collect();
-    dirs.sort();
-    Ok(dirs)
+/// The manifests of the public recordings this project measures itself on
+/// (split and ground truth under version control; the frames live under the
+/// data root, `docs/real-data.md`).
+pub const MANIFEST_DIR: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/configs/real");
+
+/// One recording found: the folder holding its frames and its manifest.
+#[derive(Debug, Clone)]
+pub struct Recording {
+    pub dir: PathBuf,
+    pub manifest: PathBuf,
+}
+
+/// The recordings under `root`: each manifest of `manifests` whose frames
+/// folder (`folder`, default the manifest's file stem) is there, and every
+/// sub-folder of `root` holding its own `eval.json`; sorted by name. Also
+/// the manifests whose folder is missing.
+pub fn find_recordings(
+    root: &Path,
+    manifests: &Path,
+) -> Result<(Vec<Recording>, Vec<PathBuf>), EvalError> {
+    let io = |path: &Path| {
+        let path = path.to_path_buf();
+        move |source| EvalError::Io { path, source }
+    };
+    let mut found = BTreeMap::new();
+    let mut missing = Vec::new();
+    if manifests.is_dir() {
+        for e in std::fs::read_dir(manifests).map_err(io(manifests))? {
+            let path = e.map_err(io(manifests))?.path();
+            if path.extension().is_none_or(|x| x != "json") {
+                continue;
+            }
+            let m = load_manifest(&path)?;
+            let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned());
+            let folder = m.folder.clone().or(stem).unwrap_or_default();
+            let dir = root.join(&folder);
+            if dir.is_dir() {
+                found.insert(
+                    m.name.clone(),
+                    Recording {
+                        dir,
+                        manifest: path,
+                    },
+                );
+            } else {
+                missing.push(path);
+            }
+        }
+    }
+    for e in std::fs::read_dir(root).map_err(io(root))? {
+        let dir = e.map_err(io(root))?.path();
+        let manifest = dir.join("eval.json");
+        if manifest.is_file() {
+            let m = load_manifest(&manifest)?;
+            found.insert(m.name.clone(), Recording { dir, manifest });
+        }
+    }
+    missing.sort();
+    Ok((found.into_values().collect(), missing))
 }
 
 /// The data root: `explicit`, else `$SHOAL_REAL_DATA`, else the first of
@@ -274,8 +329,8 @@ pub fn data_root(explicit: Option<&Path>) -> Result<PathBuf, EvalError> {
 }
 
 /// Read and check one manifest.
-pub fn load_manifest(dir: &Path) -> Result<Manifest, EvalError> {
-    let path = dir.join("eval.json");
+pub fn load_manifest(path: &Path) -> Result<Manifest, EvalError> {
+    let path = path.to_path_buf();
     let text = std::fs::read_to_string(&path).map_err(|source| EvalError::Io {
         path: path.clone(),
         source,
@@ -763,10 +818,17 @@ fn opt(v: Option<f64>, digits: usize) -> String {
 /// `shoal eval real`.
 pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     let root = data_root(opts.data.as_deref())?;
-    let dirs = find_recordings(&root)?;
-    if dirs.is_empty() {
+    let (recordings, missing) = find_recordings(&root, Path::new(MANIFEST_DIR))?;
+    for m in &missing {
+        eprintln!(
+            "note: {}: its frames are not under {} (skipped)",
+            m.display(),
+            root.display()
+        );
+    }
+    if recordings.is_empty() {
         return Err(EvalError::Setup(format!(
-            "{}: no folder with an eval.json (docs/real-data.md)",
+            "{}: no recording (a folder named as a manifest of {MANIFEST_DIR}, or one with its own eval.json; docs/real-data.md)",
             root.display()
         )));
     }
@@ -790,8 +852,8 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     );
     let mut categories = Vec::new();
     let mut recall: BTreeMap<String, Vec<Option<f64>>> = BTreeMap::new();
-    for dir in &dirs {
-        let m = load_manifest(dir)?;
+    for rec in &recordings {
+        let (dir, m) = (&rec.dir, load_manifest(&rec.manifest)?);
         let mut per_split = serde_json::Map::new();
         for (split, range) in &m.splits {
             if opts.split.as_ref().is_some_and(|only| only != split) {
@@ -860,6 +922,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     eprintln!("{table}");
     Ok(json!({
         "data": root.display().to_string(),
+        "skipped_manifests": missing.iter().map(|p| p.display().to_string()).collect::<Vec<_>>(),
         "results": results,
         "table": opts.out.join("real.md").display().to_string(),
         "plots": plots.iter().map(|p| p.display().to_string()).collect::<Vec<_>>(),
