@@ -884,7 +884,9 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
                     .or_insert_with(|| vec![None; categories.len()])
                     .push(sc.recall);
             }
-            categories.push(cat);
+            // The plot's axis has room for the name's last word only.
+            let short = m.name.rsplit('-').next().unwrap_or(&m.name);
+            categories.push(format!("{short}/{}", &split[..split.len().min(4)]));
             for v in recall.values_mut() {
                 v.resize(categories.len(), None);
             }
