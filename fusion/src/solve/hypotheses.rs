@@ -173,12 +173,22 @@ mod tests {
             clusters: vec![],
         };
         // Seen 0.5 s ago (the older of the two): 8° + 15°.
-        let prior = attitude_prior(&last, std::slice::from_ref(&pair), 1_500_000_000, 2_000_000_000);
+        let prior = attitude_prior(
+            &last,
+            std::slice::from_ref(&pair),
+            1_500_000_000,
+            2_000_000_000,
+        );
         let (rel, tol) = prior[&(1, 2)];
         assert!((tol - 23f64.to_radians()).abs() < 1e-12);
         assert!((rel.rotation.angle() - 0.3).abs() < 1e-12);
         // 1.5 s ago: capped at 30°; 2.5 s ago: beyond the window, no prior.
-        let prior = attitude_prior(&last, std::slice::from_ref(&pair), 2_500_000_000, 2_000_000_000);
+        let prior = attitude_prior(
+            &last,
+            std::slice::from_ref(&pair),
+            2_500_000_000,
+            2_000_000_000,
+        );
         assert!((prior[&(1, 2)].1 - 30f64.to_radians()).abs() < 1e-12);
         assert!(attitude_prior(&last, &[pair], 3_500_000_000, 2_000_000_000).is_empty());
     }

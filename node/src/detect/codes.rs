@@ -19,7 +19,6 @@ use super::DetectParams;
 use crate::mat::GrayView;
 use shoal_proto::marker::{rotate_code, CodeSet, MarkerId};
 
-
 /// The default correction budget never exceeds AprilTag 3's own default
 /// (`DEFAULT_BITS_CORRECTED`): each further bit multiplies the chance that a
 /// foreign pattern reads as a code (tag36h11's radius of 5 bits accepts ~1.5 %

@@ -19,7 +19,7 @@ use shoal_node::restore::Hoirm;
 use shoal_proto::geometry::Pose;
 use shoal_proto::{CameraModel, CodeSet};
 use shoal_sim_bridge::render::{Renderer, Scene};
-use shoal_sim_bridge::water::WaterPresets;
+use shoal_sim_bridge::water::{WaterParams, WaterPresets};
 use std::path::PathBuf;
 
 /// Which experiment's frames to render.
@@ -71,6 +71,37 @@ fn imwrite(path: &std::path::Path, m: &Mat) -> Result<(), EvalError> {
     }
     imgcodecs::imwrite(&path.display().to_string(), m, &Vector::new())?;
     Ok(())
+}
+
+/// The rendered raw frame, read from `cached` when it exists there, else
+/// rendered (and written to `cached` when given).
+fn raw_frame(
+    cached: Option<&std::path::Path>,
+    renderer: &mut Renderer,
+    cam: &CameraModel,
+    scene: &Scene,
+    water: &WaterParams,
+    time_s: f64,
+    noise_seed: u64,
+) -> Result<Mat, EvalError> {
+    let raw = match cached.filter(|p| p.exists()) {
+        Some(p) => imgcodecs::imread(&p.display().to_string(), imgcodecs::IMREAD_GRAYSCALE)?,
+        None => {
+            let out = renderer.render(cam, &Pose::identity(), scene, water, time_s, noise_seed)?;
+            let m = shoal_node::mat::gray_to_mat(&out.image)?;
+            if let Some(p) = cached {
+                imwrite(p, &m)?;
+            }
+            m
+        }
+    };
+    if raw.empty() {
+        return Err(EvalError::Setup(format!(
+            "{}: not an image",
+            cached.map_or(String::new(), |p| p.display().to_string())
+        )));
+    }
+    Ok(raw)
 }
 
 pub fn run(a: &HoirmArgs) -> Result<(), EvalError> {
@@ -127,34 +158,16 @@ pub fn run(a: &HoirmArgs) -> Result<(), EvalError> {
                 .frame_cache
                 .as_ref()
                 .map(|d| d.join(format!("{tag}_c{c:.2}_{k:03}.png")));
-            let raw = match cached.as_ref().filter(|p| p.exists()) {
-                Some(p) => {
-                    imgcodecs::imread(&p.display().to_string(), imgcodecs::IMREAD_GRAYSCALE)?
-                }
-                None => {
-                    let scene =
-                        Scene::single_marker(CodeSet::Shoal, MARKER_ID, MARKER_SIDE_M, truth);
-                    let out = renderer.render(
-                        &cam,
-                        &Pose::identity(),
-                        &scene,
-                        &water,
-                        time_s,
-                        noise_seed,
-                    )?;
-                    let m = shoal_node::mat::gray_to_mat(&out.image)?;
-                    if let Some(p) = &cached {
-                        imwrite(p, &m)?;
-                    }
-                    m
-                }
-            };
-            if raw.empty() {
-                return Err(EvalError::Setup(format!(
-                    "{}: not an image",
-                    cached.map_or(String::new(), |p| p.display().to_string())
-                )));
-            }
+            let scene = Scene::single_marker(CodeSet::Shoal, MARKER_ID, MARKER_SIDE_M, truth);
+            let raw = raw_frame(
+                cached.as_deref(),
+                &mut renderer,
+                &cam,
+                &scene,
+                &water,
+                time_s,
+                noise_seed,
+            )?;
             let (r, fp) = hoirm.restore_with_params(&raw, (time_s * 1e9) as u64)?;
             if let (Some(d), true) = (&a.save, k == a.save_frame) {
                 imwrite(&d.join(format!("{tag}_c{c:.2}_hoirm.png")), &r.image)?;

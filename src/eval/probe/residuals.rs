@@ -11,7 +11,7 @@
 use super::{median, water};
 use crate::eval::EvalError;
 use rand::{Rng, SeedableRng};
-use shoal_node::detect::{DetectParams, FitPattern, Refinement, ShoalDetector};
+use shoal_node::detect::{DetectParams, Detection, FitPattern, Refinement, ShoalDetector};
 use shoal_node::pose::estimate_pose;
 use shoal_node::restore::{restorer, Method, RestoreParams};
 use shoal_proto::{camera::CameraModel, geometry::Pose, marker::CodeSet};
@@ -82,6 +82,63 @@ struct Stats {
     ms: f64,
 }
 
+impl Stats {
+    /// Add detection `d` of frame `k`: corner residuals against `true_px`,
+    /// and the pose error against `truth` from the corners of `a.squares`.
+    fn add(
+        &mut self,
+        a: &ResidualsArgs,
+        k: usize,
+        cam: &CameraModel,
+        d: &Detection,
+        true_px: &[Option<[f64; 2]>],
+        truth: &Pose,
+    ) {
+        let mut line = Vec::new();
+        for (i, &cid) in d.corner_ids.iter().enumerate() {
+            let Some(t) = true_px.get(cid as usize).copied().flatten() else {
+                continue;
+            };
+            let e = [d.corners_px[i][0] - t[0], d.corners_px[i][1] - t[1]];
+            line.push(format!("{cid}:({:+.3}, {:+.3})", e[0], e[1]));
+            let s = &mut self.corner[cid as usize % 12];
+            for ax in 0..2 {
+                s.0[ax] += e[ax];
+                s.1[ax] += e[ax] * e[ax];
+            }
+            s.2 += 1;
+        }
+        if a.per_frame {
+            println!("{} frame {k} errors (px) {}", self.label, line.join(" "));
+        }
+        let keep: Vec<bool> = d
+            .corner_ids
+            .iter()
+            .map(|c| a.squares.is_empty() || a.squares.contains(&(c / 4)))
+            .collect();
+        let obj: Vec<_> = d
+            .object_points(SIDE_M)
+            .into_iter()
+            .zip(&keep)
+            .filter_map(|(p, &k)| k.then_some(p))
+            .collect();
+        let img: Vec<[f64; 2]> = d
+            .corners_px
+            .iter()
+            .zip(&keep)
+            .filter_map(|(p, &k)| k.then_some(*p))
+            .collect();
+        match estimate_pose(cam, &obj, &img, None) {
+            Ok(sol) => {
+                let (dd, aa) = errors(&sol.best.camera_from_marker, truth);
+                self.dist.push(dd);
+                self.ang.push(aa);
+            }
+            Err(_) => self.missed += 1,
+        }
+    }
+}
+
 fn errors(est: &Pose, truth: &Pose) -> (f64, f64) {
     let d = (est.translation.vector - truth.translation.vector).norm() * 1e3;
     let a = (est.rotation * truth.rotation.inverse())
@@ -90,26 +147,10 @@ fn errors(est: &Pose, truth: &Pose) -> (f64, f64) {
     (d, a)
 }
 
-pub fn run(a: &ResidualsArgs) -> Result<(), EvalError> {
-    let method: Method = a.restore.parse()?;
-    let codes: CodeSet = a
-        .codes
-        .parse()
-        .map_err(|e| EvalError::Setup(format!("--codes: {e}")))?;
-    let cam = CameraModel::vehicle_1440();
-    let mut water = water(a.water.as_deref(), a.c)?;
-    if a.noiseless {
-        water = water.noiseless();
-    }
-    for part in &a.water_off {
-        match part {
-            WaterPart::Vignetting => water.vignetting = 0.0,
-            WaterPart::ForwardScatter => water.forward_scatter = 0.0,
-            WaterPart::Backscatter => water.backscatter_inf = 0.0,
-        }
-    }
+/// The detector variants compared, by label (`-raw`: corners fitted on the raw frame).
+fn variants() -> Vec<(&'static str, DetectParams)> {
     let lens = Some(CameraModel::vehicle_1440());
-    let variants: Vec<(&'static str, DetectParams)> = vec![
+    vec![
         ("edge-model", DetectParams::default()),
         (
             "edge-model-raw",
@@ -147,7 +188,66 @@ pub fn run(a: &ResidualsArgs) -> Result<(), EvalError> {
                 ..DetectParams::default()
             },
         ),
-    ];
+    ]
+}
+
+/// Print each variant's pose errors and per-corner bias and spread.
+fn report(a: &ResidualsArgs, method: Method, codes: CodeSet, stats: &mut [Stats]) {
+    println!(
+        "water {} /m, {} frames, {method}{}, {codes} at {} m, yaw {}°",
+        a.c,
+        a.frames,
+        if a.noiseless { ", noiseless" } else { "" },
+        a.distance_m,
+        a.yaw_deg
+    );
+    for st in stats.iter_mut() {
+        println!(
+            "{:>18}: median dist {:.3} mm, angle {:.4} deg, missed {}, flips (> 3°) {}, detect {:.1} ms/frame",
+            st.label,
+            median(&mut st.dist),
+            median(&mut st.ang),
+            st.missed,
+            st.ang.iter().filter(|&&a| a > 3.0).count(),
+            st.ms / a.frames.max(1) as f64
+        );
+        for (cid, (s, s2, n)) in st.corner.iter().enumerate() {
+            if *n == 0 {
+                continue;
+            }
+            let nf = *n as f64;
+            let mean = [s[0] / nf, s[1] / nf];
+            let sd = [
+                (s2[0] / nf - mean[0] * mean[0]).max(0.0).sqrt(),
+                (s2[1] / nf - mean[1] * mean[1]).max(0.0).sqrt(),
+            ];
+            println!(
+                "    corner {cid:2}: n {n:3} bias ({:+.3}, {:+.3}) px  sd ({:.3}, {:.3}) px",
+                mean[0], mean[1], sd[0], sd[1]
+            );
+        }
+    }
+}
+
+pub fn run(a: &ResidualsArgs) -> Result<(), EvalError> {
+    let method: Method = a.restore.parse()?;
+    let codes: CodeSet = a
+        .codes
+        .parse()
+        .map_err(|e| EvalError::Setup(format!("--codes: {e}")))?;
+    let cam = CameraModel::vehicle_1440();
+    let mut water = water(a.water.as_deref(), a.c)?;
+    if a.noiseless {
+        water = water.noiseless();
+    }
+    for part in &a.water_off {
+        match part {
+            WaterPart::Vignetting => water.vignetting = 0.0,
+            WaterPart::ForwardScatter => water.forward_scatter = 0.0,
+            WaterPart::Backscatter => water.backscatter_inf = 0.0,
+        }
+    }
+    let variants = variants();
     let mut dets: Vec<ShoalDetector> = variants
         .iter()
         .map(|(_, p)| ShoalDetector::new(codes, p.clone()))
@@ -212,83 +312,9 @@ pub fn run(a: &ResidualsArgs) -> Result<(), EvalError> {
                 st.missed += 1;
                 continue;
             };
-            let mut line = Vec::new();
-            for (i, &cid) in d.corner_ids.iter().enumerate() {
-                let Some(t) = true_px.get(cid as usize).copied().flatten() else {
-                    continue;
-                };
-                let e = [d.corners_px[i][0] - t[0], d.corners_px[i][1] - t[1]];
-                line.push(format!("{cid}:({:+.3}, {:+.3})", e[0], e[1]));
-                let s = &mut st.corner[cid as usize % 12];
-                for ax in 0..2 {
-                    s.0[ax] += e[ax];
-                    s.1[ax] += e[ax] * e[ax];
-                }
-                s.2 += 1;
-            }
-            if a.per_frame {
-                println!("{} frame {k} errors (px) {}", st.label, line.join(" "));
-            }
-            let keep: Vec<bool> = d
-                .corner_ids
-                .iter()
-                .map(|c| a.squares.is_empty() || a.squares.contains(&(c / 4)))
-                .collect();
-            let obj: Vec<_> = d
-                .object_points(SIDE_M)
-                .into_iter()
-                .zip(&keep)
-                .filter_map(|(p, &k)| k.then_some(p))
-                .collect();
-            let img: Vec<[f64; 2]> = d
-                .corners_px
-                .iter()
-                .zip(&keep)
-                .filter_map(|(p, &k)| k.then_some(*p))
-                .collect();
-            match estimate_pose(&cam, &obj, &img, None) {
-                Ok(sol) => {
-                    let (dd, aa) = errors(&sol.best.camera_from_marker, &truth);
-                    st.dist.push(dd);
-                    st.ang.push(aa);
-                }
-                Err(_) => st.missed += 1,
-            }
+            st.add(a, k, &cam, d, &true_px, &truth);
         }
     }
-    println!(
-        "water {} /m, {} frames, {method}{}, {codes} at {} m, yaw {}°",
-        a.c,
-        a.frames,
-        if a.noiseless { ", noiseless" } else { "" },
-        a.distance_m,
-        a.yaw_deg
-    );
-    for st in &mut stats {
-        println!(
-            "{:>18}: median dist {:.3} mm, angle {:.4} deg, missed {}, flips (> 3°) {}, detect {:.1} ms/frame",
-            st.label,
-            median(&mut st.dist),
-            median(&mut st.ang),
-            st.missed,
-            st.ang.iter().filter(|&&a| a > 3.0).count(),
-            st.ms / a.frames.max(1) as f64
-        );
-        for (cid, (s, s2, n)) in st.corner.iter().enumerate() {
-            if *n == 0 {
-                continue;
-            }
-            let nf = *n as f64;
-            let mean = [s[0] / nf, s[1] / nf];
-            let sd = [
-                (s2[0] / nf - mean[0] * mean[0]).max(0.0).sqrt(),
-                (s2[1] / nf - mean[1] * mean[1]).max(0.0).sqrt(),
-            ];
-            println!(
-                "    corner {cid:2}: n {n:3} bias ({:+.3}, {:+.3}) px  sd ({:.3}, {:.3}) px",
-                mean[0], mean[1], sd[0], sd[1]
-            );
-        }
-    }
+    report(a, method, codes, &mut stats);
     Ok(())
 }

@@ -1,0 +1,311 @@
+//! Scoring one split of a recording: what each method read of what the
+//! truth knows, its false reads, and the pose consistency the truth allows
+//! (pair distances and jitter, rotation between steps, corner errors).
+
+use super::manifest::{Manifest, Truth};
+use crate::eval::table::{median, quantile};
+use shoal_proto::geometry::Pose;
+use std::collections::{BTreeMap, BTreeSet};
+
+/// A reference corner farther than this fraction of the marker's side from
+/// the detected one means the detection is somewhere else: a false read.
+const MISPLACED_FRACTION: f64 = 0.25;
+
+/// One marker a method read in one frame.
+#[derive(Debug, Clone)]
+pub(super) struct Read {
+    pub(super) id: u32,
+    /// The outer square's corners (corner IDs 0..4), in corner-ID order.
+    pub(super) outer_px: Vec<[f64; 2]>,
+    pub(super) camera_from_marker: Option<Pose>,
+    /// PnP's other planar hypothesis (the flip), when it has one.
+    pub(super) alternative: Option<Pose>,
+}
+
+/// What one method read over one split.
+#[derive(Debug, Default)]
+pub(super) struct MethodRun {
+    /// Per frame: (frame index, frame name, reads).
+    pub(super) frames: Vec<(usize, String, Vec<Read>)>,
+    pub(super) detect_ms: Vec<f64>,
+}
+
+/// The IDs the truth knows.
+fn known_ids(truth: &Truth) -> BTreeSet<u32> {
+    match truth {
+        Truth::Layout { centres_m } => centres_m.keys().copied().collect(),
+        Truth::Corners { images } => images.values().flatten().map(|t| t.id).collect(),
+        Truth::RotationSteps { id, .. } => [*id].into(),
+    }
+}
+
+/// Mean distance of each reference corner to the nearest detected one, px.
+fn corner_error(reference: &[[f64; 2]; 4], found: &[[f64; 2]]) -> Option<f64> {
+    if found.is_empty() {
+        return None;
+    }
+    let mut sum = 0.0;
+    for r in reference {
+        let d = found
+            .iter()
+            .map(|f| ((f[0] - r[0]).powi(2) + (f[1] - r[1]).powi(2)).sqrt())
+            .fold(f64::INFINITY, f64::min);
+        sum += d;
+    }
+    Some(sum / 4.0)
+}
+
+fn side_px(corners: &[[f64; 2]; 4]) -> f64 {
+    (0..4)
+        .map(|k| {
+            let (a, b) = (corners[k], corners[(k + 1) % 4]);
+            ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)).sqrt()
+        })
+        .sum::<f64>()
+        / 4.0
+}
+
+/// The figures of one method on one split.
+#[derive(Debug, Default, Clone, serde::Serialize)]
+pub(super) struct Scores {
+    pub(super) frames: usize,
+    pub(super) present: usize,
+    pub(super) read: usize,
+    pub(super) recall: Option<f64>,
+    pub(super) false_reads: usize,
+    /// Reads of a known ID that no other detector family confirmed.
+    pub(super) unconfirmed: usize,
+    pub(super) corner_err_px_median: Option<f64>,
+    pub(super) pairs: usize,
+    pub(super) distance_ratio_median: Option<f64>,
+    pub(super) distance_ratio_iqr: Option<f64>,
+    pub(super) jitter_mm_median: Option<f64>,
+    /// Jitter over the (frame, pair)s every method read.
+    pub(super) jitter_mm_median_common: Option<f64>,
+    pub(super) rotation_err_deg_median: Option<f64>,
+    /// The same with each image's planar flip chosen to agree best.
+    pub(super) rotation_err_deg_median_flip_resolved: Option<f64>,
+    pub(super) detect_ms_mean: Option<f64>,
+}
+
+/// Reads of known markers by `(frame, key)`, false reads, corner errors (px).
+type Tally = (BTreeSet<(usize, u32)>, usize, Vec<f64>);
+
+/// What one method read of what the truth knows: `(frame, key)` where the
+/// key is the marker ID, or with [`Truth::Corners`] the reference marker's
+/// index in its image's list; the false reads; the corner errors (px).
+fn tally(m: &Manifest, run: &MethodRun) -> Tally {
+    let known = known_ids(&m.truth);
+    let mut good = BTreeSet::new();
+    let mut false_reads = 0;
+    let mut corner_errs = Vec::new();
+    for (idx, name, reads) in &run.frames {
+        if let Truth::Corners { images } = &m.truth {
+            let refs = images.get(name).map_or(&[][..], Vec::as_slice);
+            for r in reads {
+                // The nearest reference of that ID not taken yet, if close enough.
+                let best = refs
+                    .iter()
+                    .enumerate()
+                    .filter(|(k, t)| t.id == r.id && !good.contains(&(*idx, *k as u32)))
+                    .filter_map(|(k, t)| corner_error(&t.corners, &r.outer_px).map(|e| (k, t, e)))
+                    .min_by(|a, b| a.2.total_cmp(&b.2));
+                match best {
+                    Some((k, t, e)) if e < MISPLACED_FRACTION * side_px(&t.corners) => {
+                        if !t.hand_checked {
+                            corner_errs.push(e);
+                        }
+                        good.insert((*idx, k as u32));
+                    }
+                    _ => false_reads += 1,
+                }
+            }
+        } else {
+            for r in reads.iter().filter(|r| !m.unlisted_ids.contains(&r.id)) {
+                if known.contains(&r.id) {
+                    good.insert((*idx, r.id));
+                } else {
+                    false_reads += 1;
+                }
+            }
+        }
+    }
+    (good, false_reads, corner_errs)
+}
+
+/// Pair distances per (frame, pair) for a layout truth: (measured, known), metres.
+fn pair_distances(
+    centres: &BTreeMap<u32, [f64; 3]>,
+    run: &MethodRun,
+) -> BTreeMap<(usize, u32, u32), (f64, f64)> {
+    let mut out = BTreeMap::new();
+    for (idx, _, reads) in &run.frames {
+        let posed: Vec<(u32, Pose)> = reads
+            .iter()
+            .filter(|r| centres.contains_key(&r.id))
+            .filter_map(|r| r.camera_from_marker.map(|p| (r.id, p)))
+            .collect();
+        for (i, (a, pa)) in posed.iter().enumerate() {
+            for (b, pb) in &posed[i + 1..] {
+                let (a, b, pa, pb) = if a < b {
+                    (*a, *b, pa, pb)
+                } else {
+                    (*b, *a, pb, pa)
+                };
+                let measured = (pa.translation.vector - pb.translation.vector).norm();
+                let (ca, cb) = (centres[&a], centres[&b]);
+                let known =
+                    ((ca[0] - cb[0]).powi(2) + (ca[1] - cb[1]).powi(2) + (ca[2] - cb[2]).powi(2))
+                        .sqrt();
+                out.insert((*idx, a, b), (measured, known));
+            }
+        }
+    }
+    out
+}
+
+/// Median |change| of each pair's distance between consecutive frames, mm,
+/// over the (frame, pair)s in `keep` (all when `None`).
+fn jitter_mm(
+    d: &BTreeMap<(usize, u32, u32), (f64, f64)>,
+    keep: Option<&BTreeSet<(usize, u32, u32)>>,
+) -> Option<f64> {
+    let mut steps = Vec::new();
+    for (&(idx, a, b), &(measured, _)) in d {
+        if idx == 0 || keep.is_some_and(|k| !k.contains(&(idx, a, b))) {
+            continue;
+        }
+        if let Some(&(prev, _)) = d.get(&(idx - 1, a, b)) {
+            if keep.is_none_or(|k| k.contains(&(idx - 1, a, b))) {
+                steps.push((measured - prev).abs() * 1e3);
+            }
+        }
+    }
+    median(&steps)
+}
+
+/// |measured − nominal| rotation between consecutive steps, degrees: with
+/// PnP's best hypothesis of each image, or (`resolve_flips`) with whichever
+/// of each image's two planar hypotheses agrees best — the detector-bound
+/// error, since a flip is resolved downstream by other observations.
+fn rotation_errors(
+    id: u32,
+    angle_deg: &BTreeMap<String, f64>,
+    run: &MethodRun,
+    resolve_flips: bool,
+) -> Vec<f64> {
+    let mut steps: Vec<(f64, Vec<Pose>)> = run
+        .frames
+        .iter()
+        .filter_map(|(_, name, reads)| {
+            let angle = *angle_deg.get(name)?;
+            let read = reads.iter().find(|r| r.id == id)?;
+            let mut poses = vec![read.camera_from_marker?];
+            if resolve_flips {
+                poses.extend(read.alternative);
+            }
+            Some((angle, poses))
+        })
+        .collect();
+    steps.sort_by(|a, b| a.0.total_cmp(&b.0));
+    steps
+        .windows(2)
+        .map(|w| {
+            let nominal = (w[1].0 - w[0].0).abs();
+            w[0].1
+                .iter()
+                .flat_map(|a| w[1].1.iter().map(move |b| (a, b)))
+                .map(|(a, b)| {
+                    ((a.rotation.inverse() * b.rotation).angle().to_degrees() - nominal).abs()
+                })
+                .fold(f64::INFINITY, f64::min)
+        })
+        .collect()
+}
+
+/// The detector family of a method (`shoal+hoirm` → `shoal`, `apriltag3-d1` → `apriltag3`).
+fn family(method: &str) -> &str {
+    method.split(['+', '-']).next().unwrap_or(method)
+}
+
+/// The (frame, ID)s read by at least two detector families (by one when
+/// only two families run): a weak code family's false positives that happen
+/// to carry a listed ID are not taken for present markers.
+fn confirmed(tallies: &BTreeMap<&String, Tally>) -> BTreeSet<(usize, u32)> {
+    let mut by: BTreeMap<(usize, u32), BTreeSet<&str>> = BTreeMap::new();
+    for (method, (good, _, _)) in tallies {
+        for key in good {
+            by.entry(*key).or_default().insert(family(method));
+        }
+    }
+    let families: BTreeSet<&str> = tallies.keys().map(|m| family(m)).collect();
+    let need = if families.len() >= 3 { 2 } else { 1 };
+    by.into_iter()
+        .filter(|(_, f)| f.len() >= need)
+        .map(|(k, _)| k)
+        .collect()
+}
+
+pub(super) fn scores(m: &Manifest, runs: &BTreeMap<String, MethodRun>) -> BTreeMap<String, Scores> {
+    let tallies: BTreeMap<&String, _> = runs.iter().map(|(k, r)| (k, tally(m, r))).collect();
+    let present: BTreeSet<(usize, u32)> = match &m.truth {
+        Truth::Corners { images } => {
+            let frames: BTreeMap<&str, usize> = runs
+                .values()
+                .flat_map(|r| r.frames.iter().map(|(i, n, _)| (n.as_str(), *i)))
+                .collect();
+            images
+                .iter()
+                .filter_map(|(name, tags)| frames.get(name.as_str()).map(|i| (*i, tags.len())))
+                .flat_map(|(i, n)| (0..n as u32).map(move |k| (i, k)))
+                .collect()
+        }
+        _ => confirmed(&tallies),
+    };
+    let distances: BTreeMap<&String, _> = match &m.truth {
+        Truth::Layout { centres_m } => runs
+            .iter()
+            .map(|(k, r)| (k, pair_distances(centres_m, r)))
+            .collect(),
+        _ => BTreeMap::new(),
+    };
+    let common: Option<BTreeSet<(usize, u32, u32)>> = distances
+        .values()
+        .map(|d| d.keys().copied().collect::<BTreeSet<_>>())
+        .reduce(|a, b| a.intersection(&b).copied().collect());
+    runs.iter()
+        .map(|(name, run)| {
+            let (good, false_reads, corner_errs) = &tallies[name];
+            let mut s = Scores {
+                frames: run.frames.len(),
+                present: present.len(),
+                read: good.intersection(&present).count(),
+                unconfirmed: good.difference(&present).count(),
+                false_reads: *false_reads,
+                corner_err_px_median: median(corner_errs),
+                detect_ms_mean: (!run.detect_ms.is_empty())
+                    .then(|| run.detect_ms.iter().sum::<f64>() / run.detect_ms.len() as f64),
+                ..Scores::default()
+            };
+            s.recall = (s.present > 0).then(|| s.read as f64 / s.present as f64);
+            if let Some(d) = distances.get(name) {
+                let ratios: Vec<f64> = d.values().map(|(me, kn)| me / kn).collect();
+                s.pairs = ratios.len();
+                s.distance_ratio_median = median(&ratios);
+                s.distance_ratio_iqr = quantile(&ratios, 0.75)
+                    .zip(quantile(&ratios, 0.25))
+                    .map(|(a, b)| a - b);
+                if m.video.is_some() {
+                    s.jitter_mm_median = jitter_mm(d, None);
+                    s.jitter_mm_median_common = jitter_mm(d, common.as_ref());
+                }
+            }
+            if let Truth::RotationSteps { id, angle_deg } = &m.truth {
+                s.rotation_err_deg_median = median(&rotation_errors(*id, angle_deg, run, false));
+                s.rotation_err_deg_median_flip_resolved =
+                    median(&rotation_errors(*id, angle_deg, run, true));
+            }
+            (name.clone(), s)
+        })
+        .collect()
+}
