@@ -19,7 +19,7 @@ use shoal_bus::{client_of, free_port, Bus, Connect, Publisher, Subscription};
 use shoal_fusion::FusionParams;
 use shoal_node::pipeline::PipelineParams;
 use shoal_proto::clock::ManualClock;
-use shoal_proto::codec::{encode, HEADER_LEN, MAX_PAYLOAD};
+use shoal_proto::codec::{encode, HEADER_LEN, MAX_PAYLOAD, SCHEMA_VERSION};
 use shoal_proto::config::Fleet;
 use shoal_proto::messages::*;
 use shoal_proto::Cov6;
@@ -63,7 +63,7 @@ fn broken_observation_envelopes(valid: &Observation) -> Vec<(&'static str, Vec<u
             "payload cut, length fixed",
             {
                 let cut = &good[..good.len() - 40];
-                with_header(cut, 1, 1, n - 40)
+                with_header(cut, SCHEMA_VERSION, 1, n - 40)
             },
             "malformed",
         ),
@@ -78,17 +78,17 @@ fn broken_observation_envelopes(valid: &Observation) -> Vec<(&'static str, Vec<u
         ),
         (
             "wrong version",
-            with_header(&good, 2, 1, n),
-            "schema version 2",
+            with_header(&good, SCHEMA_VERSION + 1, 1, n),
+            "from peer, this build speaks",
         ),
         (
             "unknown kind",
-            with_header(&good, 1, 77, n),
+            with_header(&good, SCHEMA_VERSION, 77, n),
             "unknown message kind 77",
         ),
         (
             "oversized length",
-            with_header(&good, 1, 1, (MAX_PAYLOAD + 1) as u32),
+            with_header(&good, SCHEMA_VERSION, 1, (MAX_PAYLOAD + 1) as u32),
             "exceeds",
         ),
         (
@@ -96,7 +96,7 @@ fn broken_observation_envelopes(valid: &Observation) -> Vec<(&'static str, Vec<u
             {
                 let mut b = good.clone();
                 b.extend_from_slice(&[0; 16]);
-                with_header(&b, 1, 1, n + 16)
+                with_header(&b, SCHEMA_VERSION, 1, n + 16)
             },
             "trailing",
         ),
@@ -487,8 +487,8 @@ fn node_counts_every_hostile_frame_and_keeps_processing() {
     nan_mount.info.body_from_camera.translation.vector.y = f64::NAN;
     let undecodable: Vec<Vec<u8>> = vec![
         good[..100].to_vec(),
-        with_header(&good, 3, 3, n),
-        with_header(&good[..HEADER_LEN + 10], 1, 3, u32::MAX),
+        with_header(&good, SCHEMA_VERSION + 1, 3, n),
+        with_header(&good[..HEADER_LEN + 10], SCHEMA_VERSION, 3, u32::MAX),
         encode(&short_data).unwrap(),
         encode(&zero_size).unwrap(),
         encode(&nan_mount).unwrap(),

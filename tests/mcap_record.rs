@@ -355,7 +355,10 @@ fn python_mcap_reader_validates_crcs_and_foxglove_schemas() {
         report["wire_channels"][keys.map()]["schema"],
         "shoal.FleetMap"
     );
-    assert_eq!(report["wire_channels"][keys.map()]["schema_version"], "1");
+    assert_eq!(
+        report["wire_channels"][keys.map()]["schema_version"],
+        shoal_proto::codec::SCHEMA_VERSION.to_string()
+    );
     assert_eq!(report["metadata"]["shoal"]["fleet"], "paper");
     assert_eq!(report["metadata"]["shoal"]["water_c_per_m"], "0.5");
     assert!(report["attachments"]

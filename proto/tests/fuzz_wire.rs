@@ -11,7 +11,9 @@
 
 use proptest::prelude::*;
 use proptest::test_runner::Config as ProptestConfig;
-use shoal_proto::codec::{decode, encode, peek_header, DecodeError, HEADER_LEN, MAX_PAYLOAD};
+use shoal_proto::codec::{
+    decode, encode, peek_header, DecodeError, HEADER_LEN, MAX_PAYLOAD, SCHEMA_VERSION,
+};
 use shoal_proto::messages::*;
 use shoal_proto::samples::*;
 
@@ -78,14 +80,14 @@ fn every_sample_is_accepted_by_exactly_its_own_kind() {
 
 #[test]
 fn oversized_declared_length_is_refused_before_reading_the_payload() {
-    let b = with_header(1, 1, (MAX_PAYLOAD + 1) as u32, &[0; 16]);
+    let b = with_header(SCHEMA_VERSION, 1, (MAX_PAYLOAD + 1) as u32, &[0; 16]);
     assert_eq!(
         decode::<Observation>(&b),
         Err(DecodeError::Oversized {
             len: MAX_PAYLOAD + 1
         })
     );
-    let b = with_header(1, 3, u32::MAX, &[]);
+    let b = with_header(SCHEMA_VERSION, 3, u32::MAX, &[]);
     assert!(matches!(
         decode::<CameraFrame>(&b),
         Err(DecodeError::Oversized { .. })
@@ -118,7 +120,7 @@ proptest! {
         kind in 1u16..=6,
         payload in proptest::collection::vec(any::<u8>(), 0..2048),
     ) {
-        let b = with_header(1, kind, payload.len() as u32, &payload);
+        let b = with_header(SCHEMA_VERSION, kind, payload.len() as u32, &payload);
         prop_assert!(decode_as_every_kind(&b) <= 1);
     }
 
@@ -161,12 +163,12 @@ proptest! {
         let accepted = decode_as_every_kind(&b);
         match peek_header(&b) {
             Ok(h) => {
-                prop_assert_eq!(h.version, 1);
+                prop_assert_eq!(h.version, SCHEMA_VERSION);
                 prop_assert_eq!(h.payload_len, payload.len());
                 prop_assert!(accepted <= 1);
             }
             Err(DecodeError::VersionMismatch { found }) => {
-                prop_assert_ne!(found, 1);
+                prop_assert_ne!(found, SCHEMA_VERSION);
                 prop_assert_eq!(accepted, 0);
             }
             Err(DecodeError::UnknownKind { found }) => {
