@@ -15,6 +15,7 @@
 use super::corners::FittedSquare;
 use super::geom::{apply, dist, homography_4, mean_side, Px};
 use super::quads::Quad;
+use super::refine::{refine_by_edge_lines_coarse, Polarity};
 use super::DetectParams;
 use crate::mat::GrayView;
 use shoal_proto::marker::{rotate_code, CodeSet, MarkerId};
@@ -145,13 +146,16 @@ impl CodeReader {
 
     /// The code inside `quad` taken as the code square, or `None` when it
     /// reads no code of the table within the correction budget.
+    ///
+    /// The square's true edge lies `inset_px` outside the traced polygon; on
+    /// small markers that is a third of a module, enough to misread bits. A
+    /// square that reads no code there is read once more on its edges
+    /// located in the image (the coarse edge lines of [`super::refine`]):
+    /// at 1.5–2 px per module, or on a contour merged with a neighbouring
+    /// shadow, the polygon's corners are off by more than half a module
+    /// (AprilTag 3 refines every quad's edges before decoding for the same
+    /// reason).
     fn read(&self, view: &GrayView<'_>, quad: &Quad) -> Option<Code> {
-        let n = self.codes.data_side();
-        let m = n + 2; // code square: black border + data
-        let ms = m as f64;
-        let cells = [[0.0, 0.0], [ms, 0.0], [ms, ms], [0.0, ms]];
-        // The square's true edge lies `inset_px` outside the traced polygon;
-        // on small markers that is a third of a module, enough to misread bits.
         let side = mean_side(&quad.pts);
         let grow = (side + 2.0 * quad.inset_px) / side;
         let centre = [
@@ -164,8 +168,31 @@ impl CodeReader {
                 centre[1] + grow * (p[1] - centre[1]),
             ]
         });
-        let hmat = homography_4(&cells, &outer)?;
-        let module_px = mean_side(&outer) / ms;
+        let (hamming, id, k) = self.read_square(view, &outer).or_else(|| {
+            let module_px = mean_side(&outer) / (self.codes.data_side() + 2) as f64;
+            let edges = refine_by_edge_lines_coarse(view, &outer, module_px, Polarity::DarkInside)?;
+            self.read_square(view, &edges)
+        })?;
+        // Seen rotated clockwise k times: the upright corner i sits at quad corner (i + k) mod 4.
+        let upright = std::array::from_fn(|i| quad.pts[(i + k) % 4]);
+        Some(Code {
+            id,
+            hamming,
+            upright,
+        })
+    }
+
+    /// The code of the square whose outer corners are `outer` (clockwise on
+    /// screen): `(bits corrected, id, quarter turns)`. The modules are read
+    /// as sampled, and when that matches no code, once more sharpened
+    /// ([`SHARPENING`]).
+    fn read_square(&self, view: &GrayView<'_>, outer: &[Px; 4]) -> Option<(u32, MarkerId, usize)> {
+        let n = self.codes.data_side();
+        let m = n + 2; // code square: black border + data
+        let ms = m as f64;
+        let cells = [[0.0, 0.0], [ms, 0.0], [ms, ms], [0.0, ms]];
+        let hmat = homography_4(&cells, outer)?;
+        let module_px = mean_side(outer) / ms;
         // Sub-samples per module side: more for big modules, at most 4x4.
         let s = (module_px / 3.0).clamp(1.0, 4.0) as usize;
         let cell_mean = |r: i32, c: i32| -> f64 {
@@ -196,20 +223,20 @@ impl CodeReader {
             })
             .collect();
         let thr = self.threshold(&border, &outside)?;
-        let mut bits = 0u64;
-        for r in 0..n {
-            for c in 0..n {
-                bits = (bits << 1) | u64::from(cell_mean(r as i32 + 1, c as i32 + 1) > thr);
-            }
-        }
-        let (hamming, id, k) = self.best_match(bits)?;
-        // Seen rotated clockwise k times: the upright corner i sits at quad corner (i + k) mod 4.
-        let upright = std::array::from_fn(|i| quad.pts[(i + k) % 4]);
-        Some(Code {
-            id,
-            hamming,
-            upright,
-        })
+        // The code square's modules (border and data), row by row.
+        let values: Vec<f64> = (0..mi)
+            .flat_map(|r| (0..mi).map(move |c| (r, c)))
+            .map(|(r, c)| cell_mean(r, c))
+            .collect();
+        self.best_match(data_bits(&values, m, |_, _| 0.0, thr))
+            .or_else(|| {
+                self.best_match(data_bits(
+                    &values,
+                    m,
+                    |r, c| laplacian(&values, m, r, c),
+                    thr,
+                ))
+            })
     }
 
     /// The grey level between black and white, from the border modules'
@@ -258,6 +285,41 @@ impl CodeReader {
         }
         Some((d, id, k))
     }
+}
+
+/// AprilTag 3's decode sharpening (`decode_sharpening`, 0.25): each
+/// module's value plus this times the module grid's Laplacian. At 1.5–2 px
+/// per module the optics and the pixel area mix every module with its
+/// neighbours; the Laplacian on the module grid undoes that first-order
+/// blur.
+const SHARPENING: f64 = 0.25;
+
+/// `SHARPENING` × the 4-neighbour Laplacian of `values` (an `m`×`m` module
+/// grid) at module (`r`, `c`); neighbours outside the grid are left out.
+fn laplacian(values: &[f64], m: usize, r: usize, c: usize) -> f64 {
+    let v = values[r * m + c];
+    let mut lap = 0.0;
+    for (dr, dc) in [(-1i32, 0i32), (1, 0), (0, -1), (0, 1)] {
+        let (rr, cc) = (r as i32 + dr, c as i32 + dc);
+        if rr >= 0 && cc >= 0 && (rr as usize) < m && (cc as usize) < m {
+            lap += v - values[rr as usize * m + cc as usize];
+        }
+    }
+    SHARPENING * lap
+}
+
+/// The data bits (inside the one-module border) of an `m`×`m` module grid,
+/// row by row: a module is white (1) when its value plus `adjust(r, c)` is
+/// above `thr`.
+fn data_bits(values: &[f64], m: usize, adjust: impl Fn(usize, usize) -> f64, thr: f64) -> u64 {
+    let mut bits = 0u64;
+    for r in 1..m - 1 {
+        for c in 1..m - 1 {
+            let v = values[r * m + c] + adjust(r, c);
+            bits = (bits << 1) | u64::from(v > thr);
+        }
+    }
+    bits
 }
 
 /// The module cells (row, column) of the ring `k` modules outside the

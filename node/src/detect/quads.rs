@@ -148,7 +148,11 @@ fn contour_quad(
     }) {
         return Ok(None);
     }
-    if min_side(&q) < min_side_lvl {
+    // The polygon traces the centres of the region's boundary pixels, half a
+    // pixel inside the square's edge at each end: the square's side is one
+    // level pixel longer than the traced one (a steeply tilted small tag's
+    // short side sits right at the limit).
+    if min_side(&q) + 1.0 < min_side_lvl {
         return Ok(None);
     }
     if signed_area2(&q) < 0.0 {
