@@ -238,6 +238,33 @@ mod tests {
     use super::*;
 
     #[test]
+    fn a_square_side_at_the_minimum_is_kept_though_its_contour_is_a_pixel_shorter() {
+        use opencv::core::{Rect, Scalar, CV_8UC1};
+        let params = DetectParams::default();
+        // A dark 9 x 16 px block (pixel columns 20..29): its contour runs
+        // through the centres of the edge pixels, 8 px apart.
+        let side = params.min_code_side_px as i32;
+        let mut img = Mat::new_rows_cols_with_default(64, 64, CV_8UC1, Scalar::all(200.0)).unwrap();
+        imgproc::rectangle(
+            &mut img,
+            Rect::new(20, 20, side, 16),
+            Scalar::all(40.0),
+            -1,
+            imgproc::LINE_8,
+            0,
+        )
+        .unwrap();
+        let quads = find_quads(&params, &img).unwrap();
+        assert!(
+            quads
+                .iter()
+                .any(|q| (min_side(&q.pts) - (side - 1) as f64).abs() < 0.5),
+            "no quad of traced side {} in {quads:?}",
+            side - 1
+        );
+    }
+
+    #[test]
     fn same_quad_ignores_the_starting_corner() {
         let a = [[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]];
         let b = [a[2], a[3], a[0], a[1]];
