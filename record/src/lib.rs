@@ -87,4 +87,6 @@ pub enum RecordError {
     AlreadyStopped,
     #[error("interrupted")]
     Interrupted,
+    #[error("solve rate {rate_hz} Hz: expected a finite rate above 0 and at most 1e9 Hz (one solve per nanosecond of the log's clock)")]
+    SolveRate { rate_hz: f64 },
 }

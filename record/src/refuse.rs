@@ -28,6 +28,21 @@ pub enum SolveAt {
     RateHz(f64),
 }
 
+impl SolveAt {
+    /// The solve period in nanoseconds of the log's clock (`None` at the
+    /// original maps' stamps); a rate that is not finite, not above zero or
+    /// above 1 GHz (a period under one nanosecond) is refused.
+    pub fn period_ns(&self) -> Result<Option<u64>, RecordError> {
+        match *self {
+            SolveAt::OriginalMaps => Ok(None),
+            SolveAt::RateHz(rate_hz) if rate_hz.is_finite() && rate_hz > 0.0 && rate_hz <= 1e9 => {
+                Ok(Some((1e9 / rate_hz).round().max(1.0) as u64))
+            }
+            SolveAt::RateHz(rate_hz) => Err(RecordError::SolveRate { rate_hz }),
+        }
+    }
+}
+
 #[derive(Debug, Clone)]
 pub struct FuseOptions {
     pub params: FusionParams,
@@ -90,6 +105,7 @@ pub fn fleet_of(buf: &[u8], input: &Path) -> Result<Fleet, RecordError> {
 /// observations, truth, status and commands (raw and Foxglove), and the new
 /// map track in place of the old one.
 pub fn refuse(input: &Path, output: &Path, opts: &FuseOptions) -> Result<FuseSummary, RecordError> {
+    let solve_period_ns = opts.solve_at.period_ns()?;
     let buf = read_file(input)?;
     let fleet = match &opts.fleet {
         Some(f) => f.clone(),
@@ -174,8 +190,7 @@ pub fn refuse(input: &Path, output: &Path, opts: &FuseOptions) -> Result<FuseSum
             (Some(MessageKind::CameraFrame), _) => return Ok(()),
             _ => conv.write(&mut writer, key, data, log_time, &stats)?,
         }
-        if let SolveAt::RateHz(rate) = opts.solve_at {
-            let period = (1e9 / rate.max(1e-3)) as u64;
+        if let Some(period) = solve_period_ns {
             let due = *next_solve.get_or_insert(now + period);
             if now >= due {
                 let map = fusion.solve(now);
@@ -274,4 +289,28 @@ pub fn compare_maps(a: &FleetMap, b: &FleetMap) -> Option<BTreeMap<VehicleId, (f
         }
     }
     Some(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_solve_rate_that_gives_no_whole_nanosecond_period_is_refused() {
+        for bad in [0.0, -1.0, f64::NAN, f64::INFINITY, 1e10] {
+            assert!(
+                matches!(
+                    SolveAt::RateHz(bad).period_ns(),
+                    Err(RecordError::SolveRate { .. })
+                ),
+                "{bad} accepted"
+            );
+        }
+        assert_eq!(
+            SolveAt::RateHz(10.0).period_ns().unwrap(),
+            Some(100_000_000)
+        );
+        assert_eq!(SolveAt::RateHz(1e9).period_ns().unwrap(), Some(1));
+        assert_eq!(SolveAt::OriginalMaps.period_ns().unwrap(), None);
+    }
 }

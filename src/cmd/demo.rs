@@ -9,22 +9,22 @@ pub struct DemoArgs {
     #[arg(long)]
     fleet: Option<PathBuf>,
     /// Water attenuation coefficient, per metre (the paper's swarm trial: 0.5).
-    #[arg(long, default_value_t = 0.5)]
+    #[arg(long, default_value_t = 0.5, value_parser = super::args::non_negative)]
     water: f64,
     /// Simulated seconds to run.
-    #[arg(long, default_value_t = 20.0)]
+    #[arg(long, default_value_t = 20.0, value_parser = super::args::positive)]
     duration: f64,
     /// Camera frames per simulated second (each of the five cameras of each vehicle).
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = 1.0, value_parser = super::args::positive)]
     rate: f64,
     /// Simulated seconds per wall-clock second (below 1 lets rendering keep up on a small machine).
-    #[arg(long, default_value_t = 0.5)]
+    #[arg(long, default_value_t = 0.5, value_parser = super::args::positive)]
     time_scale: f64,
     /// Render only these cameras (comma-separated names, e.g. `port,starboard`).
     #[arg(long, value_delimiter = ',')]
     cameras: Option<Vec<String>>,
     /// Spacing between neighbours, metres.
-    #[arg(long, default_value_t = 1.75)]
+    #[arg(long, default_value_t = 1.75, value_parser = super::args::positive)]
     spacing: f64,
     #[arg(long, default_value_t = 7)]
     seed: u64,

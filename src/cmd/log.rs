@@ -23,22 +23,22 @@ pub struct RecordArgs {
     #[arg(long)]
     frames: bool,
     /// At most this many frames per second per camera (0: every frame).
-    #[arg(long, default_value_t = 2.0)]
+    #[arg(long, default_value_t = 2.0, value_parser = super::args::non_negative)]
     frame_rate: f64,
     /// At most this many Foxglove PNG images per second per camera (0: every recorded frame); PNG costs ~50 ms a frame.
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = 1.0, value_parser = super::args::non_negative)]
     image_rate: f64,
     /// Raw wire channels only, no Foxglove channels.
     #[arg(long)]
     no_foxglove: bool,
     /// Water attenuation coefficient of the trial, per metre (file metadata).
-    #[arg(long)]
+    #[arg(long, value_parser = super::args::non_negative)]
     water: Option<f64>,
     /// Close a chunk at least this often (milliseconds): a killed recorder loses at most this much.
     #[arg(long, default_value_t = 1000)]
     flush_ms: u64,
     /// Stop after this many seconds (default: Ctrl-C).
-    #[arg(long)]
+    #[arg(long, value_parser = super::args::positive)]
     duration: Option<f64>,
     #[command(flatten)]
     net: NetArgs,
@@ -96,10 +96,10 @@ pub struct ReplayArgs {
     #[arg(long, default_value = "1.0")]
     rate: String,
     /// Start this many seconds into the log.
-    #[arg(long)]
+    #[arg(long, value_parser = super::args::non_negative)]
     from: Option<f64>,
     /// Stop this many seconds into the log.
-    #[arg(long)]
+    #[arg(long, value_parser = super::args::non_negative)]
     to: Option<f64>,
     /// Only these message kinds (comma-separated: observation, map, frame, truth, status, command).
     #[arg(long, value_delimiter = ',')]
@@ -178,7 +178,7 @@ pub struct FuseArgs {
     #[arg(long)]
     out: PathBuf,
     /// Solve at this rate of the log's clock instead of at the original maps' stamps.
-    #[arg(long)]
+    #[arg(long, value_parser = super::args::positive)]
     rate: Option<f64>,
     /// Fleet file (default: the one attached to the log).
     #[arg(long)]

@@ -1,5 +1,6 @@
 //! One module per subcommand: argument types and a `run` that calls the libraries.
 
+pub mod args;
 pub mod config;
 pub mod demo;
 pub mod eval;

@@ -29,13 +29,13 @@ pub struct RelayArgs {
     #[arg(long, default_value_t = 0)]
     jitter_ms: u64,
     /// Probability per chunk of a TCP retransmission stall (a lost segment).
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 0.0, value_parser = super::args::probability)]
     loss: f64,
     /// Length of a retransmission stall, milliseconds.
     #[arg(long, default_value_t = 200)]
     stall_ms: u64,
     /// Cut the link every this many seconds (0: never) ...
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 0.0, value_parser = super::args::non_negative)]
     flap_period_s: f64,
     /// ... for this many milliseconds.
     #[arg(long, default_value_t = 500)]

@@ -39,19 +39,19 @@ pub struct NodeArgs {
     #[arg(long, default_value = "zenoh")]
     source: String,
     /// Pace of an `mcap:FILE` source: 1 = as recorded, 4 = four times faster.
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = 1.0, value_parser = super::args::positive)]
     replay_rate: f64,
     /// Which of the vehicle's cameras a non-Zenoh source is (index in the fleet file).
     #[arg(long, default_value_t = 0)]
     camera_index: u8,
     /// Frame rate for `images:DIR`.
-    #[arg(long, default_value_t = 10.0)]
+    #[arg(long, default_value_t = 10.0, value_parser = super::args::positive)]
     image_rate: f64,
     /// Restoration: none, clahe, dcp, udcp, hoirm.
     #[arg(long, default_value = "hoirm")]
     restore: String,
     /// Water attenuation coefficient (1/m) for restoration; default: estimated from the images.
-    #[arg(long)]
+    #[arg(long, value_parser = super::args::non_negative)]
     water: Option<f64>,
     #[command(flatten)]
     net: NetArgs,
@@ -150,7 +150,7 @@ pub struct FusionArgs {
     #[arg(long)]
     on_vehicle: Option<u32>,
     /// Maps per second.
-    #[arg(long, default_value_t = 5.0)]
+    #[arg(long, default_value_t = 5.0, value_parser = super::args::positive)]
     rate: f64,
     /// Time line: `wall` (live vehicles) or `sim` (follow the simulator's ground-truth clock).
     #[arg(long, default_value = "wall")]
@@ -223,7 +223,7 @@ pub struct SimRunArgs {
     #[arg(long, default_value = "configs/fleets/paper.toml")]
     fleet: PathBuf,
     /// Water attenuation coefficient, per metre (a preset of configs/water.toml).
-    #[arg(long, default_value_t = 0.5)]
+    #[arg(long, default_value_t = 0.5, value_parser = super::args::non_negative)]
     water: f64,
     /// Water presets file (default: the built-in copy of configs/water.toml).
     #[arg(long)]
@@ -231,13 +231,13 @@ pub struct SimRunArgs {
     /// Formation: line, column, v, circle.
     #[arg(long, default_value = "line")]
     formation: String,
-    #[arg(long, default_value_t = 1.75)]
+    #[arg(long, default_value_t = 1.75, value_parser = super::args::positive)]
     spacing: f64,
     /// Camera frames per second.
-    #[arg(long, default_value_t = 2.0)]
+    #[arg(long, default_value_t = 2.0, value_parser = super::args::positive)]
     rate: f64,
     /// Simulated seconds (default: until Ctrl-C).
-    #[arg(long)]
+    #[arg(long, value_parser = super::args::positive)]
     duration: Option<f64>,
     #[arg(long, default_value_t = 7)]
     seed: u64,
@@ -251,7 +251,7 @@ pub enum SimCmd {
     Render {
         #[arg(long, default_value = "configs/fleets/paper.toml")]
         fleet: PathBuf,
-        #[arg(long, default_value_t = 0.5)]
+        #[arg(long, default_value_t = 0.5, value_parser = super::args::non_negative)]
         water: f64,
         /// Observer vehicle (default: the fleet's reference vehicle).
         #[arg(long)]
@@ -261,7 +261,7 @@ pub enum SimCmd {
         camera: String,
         #[arg(long, default_value = "line")]
         formation: String,
-        #[arg(long, default_value_t = 1.75)]
+        #[arg(long, default_value_t = 1.75, value_parser = super::args::positive)]
         spacing: f64,
         #[arg(long, default_value_t = 7)]
         seed: u64,

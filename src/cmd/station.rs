@@ -26,7 +26,7 @@ pub struct StationArgs {
     #[arg(long, default_value = "127.0.0.1")]
     bind: IpAddr,
     /// Snapshots pushed to the page per second.
-    #[arg(long, default_value_t = 10.0)]
+    #[arg(long, default_value_t = 10.0, value_parser = super::args::positive)]
     rate: f64,
     #[command(flatten)]
     net: NetArgs,

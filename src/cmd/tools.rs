@@ -15,7 +15,7 @@ pub enum MarkerCmd {
         #[arg(long)]
         id: u32,
         /// Side of the outer black square, millimetres.
-        #[arg(long, default_value_t = 100.0)]
+        #[arg(long, default_value_t = 100.0, value_parser = super::args::positive)]
         size_mm: f64,
         /// Code set: shoal (the enhanced marker), aruco4x4_50, …, apriltag16h5, apriltag36h11.
         #[arg(long, default_value = "shoal")]
@@ -24,7 +24,7 @@ pub enum MarkerCmd {
         #[arg(long)]
         out: PathBuf,
         /// Resolution of a PNG.
-        #[arg(long, default_value_t = 300.0)]
+        #[arg(long, default_value_t = 300.0, value_parser = super::args::positive)]
         dpi: f64,
     },
 }
@@ -62,7 +62,7 @@ pub struct DetectArgs {
     #[arg(long)]
     camera: Option<PathBuf>,
     /// Marker side (outer black square), millimetres.
-    #[arg(long)]
+    #[arg(long, value_parser = super::args::positive)]
     size_mm: Option<f64>,
     /// Images and/or videos.
     #[arg(required = true)]
@@ -107,7 +107,7 @@ pub fn run_detect(a: DetectArgs) -> anyhow::Result<()> {
 #[derive(Debug, Args)]
 pub struct RestoreArgs {
     /// Water attenuation coefficient, per metre (default: estimated from the image).
-    #[arg(long)]
+    #[arg(long, value_parser = super::args::non_negative)]
     water: Option<f64>,
     /// none, clahe, dcp, udcp, hoirm.
     #[arg(long, default_value = "hoirm")]
