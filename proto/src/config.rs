@@ -64,6 +64,20 @@ pub struct IntrinsicsSpec {
     pub distortion: [f64; 5],
 }
 
+impl From<IntrinsicsSpec> for CameraModel {
+    fn from(i: IntrinsicsSpec) -> CameraModel {
+        CameraModel {
+            width: i.width,
+            height: i.height,
+            fx: i.fx,
+            fy: i.fy,
+            cx: i.cx,
+            cy: i.cy,
+            distortion: i.distortion,
+        }
+    }
+}
+
 /// One camera of a rig: exactly one of `preset`, `calibration`, `intrinsics`.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -424,15 +438,7 @@ fn resolve_camera(c: &CameraSpec, base: &Path) -> Result<CameraModel, String> {
             parse_calibration_yaml(&text)
                 .map_err(|e| format!("calibration {}: {e}", path.display()))
         }
-        (None, None, Some(i)) => Ok(CameraModel {
-            width: i.width,
-            height: i.height,
-            fx: i.fx,
-            fy: i.fy,
-            cx: i.cx,
-            cy: i.cy,
-            distortion: i.distortion,
-        }),
+        (None, None, Some(i)) => Ok(CameraModel::from(*i)),
         _ => Err("give exactly one of `preset`, `calibration`, `intrinsics`".into()),
     }
 }

@@ -29,14 +29,13 @@ mod manifest;
 mod score;
 
 pub use manifest::{
-    data_root, find_recordings, load_manifest, CameraJson, Manifest, Recording, ReferenceMarker,
-    Truth, DEFAULT_DATA_DIRS, MANIFEST_DIR,
+    data_root, find_recordings, load_manifest, Manifest, Recording, ReferenceMarker, Truth,
+    DEFAULT_DATA_DIRS, MANIFEST_DIR,
 };
 
 use super::plot::{self, Grouped};
 use super::table::Csv;
 use super::{EvalError, EvalOptions};
-use manifest::camera_model;
 use opencv::core::Mat;
 use opencv::prelude::*;
 use opencv::{imgcodecs, imgproc, videoio};
@@ -203,7 +202,7 @@ fn run_split(
     csv: &mut Csv,
 ) -> Result<BTreeMap<String, MethodRun>, EvalError> {
     let codes = CodeSet::from_name(&m.codes).map_err(|e| EvalError::Setup(e.to_string()))?;
-    let camera = m.camera.as_ref().map(camera_model);
+    let camera = m.camera.map(CameraModel::from);
     let mut methods = runners(m, codes, camera)?;
     let mut runs: BTreeMap<String, MethodRun> = methods
         .iter()

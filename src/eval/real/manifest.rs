@@ -5,6 +5,7 @@
 use crate::eval::EvalError;
 use serde::Deserialize;
 use shoal_proto::camera::CameraModel;
+use shoal_proto::config::IntrinsicsSpec;
 use shoal_proto::marker::CodeSet;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -31,7 +32,7 @@ pub struct Manifest {
     /// Side of the marker's outer black square, metres.
     pub side_m: f64,
     #[serde(default)]
-    pub camera: Option<CameraJson>,
+    pub camera: Option<IntrinsicsSpec>,
     /// A video file, or …
     #[serde(default)]
     pub video: Option<String>,
@@ -52,20 +53,6 @@ pub struct Manifest {
     /// does not give: their reads are neither scored nor false.
     #[serde(default)]
     pub unlisted_ids: Vec<u32>,
-}
-
-/// Pinhole + plumb-bob intrinsics as written in a manifest.
-#[derive(Debug, Clone, Copy, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct CameraJson {
-    pub width: u32,
-    pub height: u32,
-    pub fx: f64,
-    pub fy: f64,
-    pub cx: f64,
-    pub cy: f64,
-    #[serde(default)]
-    pub distortion: [f64; 5],
 }
 
 /// The ground truth a recording allows.
@@ -216,21 +203,9 @@ pub fn load_manifest(path: &Path) -> Result<Manifest, EvalError> {
         ));
     }
     if let Some(c) = m.camera {
-        if let Some(p) = camera_model(&c).problem() {
+        if let Some(p) = CameraModel::from(c).problem() {
             return Err(bad(format!("camera: {p}")));
         }
     }
     Ok(m)
-}
-
-pub(super) fn camera_model(c: &CameraJson) -> CameraModel {
-    CameraModel {
-        width: c.width,
-        height: c.height,
-        fx: c.fx,
-        fy: c.fy,
-        cx: c.cx,
-        cy: c.cy,
-        distortion: c.distortion,
-    }
 }
