@@ -194,7 +194,12 @@ fn draw_bars<DB: DrawingBackend>(
         .margin(14)
         .x_label_area_size(46)
         .y_label_area_size(80)
-        .build_cartesian_2d(CategoryAxis { n }, 0f64..y_top(max))
+        // Headroom above the tallest bar for the legend's rows (~5 % of the
+        // plot's height each), so it covers no bar.
+        .build_cartesian_2d(
+            CategoryAxis { n },
+            0f64..y_top(max) * (1.0 + 0.05 * spec.series.len() as f64),
+        )
         .map_err(s)?;
     let cats = spec.categories.clone();
     chart
