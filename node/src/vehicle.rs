@@ -312,6 +312,36 @@ mod tests {
         Arc::new(Fleet::load(&path).unwrap())
     }
 
+    /// Runs camera `camera` of `vehicle` on `input` (observations
+    /// discarded) until `done(stats)` or `timeout`, then stops its thread.
+    fn run_camera(
+        vehicle: VehicleId,
+        camera: usize,
+        pipeline: CameraPipeline,
+        input: LocalInput,
+        stats: &Arc<NodeStats>,
+        timeout: Duration,
+        done: impl Fn(&NodeStats) -> bool,
+    ) {
+        let stop = Arc::new(AtomicBool::new(false));
+        let thread = spawn_camera(
+            vehicle,
+            camera,
+            pipeline,
+            Box::new(input),
+            |_: &Observation| -> Result<(), String> { Ok(()) },
+            stats.clone(),
+            stop.clone(),
+        )
+        .unwrap();
+        let deadline = Instant::now() + timeout;
+        while !done(stats) && Instant::now() < deadline {
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        stop.store(true, Ordering::Relaxed);
+        thread.join().unwrap();
+    }
+
     #[test]
     fn refused_and_unreadable_frames_are_counted_as_invalid() {
         let fleet = paper_fleet();
@@ -333,23 +363,15 @@ mod tests {
         wrong_camera.data = vec![0; model.width as usize * model.height as usize];
         input.queue.push(wrong_size);
         input.queue.push(wrong_camera);
-        let stop = Arc::new(AtomicBool::new(false));
-        let thread = spawn_camera(
+        run_camera(
             17,
             0,
             pipeline,
-            Box::new(input),
-            |_: &Observation| -> Result<(), String> { Ok(()) },
-            stats.clone(),
-            stop.clone(),
-        )
-        .unwrap();
-        let deadline = Instant::now() + Duration::from_secs(20);
-        while stats.frames_invalid() < 5 && Instant::now() < deadline {
-            std::thread::sleep(Duration::from_millis(10));
-        }
-        stop.store(true, Ordering::Relaxed);
-        thread.join().unwrap();
+            input,
+            &stats,
+            Duration::from_secs(20),
+            |s| s.frames_invalid() >= 5,
+        );
         assert_eq!(stats.frames_in(), 2);
         assert_eq!(stats.frames_invalid(), 2 + 3);
         assert_eq!(stats.frames_processed(), 0);
@@ -392,23 +414,15 @@ mod tests {
         frame.info.model = vehicle.cameras[4].model;
         frame.data = view.image.data.clone();
         input.queue.push(frame);
-        let stop = Arc::new(AtomicBool::new(false));
-        let thread = spawn_camera(
+        run_camera(
             10,
             4,
             pipeline,
-            Box::new(input),
-            |_: &Observation| -> Result<(), String> { Ok(()) },
-            stats.clone(),
-            stop.clone(),
-        )
-        .unwrap();
-        let deadline = Instant::now() + Duration::from_secs(60);
-        while stats.frames_processed() < 1 && Instant::now() < deadline {
-            std::thread::sleep(Duration::from_millis(10));
-        }
-        stop.store(true, Ordering::Relaxed);
-        thread.join().unwrap();
+            input,
+            &stats,
+            Duration::from_secs(60),
+            |s| s.frames_processed() >= 1,
+        );
         let cam = &stats.status_report(10, Instant::now(), 1.0).cameras[4];
         assert!(cam.detections >= 1, "{cam:?}");
         let by_fit: u64 = cam.corner_fits.iter().map(|(_, n)| n).sum();
