@@ -29,6 +29,7 @@ pub mod marker;
 pub mod messages;
 pub mod queue;
 pub mod samples;
+pub mod splitmix;
 
 pub use camera::CameraModel;
 pub use codec::{decode, encode, DecodeError, EncodeError};

@@ -13,6 +13,7 @@ use opencv::imgproc;
 use opencv::prelude::*;
 use shoal_node::restore::psf::{gamma, GgPsf};
 use shoal_node::restore::RestoreError;
+use shoal_proto::splitmix::SplitMix64;
 
 /// How a clean frame is degraded.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -71,34 +72,6 @@ pub struct SyntheticFrame {
     pub marker: Rect,
 }
 
-/// Deterministic pseudo-random numbers (SplitMix64): the frames of a seed stay
-/// the same whatever `rand`'s version.
-#[derive(Debug, Clone)]
-pub struct SplitMix(u64);
-
-impl SplitMix {
-    pub fn new(seed: u64) -> Self {
-        Self(seed)
-    }
-    pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-    /// Uniform in [0, 1).
-    pub fn uniform(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
-    }
-    /// Standard normal (Box–Muller).
-    pub fn normal(&mut self) -> f64 {
-        let u1 = self.uniform().max(1e-300);
-        let u2 = self.uniform();
-        (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
-    }
-}
-
 /// Grey levels of the clean scene.
 const WHITE: f64 = 220.0;
 const BLACK: f64 = 25.0;
@@ -115,7 +88,7 @@ pub fn marker_frame(
     deg: &Degradation,
     seed: u64,
 ) -> Result<SyntheticFrame, RestoreError> {
-    let mut rng = SplitMix::new(seed);
+    let mut rng = SplitMix64::new(seed);
     // Background with a gentle vertical gradient (light from above).
     let mut clean = Mat::new_rows_cols_with_default(height, width, CV_8UC1, Scalar::all(0.0))?;
     for y in 0..height {
