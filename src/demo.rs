@@ -113,6 +113,8 @@ pub struct DemoSummary {
     pub wall_time_s: f64,
     /// The MCAP log written, with its message count and messages dropped.
     pub log: Option<LogSummary>,
+    /// Simulated time at which a stop request (Ctrl-C, SIGTERM) ended the run early.
+    pub interrupted_at_s: Option<f64>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -449,6 +451,17 @@ fn stop_recorder(r: shoal_services::recorder::RecorderHandle) -> anyhow::Result<
 /// Run the demo; `on_progress(sim_s, total_s, status)` is called as simulated time advances.
 pub fn run(
     cfg: &DemoConfig,
+    on_progress: impl FnMut(f64, f64, &str),
+) -> anyhow::Result<DemoSummary> {
+    run_until(cfg, &std::sync::atomic::AtomicBool::new(false), on_progress)
+}
+
+/// [`run`], ended early when `stop` becomes true (the command sets it on
+/// Ctrl-C or SIGTERM): the services stop in order, the log is finished with
+/// its summary and the figures cover the time run.
+pub fn run_until(
+    cfg: &DemoConfig,
+    stop: &std::sync::atomic::AtomicBool,
     mut on_progress: impl FnMut(f64, f64, &str),
 ) -> anyhow::Result<DemoSummary> {
     let started = Instant::now();
@@ -479,7 +492,12 @@ pub fn run(
     let mut control = ControlLoop::connect(swarm.session()?, &fleet, &followers)?;
 
     let mut watch = TrialWatch::default();
+    let mut interrupted_at_s = None;
     while !swarm.sim_finished() {
+        if stop.load(Ordering::Relaxed) {
+            interrupted_at_s = Some(clock.now_ns() as f64 * 1e-9);
+            break;
+        }
         std::thread::sleep(Duration::from_millis(50));
         for t in truth_sub.drain() {
             if control.controller.is_none() && cfg.closed_loop {
@@ -562,6 +580,7 @@ pub fn run(
         sim_ticks_skipped,
         wall_time_s: started.elapsed().as_secs_f64(),
         log,
+        interrupted_at_s,
     })
 }
 

@@ -4,6 +4,8 @@
 // A library reports failures as errors; an `unwrap()` that cannot fail says why with `expect`.
 #![warn(clippy::unwrap_used)]
 
+pub mod stdout;
+
 pub mod demo;
 pub mod eval;
 pub mod redetect;

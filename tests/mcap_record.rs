@@ -12,7 +12,7 @@ use shoal_proto::clock::{Clock, ManualClock};
 use shoal_proto::config::Fleet;
 use shoal_proto::messages::*;
 use shoal_proto::CameraModel;
-use shoal_record::reader::{read_file, scan, Item};
+use shoal_record::reader::{scan, Item};
 use shoal_record::refuse::compare_maps;
 use shoal_record::{FuseOptions, RecordOptions, RecordSummary, ReplayOptions, SolveAt};
 use shoal_services::fusion::{FusionConfig, Placement};
@@ -205,7 +205,7 @@ fn recording() -> &'static Recorded {
 }
 
 fn wire_messages<M: WireMessage>(path: &Path, key: &str) -> Vec<M> {
-    let buf = read_file(path).unwrap();
+    let buf = std::fs::read(path).unwrap();
     let mut out = Vec::new();
     scan(&buf, |item| -> Result<(), ()> {
         if let Item::Message { channel, data, .. } = item {
@@ -220,7 +220,7 @@ fn wire_messages<M: WireMessage>(path: &Path, key: &str) -> Vec<M> {
 }
 
 fn wire_bytes(path: &Path, key: &str) -> Vec<Vec<u8>> {
-    let buf = read_file(path).unwrap();
+    let buf = std::fs::read(path).unwrap();
     let mut out = Vec::new();
     scan(&buf, |item| -> Result<(), ()> {
         if let Item::Message { channel, data, .. } = item {

@@ -7,7 +7,7 @@ use shoal_bus::{client_of, free_port, Bus, Connect};
 use shoal_proto::config::Fleet;
 use shoal_proto::messages::{Observation, SimTruth};
 use shoal_record::mcap;
-use shoal_record::reader::{read_file, scan, Item};
+use shoal_record::reader::{scan, Item};
 use shoal_sim_bridge::obs_synth::{line_abreast, ObsSynth, ObsSynthParams};
 use std::path::Path;
 use std::process::{Command, Stdio};
@@ -118,7 +118,7 @@ fn sigkilled_recorder_leaves_a_readable_file_that_recover_fixes() {
     child.kill().unwrap(); // SIGKILL on Unix
     child.wait().unwrap();
 
-    let buf = read_file(&killed).unwrap();
+    let buf = std::fs::read(&killed).unwrap();
     assert!(
         mcap::Summary::read(&buf).map_or(true, |s| s.is_none()),
         "a killed recorder cannot have written a summary"
@@ -155,7 +155,7 @@ fn sigkilled_recorder_leaves_a_readable_file_that_recover_fixes() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let fixed_buf = read_file(&fixed).unwrap();
+    let fixed_buf = std::fs::read(&fixed).unwrap();
     let summary = mcap::Summary::read(&fixed_buf)
         .unwrap()
         .expect("recovered file has a summary");

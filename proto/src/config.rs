@@ -260,10 +260,12 @@ fn parse_markers(
 impl Fleet {
     /// Load and validate a fleet file.
     pub fn load(path: &Path) -> Result<Fleet, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
-            path: path.to_path_buf(),
-            source,
-        })?;
+        let text = crate::files::read_text_bounded(path, crate::files::MAX_CONFIG_BYTES).map_err(
+            |source| ConfigError::Read {
+                path: path.to_path_buf(),
+                source,
+            },
+        )?;
         Self::parse(&text, path)
     }
 
@@ -433,7 +435,7 @@ fn resolve_camera(c: &CameraSpec, base: &Path) -> Result<CameraModel, String> {
         (Some(p), None, None) => camera_preset(p),
         (None, Some(file), None) => {
             let path = base.join(file);
-            let text = std::fs::read_to_string(&path)
+            let text = crate::files::read_text_bounded(&path, crate::files::MAX_CONFIG_BYTES)
                 .map_err(|e| format!("cannot read calibration {}: {e}", path.display()))?;
             parse_calibration_yaml(&text)
                 .map_err(|e| format!("calibration {}: {e}", path.display()))

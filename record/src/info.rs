@@ -1,7 +1,7 @@
 //! `shoal log info`: what a log holds — vehicles, duration, messages per
 //! channel, detection rate, gaps.
 
-use crate::reader::{header, read_file, scan, ChannelInfo, Item};
+use crate::reader::{header, scan, ChannelInfo, Item, Skipped};
 use crate::recorder::envelope_kind;
 use crate::RecordError;
 use proto::{KeyKind, MessageKind, NodeStatus, VehicleId};
@@ -44,6 +44,10 @@ pub struct DetectionFigures {
 pub struct LogInfo {
     pub complete: bool,
     pub damage: Option<String>,
+    /// Damaged regions skipped (the first ones; `skipped_regions` counts all).
+    pub skipped: Vec<Skipped>,
+    pub skipped_regions: u64,
+    pub skipped_bytes: u64,
     pub metadata: BTreeMap<String, String>,
     pub has_fleet_file: bool,
     pub vehicles: Vec<VehicleId>,
@@ -65,8 +69,7 @@ const GAP_FACTOR: f64 = 5.0;
 const GAP_MIN_S: f64 = 1.0;
 
 pub fn info(path: &Path) -> Result<LogInfo, RecordError> {
-    let buf = read_file(path)?;
-    let h = header(&buf).map_err(|source| RecordError::NotMcap {
+    let h = header(path).map_err(|source| RecordError::NotMcap {
         path: path.to_path_buf(),
         source,
     })?;
@@ -80,7 +83,7 @@ pub fn info(path: &Path) -> Result<LogInfo, RecordError> {
         .metadata
         .get("fleet")
         .and_then(|f| proto::Keys::new(f).ok());
-    let outcome = scan(&buf, |item| -> Result<(), std::convert::Infallible> {
+    let outcome = scan(path, |item| -> Result<(), std::convert::Infallible> {
         if let Item::Message {
             channel,
             log_time,
@@ -171,7 +174,10 @@ pub fn info(path: &Path) -> Result<LogInfo, RecordError> {
         },
         messages: outcome.messages,
         chunks: outcome.chunks,
-        file_bytes: buf.len() as u64,
+        file_bytes: outcome.file_bytes,
+        skipped: outcome.skipped,
+        skipped_regions: outcome.skipped_regions,
+        skipped_bytes: outcome.skipped_bytes,
         channels,
         detections,
         gaps,
@@ -268,6 +274,23 @@ impl std::fmt::Display for LogInfo {
         )?;
         if let Some(d) = &self.damage {
             writeln!(f, "  damage: {d} (run `shoal log recover`)")?;
+        }
+        for s in &self.skipped {
+            writeln!(
+                f,
+                "  skipped bytes {}..{}: {}",
+                s.offset,
+                s.offset + s.bytes,
+                s.reason
+            )?;
+        }
+        if self.skipped_regions > self.skipped.len() as u64 {
+            writeln!(
+                f,
+                "  … {} more damaged regions ({} bytes skipped in all)",
+                self.skipped_regions - self.skipped.len() as u64,
+                self.skipped_bytes
+            )?;
         }
         for (k, v) in &self.metadata {
             writeln!(f, "  {k}: {v}")?;

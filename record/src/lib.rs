@@ -23,6 +23,7 @@ pub mod foxglove;
 pub mod info;
 pub mod reader;
 pub mod recorder;
+pub mod recover;
 pub mod refuse;
 pub mod replay;
 pub mod writer;
@@ -31,8 +32,8 @@ pub mod writer;
 pub use mcap;
 
 pub use info::{info, LogInfo};
-pub use reader::{recover, RecoverReport};
 pub use recorder::{RecordOptions, RecordSummary, Recording};
+pub use recover::{recover, RecoverReport};
 pub use refuse::{refuse, FuseOptions, FuseSummary, SolveAt};
 pub use replay::{replay_into, ReplayOptions, ReplaySink, ReplaySummary};
 pub use writer::{ChannelCount, LogWriter, WriterOptions};
@@ -72,7 +73,13 @@ pub enum RecordError {
         #[source]
         source: proto::codec::EncodeError,
     },
-    #[error("{0}: the log carries no fleet file; pass one with --fleet")]
+    #[error("{}: the log was recorded with fleet {recorded:?}, the fleet given is {given:?}", path.display())]
+    FleetMismatch {
+        path: std::path::PathBuf,
+        recorded: String,
+        given: String,
+    },
+    #[error("{0}: the log carries no fleet file (or its attachment is damaged, see `shoal log info`); pass one with --fleet")]
     NoFleet(PathBuf),
     #[error("JSON")]
     Json(#[from] serde_json::Error),
@@ -87,6 +94,8 @@ pub enum RecordError {
     AlreadyStopped,
     #[error("interrupted")]
     Interrupted,
+    #[error(transparent)]
+    Output(#[from] proto::files::OutputError),
     #[error("solve rate {rate_hz} Hz: expected a finite rate above 0 and at most 1e9 Hz (one solve per nanosecond of the log's clock)")]
     SolveRate { rate_hz: f64 },
 }

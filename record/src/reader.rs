@@ -1,24 +1,25 @@
 //! Reading shoal MCAP logs, including damaged ones.
 //!
-//! [`scan`] walks the file record by record (chunks decompressed, CRCs
-//! checked by the `mcap` crate where present) and stops at the first record
-//! it cannot read, reporting where: a recording killed mid-chunk yields every
-//! complete chunk before the damage. [`recover`] rewrites such a file with a
-//! proper summary.
+//! [`scan`] streams the file record by record (one record in memory at a
+//! time; chunks decompressed within a per-chunk and a per-file bound, CRCs
+//! checked where present). Damage costs only the record it is in: the scan
+//! skips it, resumes at the next readable record (found from the summary's
+//! index when that is intact, else by the records' framing, see
+//! [`framing`]) and reports every skipped region. The summary and footer are
+//! checked too, so a file is called complete only when an indexed reader
+//! would open it. [`crate::recover`] rewrites a damaged or interrupted file
+//! with a proper summary.
+
+mod framing;
+
+pub use framing::{decompression_budget, MAX_CHUNK_UNCOMPRESSED, MAX_RECORD};
 
 use crate::writer::{FLEET_ATTACHMENT, METADATA_NAME, WIRE_ENCODING};
-use crate::RecordError;
-use mcap::read::{LinearReader, Options};
-use mcap::records::Record;
+use framing::{chunk_records, decompress_chunk, plausible, Framer, SummaryIndex, HEAD};
+use mcap::records::{op, Record};
 use std::collections::BTreeMap;
+use std::io::{Read, Seek};
 use std::path::Path;
-
-/// Largest uncompressed chunk a reader accepts. shoal's recorder closes a
-/// chunk after about 4 MiB ([`crate::WriterOptions::chunk_size`]); one record
-/// can exceed that by a whole message (at most 64 MiB,
-/// `proto::codec::MAX_PAYLOAD`) plus its Foxglove copy (base64, 4/3 larger),
-/// so 256 MiB leaves room for any file shoal writes.
-pub const MAX_CHUNK_UNCOMPRESSED: u64 = 256 << 20;
 
 /// A channel as declared in the file.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -71,34 +72,127 @@ pub enum Item<'a> {
     },
 }
 
+/// One damaged region a scan skipped.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
+pub struct Skipped {
+    /// Byte offset where the damaged record starts.
+    pub offset: u64,
+    /// Bytes skipped, up to the next readable record.
+    pub bytes: u64,
+    pub reason: String,
+}
+
+/// How many skipped regions a [`ScanOutcome`] lists (all are counted).
+pub const MAX_SKIPPED_LISTED: usize = 64;
+
 /// How far a scan got.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
 pub struct ScanOutcome {
-    /// The file ended with a data-end record, a footer and the closing magic.
+    /// Every record read, a data-end record whose CRC matches, a summary whose
+    /// CRC matches, a footer and the closing magic: an indexed reader opens it.
     pub complete: bool,
-    /// Why reading stopped early, if it did.
+    /// What is wrong with the file, in one paragraph (None when complete).
     pub damage: Option<String>,
+    /// The damaged regions skipped, in file order (the first [`MAX_SKIPPED_LISTED`]).
+    pub skipped: Vec<Skipped>,
+    /// All damaged regions skipped, and their bytes.
+    pub skipped_regions: u64,
+    pub skipped_bytes: u64,
+    /// Problems of the file as a whole (summary, footer, data CRC, messages of unknown channels).
+    pub problems: Vec<String>,
     pub messages: u64,
+    /// Messages whose channel record was never read (it was damaged): counted and dropped.
+    pub orphan_messages: u64,
     pub chunks: u64,
+    pub file_bytes: u64,
+    pub decompressed_bytes: u64,
     pub channels: BTreeMap<u16, ChannelInfo>,
     pub schemas: BTreeMap<u16, SchemaInfo>,
 }
 
-/// Read a whole file into memory.
-pub fn read_file(path: &Path) -> Result<Vec<u8>, RecordError> {
-    std::fs::read(path).map_err(|source| RecordError::Io {
-        path: path.to_path_buf(),
-        source,
-    })
+impl ScanOutcome {
+    fn skip(&mut self, offset: u64, bytes: u64, reason: String) {
+        self.skipped_regions += 1;
+        self.skipped_bytes += bytes;
+        if self.skipped.len() < MAX_SKIPPED_LISTED {
+            self.skipped.push(Skipped {
+                offset,
+                bytes,
+                reason,
+            });
+        }
+    }
+
+    fn describe(&self) -> Option<String> {
+        let mut parts: Vec<String> = Vec::new();
+        if self.skipped_regions > 0 {
+            let first: Vec<String> = self
+                .skipped
+                .iter()
+                .take(3)
+                .map(|s| format!("byte {} ({} bytes): {}", s.offset, s.bytes, s.reason))
+                .collect();
+            parts.push(format!(
+                "{} damaged region(s), {} bytes, skipped — {}{}",
+                self.skipped_regions,
+                self.skipped_bytes,
+                first.join("; "),
+                if self.skipped_regions > 3 {
+                    "; …"
+                } else {
+                    ""
+                }
+            ));
+        }
+        parts.extend(self.problems.iter().cloned());
+        (!parts.is_empty()).then(|| parts.join(". "))
+    }
+}
+
+/// Where a log is read from: a file (streamed, never loaded whole) or bytes in memory.
+pub trait LogSource {
+    type Reader: Read + Seek;
+    fn open(self) -> std::io::Result<Self::Reader>;
+}
+
+impl<'a> LogSource for &'a [u8] {
+    type Reader = std::io::Cursor<&'a [u8]>;
+    fn open(self) -> std::io::Result<Self::Reader> {
+        Ok(std::io::Cursor::new(self))
+    }
+}
+
+impl<'a> LogSource for &'a Vec<u8> {
+    type Reader = std::io::Cursor<&'a [u8]>;
+    fn open(self) -> std::io::Result<Self::Reader> {
+        Ok(std::io::Cursor::new(self.as_slice()))
+    }
+}
+
+impl LogSource for &Path {
+    type Reader = std::io::BufReader<std::fs::File>;
+    fn open(self) -> std::io::Result<Self::Reader> {
+        Ok(std::io::BufReader::with_capacity(
+            1 << 16,
+            std::fs::File::open(self)?,
+        ))
+    }
+}
+
+impl LogSource for &std::path::PathBuf {
+    type Reader = std::io::BufReader<std::fs::File>;
+    fn open(self) -> std::io::Result<Self::Reader> {
+        self.as_path().open()
+    }
 }
 
 /// [`scan`] restricted to the shoal wire messages (envelopes as received on
 /// Zenoh, one channel per key): `visit(channel, log_time, envelope bytes)`.
 pub fn scan_wire<E>(
-    buf: &[u8],
+    src: impl LogSource,
     mut visit: impl FnMut(&ChannelInfo, u64, &[u8]) -> Result<(), E>,
 ) -> Result<ScanOutcome, ScanError<E>> {
-    scan(buf, |item| match item {
+    scan(src, |item| match item {
         Item::Message {
             channel,
             log_time,
@@ -110,115 +204,264 @@ pub fn scan_wire<E>(
 }
 
 /// Visit every schema, channel, message, metadata record and attachment of
-/// `buf` in file order. A visitor error stops the scan and is returned; damage
-/// to the file stops it and is reported in [`ScanOutcome::damage`].
+/// the data section in file order, streaming (one record in memory at a
+/// time). A visitor error stops the scan and is returned. Damage costs only
+/// the damaged record: it is skipped, the scan resumes at the next readable
+/// record, and the outcome lists what was skipped and why.
 pub fn scan<E>(
-    buf: &[u8],
+    src: impl LogSource,
     mut visit: impl FnMut(Item<'_>) -> Result<(), E>,
 ) -> Result<ScanOutcome, ScanError<E>> {
-    let mut out = ScanOutcome::default();
-    if buf.len() < 8 || &buf[..8] != mcap::MAGIC {
-        return Err(NotMcap::NoMagic.into());
+    let mut f = Framer::new(src.open()?)?;
+    let mut out = ScanOutcome {
+        file_bytes: f.len,
+        ..ScanOutcome::default()
+    };
+    let magic = f.bytes_at(0, 8)?;
+    if magic != mcap::MAGIC {
+        if !header_at_8(&mut f)? {
+            return Err(NotMcap::NoMagic.into());
+        }
+        out.skip(0, 8, "the opening MCAP magic is damaged".into());
     }
-    let reader = LinearReader::new_with_options(buf, Options::IgnoreEndMagic.into())
-        .map_err(|e| ScanError::NotMcap(NotMcap::Unreadable(e)))?;
-    let mut saw_footer = false;
-    for record in reader {
-        let record = match record {
-            Ok(r) => r,
-            Err(e) => {
-                out.damage = Some(format!("stopped at an unreadable record: {e}"));
-                break;
+    let index = match f.summary()? {
+        Ok(index) => index,
+        Err(problem) => {
+            out.problems.push(format!(
+                "{problem}: indexed readers cannot open the file (`shoal log recover` rewrites it)"
+            ));
+            None
+        }
+    };
+    let mut budget = decompression_budget(f.len);
+    let mut data_crc = Some(crc32fast::Hasher::new());
+    if let Some(h) = data_crc.as_mut() {
+        h.update(&magic);
+    }
+    let mut at = 8u64;
+    let mut data_end = None;
+    // With an intact summary, the data section ends exactly where it says.
+    let limit = index
+        .as_ref()
+        .and_then(|ix| ix.data_end)
+        .map_or(f.len, |d| d + HEAD + 4);
+    while at < limit {
+        let head = f.head(at)?;
+        let framed = match head {
+            Some((opcode, len)) => {
+                plausible(opcode, len, at, limit)
+                    && !SUMMARY_OPCODES.contains(&opcode)
+                    && f.framed(opcode, len, at)?
+            }
+            None => false,
+        };
+        let Some((opcode, len)) = head.filter(|_| framed) else {
+            data_crc = None;
+            let next = resync(&mut f, at + 1, index.as_ref(), budget)?;
+            out.skip(
+                at,
+                next.unwrap_or(f.len) - at,
+                unframed_reason(head, at, f.len, next.is_none()),
+            );
+            match next {
+                Some(n) => {
+                    at = n;
+                    continue;
+                }
+                None => break,
             }
         };
-        match record {
-            Record::Chunk { header, data } => {
-                // Decode the chunk fully first: a damaged chunk contributes nothing.
-                let records = match chunk_records(&header, &data) {
-                    Ok(records) => records,
-                    Err(e) => {
-                        out.damage = Some(format!("chunk {} is damaged: {e}", out.chunks + 1));
-                        break;
-                    }
+        let body = f.body(at, len)?;
+        if opcode == op::DATA_END {
+            data_end = Some(match mcap::parse_record(opcode, body) {
+                Ok(Record::DataEnd(d)) => d.data_section_crc,
+                _ => 0,
+            });
+            break;
+        }
+        if let Some(h) = data_crc.as_mut() {
+            h.update(&[opcode]);
+            h.update(&len.to_le_bytes());
+            h.update(body);
+        }
+        match process(
+            opcode,
+            body,
+            &mut out,
+            &mut budget,
+            index.as_ref(),
+            &mut visit,
+        ) {
+            Ok(()) => at += HEAD + len,
+            Err(Problem::Damaged(reason)) => {
+                // A damaged length can still look framed: with an intact
+                // summary, resume where it says the next record is.
+                let next = match index.as_ref() {
+                    Some(_) => resync(&mut f, at + 1, index.as_ref(), budget)?.unwrap_or(f.len),
+                    None => at + HEAD + len,
                 };
-                out.chunks += 1;
-                for r in records {
-                    handle(r, &mut out, &mut visit)?;
-                }
+                out.skip(at, next - at, reason);
+                at = next;
             }
-            Record::Footer(_) => saw_footer = true,
-            other => handle(other, &mut out, &mut visit)?,
+            Err(Problem::Visitor(e)) => return Err(ScanError::Visitor(e)),
         }
     }
-    out.complete =
-        saw_footer && out.damage.is_none() && buf.ends_with(mcap::MAGIC) && buf.len() >= 16;
-    if !out.complete && out.damage.is_none() {
-        out.damage = Some("the file ends without a footer (recording interrupted)".into());
-    }
+    out.decompressed_bytes = decompression_budget(f.len) - budget;
+    finish(&mut out, index.as_ref(), data_end, data_crc);
     Ok(out)
 }
 
-/// The records of one chunk, or why it is unusable. Decompressed here rather
-/// than by `mcap::read::ChunkReader`, which allocates whatever sizes a
-/// damaged chunk declares (found by `record/tests/fuzz_mcap.rs`): the size is
-/// bounded by [`MAX_CHUNK_UNCOMPRESSED`], the CRC checked before any record
-/// is parsed, and every record length checked against the bytes present.
-fn chunk_records(
-    header: &mcap::records::ChunkHeader,
-    data: &[u8],
-) -> Result<Vec<Record<'static>>, String> {
-    if header.uncompressed_size > MAX_CHUNK_UNCOMPRESSED {
-        return Err(format!(
-            "declares {} uncompressed bytes, over the {MAX_CHUNK_UNCOMPRESSED}-byte limit",
-            header.uncompressed_size
-        ));
-    }
-    let size = header.uncompressed_size as usize;
-    let plain: std::borrow::Cow<'_, [u8]> = match header.compression.as_str() {
-        "" => std::borrow::Cow::Borrowed(data),
-        "zstd" => std::borrow::Cow::Owned(
-            zstd::bulk::decompress(data, size).map_err(|e| format!("zstd: {e}"))?,
+/// Records that only the summary section holds: reaching one ends the data section.
+const SUMMARY_OPCODES: [u8; 6] = [
+    op::CHUNK_INDEX,
+    op::ATTACHMENT_INDEX,
+    op::STATISTICS,
+    op::METADATA_INDEX,
+    op::SUMMARY_OFFSET,
+    op::FOOTER,
+];
+
+fn header_at_8<R: Read + Seek>(f: &mut Framer<R>) -> std::io::Result<bool> {
+    Ok(match f.head(8)? {
+        Some((opcode, len)) if opcode == op::HEADER && plausible(opcode, len, 8, f.len) => {
+            matches!(
+                mcap::parse_record(opcode, f.body(8, len)?),
+                Ok(Record::Header(_))
+            )
+        }
+        _ => false,
+    })
+}
+
+fn unframed_reason(head: Option<(u8, u64)>, at: u64, file_len: u64, to_end: bool) -> String {
+    match head {
+        None => format!("{} stray bytes at the end", file_len - at),
+        Some((opcode, _)) if SUMMARY_OPCODES.contains(&opcode) => format!(
+            "a summary record (opcode {opcode:#04x}) inside the data section"
         ),
-        other => return Err(format!("unsupported compression {other:?}")),
-    };
-    if plain.len() != size {
-        return Err(format!(
-            "{} bytes uncompressed, the header says {size}",
-            plain.len()
+        Some((opcode, len)) if to_end && at + HEAD + len > file_len && len <= MAX_RECORD => format!(
+            "the file ends inside a record (opcode {opcode:#04x}, {len} bytes; recording interrupted?)"
+        ),
+        Some((opcode, len)) => format!(
+            "no readable record here (opcode {opcode:#04x}, length {len})"
+        ),
+    }
+}
+
+/// Where reading resumes after an unreadable record: the next record the
+/// (intact) summary lists, else the next offset where a framed record passes
+/// its checks.
+fn resync<R: Read + Seek>(
+    f: &mut Framer<R>,
+    from: u64,
+    index: Option<&SummaryIndex>,
+    budget: u64,
+) -> std::io::Result<Option<u64>> {
+    if let Some(ix) = index {
+        if ix.data_end.is_some_and(|d| from > d) {
+            return Ok(None);
+        }
+        if let Some(&n) = ix.offsets.range(from..).next() {
+            return Ok(Some(n));
+        }
+        if let Some(d) = ix.data_end.filter(|&d| d >= from) {
+            return Ok(Some(d));
+        }
+    }
+    f.scan_for(from, |f, at| {
+        let Some((opcode, len)) = f.head(at)? else {
+            return Ok(false);
+        };
+        if opcode == op::HEADER || (opcode == op::FOOTER && at + HEAD + len + 8 != f.len) {
+            return Ok(false);
+        }
+        let body = f.body(at, len)?;
+        Ok(match mcap::parse_record(opcode, body) {
+            Ok(Record::Chunk { header, data }) => {
+                decompress_chunk(&header, &data, &mut budget.clone())
+                    .is_ok_and(|plain| chunk_records(&plain).is_ok())
+            }
+            Ok(_) => true,
+            Err(_) => false,
+        })
+    })
+}
+
+enum Problem<E> {
+    Damaged(String),
+    Visitor(E),
+}
+
+/// Decode one framed data-section record and visit what it holds (a chunk
+/// whole or not at all).
+fn process<E>(
+    opcode: u8,
+    body: &[u8],
+    out: &mut ScanOutcome,
+    budget: &mut u64,
+    index: Option<&SummaryIndex>,
+    visit: &mut impl FnMut(Item<'_>) -> Result<(), E>,
+) -> Result<(), Problem<E>> {
+    if matches!(opcode, op::HEADER | op::MESSAGE_INDEX) {
+        return Ok(());
+    }
+    let record = mcap::parse_record(opcode, body).map_err(|e| Problem::Damaged(e.to_string()))?;
+    if let Record::Chunk { header, data } = record {
+        let plain = decompress_chunk(&header, &data, budget)
+            .map_err(|e| Problem::Damaged(format!("chunk: {e}")))?;
+        let records = chunk_records(&plain).map_err(|e| Problem::Damaged(format!("chunk: {e}")))?;
+        out.chunks += 1;
+        for r in records {
+            handle(r, out, index, visit).map_err(Problem::Visitor)?;
+        }
+        return Ok(());
+    }
+    handle(record, out, index, visit).map_err(Problem::Visitor)
+}
+
+/// Whole-file checks once the data section is read.
+fn finish(
+    out: &mut ScanOutcome,
+    index: Option<&SummaryIndex>,
+    data_end: Option<u32>,
+    data_crc: Option<crc32fast::Hasher>,
+) {
+    match data_end {
+        None => out.problems.push(
+            "the file ends without a data-end record, summary and footer (recording interrupted?)"
+                .into(),
+        ),
+        Some(saved) => {
+            if let Some(calculated) = data_crc.map(crc32fast::Hasher::finalize) {
+                if saved != 0 && saved != calculated && out.skipped_regions == 0 {
+                    out.problems.push(format!(
+                        "the data section's CRC is {calculated:08x}, its data-end record says {saved:08x}: a record without a CRC of its own (metadata, schema, channel) is damaged"
+                    ));
+                }
+            }
+            if index.is_none() && out.problems.is_empty() {
+                out.problems.push(
+                    "the file has a data-end record but no summary or footer after it".into(),
+                );
+            }
+        }
+    }
+    if let Some(n) = index.and_then(|ix| ix.message_count) {
+        if n != out.messages + out.orphan_messages && out.skipped_regions == 0 {
+            out.problems.push(format!(
+                "the summary counts {n} messages, {} were read",
+                out.messages + out.orphan_messages
+            ));
+        }
+    }
+    if out.orphan_messages > 0 {
+        out.problems.push(format!(
+            "{} messages on channels whose channel record was not read were dropped",
+            out.orphan_messages
         ));
     }
-    if header.uncompressed_crc != 0 {
-        let calculated = crc32fast::hash(&plain);
-        if calculated != header.uncompressed_crc {
-            return Err(format!(
-                "CRC {calculated:08x}, the header says {:08x}",
-                header.uncompressed_crc
-            ));
-        }
-    }
-    let mut records = Vec::new();
-    let mut rest: &[u8] = &plain;
-    while !rest.is_empty() {
-        if rest.len() < 9 {
-            return Err(format!("{} stray bytes at the end", rest.len()));
-        }
-        let opcode = rest[0];
-        let len = u64::from_le_bytes(rest[1..9].try_into().unwrap_or([0xff; 8]));
-        if len > (rest.len() - 9) as u64 {
-            return Err(format!(
-                "record (opcode {opcode:#04x}) of {len} bytes, {} left",
-                rest.len() - 9
-            ));
-        }
-        let (body, next) = rest[9..].split_at(len as usize);
-        records.push(
-            mcap::parse_record(opcode, body)
-                .map_err(|e| e.to_string())?
-                .into_owned(),
-        );
-        rest = next;
-    }
-    Ok(records)
+    out.damage = out.describe();
+    out.complete = out.damage.is_none();
 }
 
 /// A visitor's request to end a scan early.
@@ -240,13 +483,19 @@ pub enum ScanError<E> {
     Visitor(E),
 }
 
-/// Why a file is not an MCAP log at all.
+/// Why a file cannot be read as an MCAP log at all.
 #[derive(Debug, thiserror::Error)]
 pub enum NotMcap {
-    #[error("not an MCAP file (no magic)")]
+    #[error("not an MCAP file (no magic, and no header record where it belongs)")]
     NoMagic,
-    #[error("not a readable MCAP file")]
-    Unreadable(#[source] mcap::McapError),
+    #[error("reading the file")]
+    Io(#[from] std::io::Error),
+}
+
+impl<E> From<std::io::Error> for ScanError<E> {
+    fn from(e: std::io::Error) -> Self {
+        ScanError::NotMcap(NotMcap::Io(e))
+    }
 }
 
 impl<E> ScanError<E> {
@@ -265,8 +514,14 @@ impl<E> ScanError<E> {
 fn handle<E>(
     record: Record<'_>,
     out: &mut ScanOutcome,
+    index: Option<&SummaryIndex>,
     visit: &mut impl FnMut(Item<'_>) -> Result<(), E>,
-) -> Result<(), ScanError<E>> {
+) -> Result<(), E> {
+    if let Record::Message { header, .. } = &record {
+        if !out.channels.contains_key(&header.channel_id) {
+            declare_from_summary(header.channel_id, out, index, visit)?;
+        }
+    }
     match record {
         Record::Schema { header, data } => {
             let s = SchemaInfo {
@@ -275,8 +530,12 @@ fn handle<E>(
                 encoding: header.encoding,
                 data: data.into_owned(),
             };
-            visit(Item::Schema(&s)).map_err(ScanError::Visitor)?;
-            out.schemas.insert(s.id, s);
+            // The summary repeats schemas and channels; a reader that resumed
+            // after damage may meet one twice: visit each once.
+            if out.schemas.get(&s.id) != Some(&s) {
+                visit(Item::Schema(&s))?;
+                out.schemas.insert(s.id, s);
+            }
         }
         Record::Channel(c) => {
             let c = ChannelInfo {
@@ -286,8 +545,10 @@ fn handle<E>(
                 metadata: c.metadata,
                 schema_id: c.schema_id,
             };
-            visit(Item::Channel(&c)).map_err(ScanError::Visitor)?;
-            out.channels.insert(c.id, c);
+            if out.channels.get(&c.id) != Some(&c) {
+                visit(Item::Channel(&c))?;
+                out.channels.insert(c.id, c);
+            }
         }
         Record::Message { header, data } => {
             if let Some(channel) = out.channels.get(&header.channel_id) {
@@ -298,25 +559,62 @@ fn handle<E>(
                     log_time: header.log_time,
                     publish_time: header.publish_time,
                     data: &data,
-                })
-                .map_err(ScanError::Visitor)?;
+                })?;
+            } else {
+                out.orphan_messages += 1;
             }
         }
         Record::Metadata(m) => visit(Item::Metadata {
             name: &m.name,
             metadata: &m.metadata,
-        })
-        .map_err(ScanError::Visitor)?,
+        })?,
         Record::Attachment { header, data, .. } => visit(Item::Attachment {
             name: &header.name,
             media_type: &header.media_type,
             log_time: header.log_time,
             create_time: header.create_time,
             data: &data,
-        })
-        .map_err(ScanError::Visitor)?,
+        })?,
         _ => {}
     }
+    Ok(())
+}
+
+/// A message whose channel record was lost with a damaged chunk: the intact
+/// summary still lists the channel (and its schema), so declare it from there.
+fn declare_from_summary<E>(
+    channel_id: u16,
+    out: &mut ScanOutcome,
+    index: Option<&SummaryIndex>,
+    visit: &mut impl FnMut(Item<'_>) -> Result<(), E>,
+) -> Result<(), E> {
+    let Some(ix) = index else {
+        return Ok(());
+    };
+    let Some(c) = ix.channels.iter().find(|c| c.id == channel_id) else {
+        return Ok(());
+    };
+    if !out.schemas.contains_key(&c.schema_id) {
+        if let Some((h, data)) = ix.schemas.iter().find(|(h, _)| h.id == c.schema_id) {
+            let s = SchemaInfo {
+                id: h.id,
+                name: h.name.clone(),
+                encoding: h.encoding.clone(),
+                data: data.clone(),
+            };
+            visit(Item::Schema(&s))?;
+            out.schemas.insert(s.id, s);
+        }
+    }
+    let c = ChannelInfo {
+        id: c.id,
+        topic: c.topic.clone(),
+        message_encoding: c.message_encoding.clone(),
+        metadata: c.metadata.clone(),
+        schema_id: c.schema_id,
+    };
+    visit(Item::Channel(&c))?;
+    out.channels.insert(c.id, c);
     Ok(())
 }
 
@@ -327,10 +625,30 @@ pub struct LogHeader {
     pub fleet_toml: Option<String>,
 }
 
+/// The channels an intact summary lists (empty for an interrupted or damaged
+/// file, whose channels are only met as the scan goes).
+pub fn summary_channels(src: impl LogSource) -> Result<Vec<ChannelInfo>, NotMcap> {
+    let mut f = Framer::new(src.open()?)?;
+    Ok(match f.summary()? {
+        Ok(Some(index)) => index
+            .channels
+            .into_iter()
+            .map(|c| ChannelInfo {
+                id: c.id,
+                topic: c.topic,
+                message_encoding: c.message_encoding,
+                metadata: c.metadata,
+                schema_id: c.schema_id,
+            })
+            .collect(),
+        _ => Vec::new(),
+    })
+}
+
 /// Read the header items of a log (they are written first, so this is quick to find).
-pub fn header(buf: &[u8]) -> Result<LogHeader, NotMcap> {
+pub fn header(src: impl LogSource) -> Result<LogHeader, NotMcap> {
     let mut h = LogHeader::default();
-    let res = scan(buf, |item| {
+    let res = scan(src, |item| {
         match item {
             Item::Metadata { name, metadata } if name == METADATA_NAME => {
                 h.metadata = metadata.clone()
@@ -347,114 +665,6 @@ pub fn header(buf: &[u8]) -> Result<LogHeader, NotMcap> {
         Ok(_) | Err(ScanError::Visitor(Stop)) => Ok(h),
         Err(ScanError::NotMcap(e)) => Err(e),
     }
-}
-
-/// What [`recover`] did.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct RecoverReport {
-    pub messages: u64,
-    pub channels: usize,
-    pub chunks_read: u64,
-    /// Why the input stopped (None: the input was intact).
-    pub damage: Option<String>,
-}
-
-/// Rewrite `input` (typically a recording killed before it could write its
-/// summary) to `output` with every readable record and a proper summary.
-pub fn recover(input: &Path, output: &Path) -> Result<RecoverReport, RecordError> {
-    let buf = read_file(input)?;
-    let file = std::fs::File::create(output).map_err(|source| RecordError::Io {
-        path: output.to_path_buf(),
-        source,
-    })?;
-    let merr = |source| RecordError::Mcap {
-        path: output.to_path_buf(),
-        source,
-    };
-    let mut w = mcap::WriteOptions::new()
-        .compression(Some(mcap::Compression::Zstd))
-        .compression_threads(0)
-        .profile(crate::writer::PROFILE)
-        .create(std::io::BufWriter::new(file))
-        .map_err(merr)?;
-    let mut schema_map: BTreeMap<u16, u16> = BTreeMap::new();
-    let mut channel_map: BTreeMap<u16, u16> = BTreeMap::new();
-    let outcome = scan(&buf, |item| -> Result<(), mcap::McapError> {
-        match item {
-            Item::Schema(s) => {
-                let id = w.add_schema(&s.name, &s.encoding, &s.data)?;
-                schema_map.insert(s.id, id);
-            }
-            Item::Channel(c) => {
-                let schema = schema_map.get(&c.schema_id).copied().unwrap_or(0);
-                let id = w.add_channel(schema, &c.topic, &c.message_encoding, &c.metadata)?;
-                channel_map.insert(c.id, id);
-            }
-            Item::Message {
-                channel,
-                sequence,
-                log_time,
-                publish_time,
-                data,
-            } => {
-                if let Some(&id) = channel_map.get(&channel.id) {
-                    w.write_to_known_channel(
-                        &mcap::records::MessageHeader {
-                            channel_id: id,
-                            sequence,
-                            log_time,
-                            publish_time,
-                        },
-                        data,
-                    )?;
-                }
-            }
-            Item::Metadata { name, metadata } => w.write_metadata(&mcap::records::Metadata {
-                name: name.to_string(),
-                metadata: metadata.clone(),
-            })?,
-            Item::Attachment {
-                name,
-                media_type,
-                log_time,
-                create_time,
-                data,
-            } => w.attach(&mcap::Attachment {
-                log_time,
-                create_time,
-                name: name.to_string(),
-                media_type: media_type.to_string(),
-                data: std::borrow::Cow::Borrowed(data),
-            })?,
-        }
-        Ok(())
-    })
-    .map_err(|e| match e {
-        ScanError::Visitor(source) => RecordError::Mcap {
-            path: output.to_path_buf(),
-            source,
-        },
-        ScanError::NotMcap(source) => RecordError::NotMcap {
-            path: input.to_path_buf(),
-            source,
-        },
-    })?;
-    w.finish().map_err(merr)?;
-    let mut inner = w.into_inner();
-    std::io::Write::flush(&mut inner).map_err(|source| RecordError::Io {
-        path: output.to_path_buf(),
-        source,
-    })?;
-    Ok(RecoverReport {
-        messages: outcome.messages,
-        channels: outcome.channels.len(),
-        chunks_read: outcome.chunks,
-        damage: if outcome.complete {
-            None
-        } else {
-            outcome.damage
-        },
-    })
 }
 
 #[cfg(test)]
@@ -536,7 +746,7 @@ mod tests {
         let cut_path = dir.join("cut.mcap");
         std::fs::write(&cut_path, &full[..full.len() / 2]).unwrap();
         let fixed = dir.join("fixed.mcap");
-        let report = recover(&cut_path, &fixed).unwrap();
+        let report = crate::recover(&cut_path, &fixed).unwrap();
         let fixed_buf = std::fs::read(&fixed).unwrap();
         let (got, outcome) = wire_count(&fixed_buf).unwrap();
         assert!(outcome.complete);
@@ -550,7 +760,7 @@ mod tests {
                 .map(String::as_str),
             Some("paper")
         );
-        assert!(scan(b"not an mcap file", |_| Ok::<(), Stop>(())).is_err());
+        assert!(scan(&b"not an mcap file"[..], |_| Ok::<(), Stop>(())).is_err());
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

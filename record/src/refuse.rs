@@ -7,7 +7,7 @@
 //! run's maps (or at a fixed rate of that clock). `solve_time_us` is not
 //! recorded, so the same file gives the same output, bit for bit.
 
-use crate::reader::{header, read_file, scan_wire, ScanError};
+use crate::reader::{header, scan_wire, LogHeader, LogSource};
 use crate::recorder::{Converter, RecordOptions, RecorderStats};
 use crate::writer::{LogWriter, WriterOptions};
 use crate::RecordError;
@@ -79,12 +79,16 @@ pub struct FuseSummary {
     pub rejected_at_ingest: u64,
     pub maps_written: u64,
     pub original_maps: u64,
+    /// Envelopes of the log that did not decode (observations, truth, maps, unknown kinds): counted, not re-fused.
+    pub undecodable: u64,
+    /// What was wrong with the input log (None: intact).
+    pub input_damage: Option<String>,
     pub comparison: MapComparison,
 }
 
 /// The fleet a log was recorded with (its attachment), unless overridden.
-pub fn fleet_of(buf: &[u8], input: &Path) -> Result<Fleet, RecordError> {
-    let h = header(buf).map_err(|source| RecordError::NotMcap {
+pub fn fleet_of(src: impl LogSource, input: &Path) -> Result<Fleet, RecordError> {
+    let h = header(src).map_err(|source| RecordError::NotMcap {
         path: input.to_path_buf(),
         source,
     })?;
@@ -106,38 +110,17 @@ pub fn fleet_of(buf: &[u8], input: &Path) -> Result<Fleet, RecordError> {
 /// map track in place of the old one.
 pub fn refuse(input: &Path, output: &Path, opts: &FuseOptions) -> Result<FuseSummary, RecordError> {
     let solve_period_ns = opts.solve_at.period_ns()?;
-    let buf = read_file(input)?;
-    let fleet = match &opts.fleet {
-        Some(f) => f.clone(),
-        None => fleet_of(&buf, input)?,
-    };
-    let h = header(&buf).map_err(|source| RecordError::NotMcap {
+    let h = header(input).map_err(|source| RecordError::NotMcap {
         path: input.to_path_buf(),
         source,
     })?;
+    let fleet = fleet_for(input, &h.metadata, opts.fleet.as_ref())?;
+    let out = proto::files::OutputFile::new(output, &[input])?;
     let keys = fleet.keys();
     let mut params = opts.params;
     params.record_solve_time = false;
     let mut fusion = Fusion::new(&fleet, params, "central");
-    let mut meta = h.metadata.clone();
-    meta.insert(
-        "refused_from".into(),
-        input
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_default(),
-    );
-    meta.insert(
-        "fusion".into(),
-        format!("offline re-fusion, {:?}", opts.solve_at),
-    );
-    let mut writer = LogWriter::create(
-        output,
-        &WriterOptions::default(),
-        &meta,
-        h.fleet_toml.as_deref(),
-        0,
-    )?;
+    let mut writer = output_writer(out.temp_path(), input, &h, opts.solve_at)?;
     let conv_opts = RecordOptions {
         frames: false,
         ..RecordOptions::default()
@@ -153,71 +136,132 @@ pub fn refuse(input: &Path, output: &Path, opts: &FuseOptions) -> Result<FuseSum
     let mut next_solve: Option<u64> = None;
     let mut cmp = CompareAcc::default();
     let map_key = keys.map();
-    let res = scan_wire(&buf, |channel, log_time, data| -> Result<(), RecordError> {
-        let key = channel.topic.as_str();
-        let kind = crate::recorder::envelope_kind(data);
-        match (kind, keys.parse(key)) {
-            (Some(MessageKind::SimTruth), _) => {
-                if let Ok(t) = proto::decode::<SimTruth>(data) {
-                    now = now.max(t.stamp_ns);
-                }
-                conv.write(&mut writer, key, data, log_time, &stats)?;
-            }
-            (Some(MessageKind::Observation), Ok(KeyKind::Observations { vehicle })) => {
-                if let Ok(o) = proto::decode::<Observation>(data) {
-                    now = now.max(o.stamp_ns);
-                    summary.observations += 1;
-                    if fusion.ingest(o, vehicle, now).is_err() {
-                        summary.rejected_at_ingest += 1;
+    let res = scan_wire(
+        input,
+        |channel, log_time, data| -> Result<(), RecordError> {
+            let key = channel.topic.as_str();
+            let kind = crate::recorder::envelope_kind(data);
+            match (kind, keys.parse(key)) {
+                (Some(MessageKind::SimTruth), _) => {
+                    match proto::decode::<SimTruth>(data) {
+                        Ok(t) => now = now.max(t.stamp_ns),
+                        Err(_) => summary.undecodable += 1,
                     }
+                    conv.write(&mut writer, key, data, log_time, &stats)?;
                 }
-                conv.write(&mut writer, key, data, log_time, &stats)?;
-            }
-            (Some(MessageKind::FleetMap), _) => {
-                if key == map_key {
-                    if let Ok(original) = proto::decode::<FleetMap>(data) {
-                        summary.original_maps += 1;
-                        if opts.solve_at == SolveAt::OriginalMaps {
-                            let map = fusion.solve(original.stamp_ns);
-                            cmp.add(&map, &original);
-                            write_map(&mut writer, &mut conv, &map_key, &map, log_time, &stats)?;
-                            summary.maps_written += 1;
+                (Some(MessageKind::Observation), Ok(KeyKind::Observations { vehicle })) => {
+                    match proto::decode::<Observation>(data) {
+                        Ok(o) => {
+                            now = now.max(o.stamp_ns);
+                            summary.observations += 1;
+                            if fusion.ingest(o, vehicle, now).is_err() {
+                                summary.rejected_at_ingest += 1;
+                            }
+                        }
+                        Err(_) => summary.undecodable += 1,
+                    }
+                    conv.write(&mut writer, key, data, log_time, &stats)?;
+                }
+                (Some(MessageKind::FleetMap), _) => {
+                    if key == map_key {
+                        let decoded = proto::decode::<FleetMap>(data);
+                        if decoded.is_err() {
+                            summary.undecodable += 1;
+                        }
+                        if let Ok(original) = decoded {
+                            summary.original_maps += 1;
+                            if opts.solve_at == SolveAt::OriginalMaps {
+                                let map = fusion.solve(original.stamp_ns);
+                                cmp.add(&map, &original);
+                                write_map(
+                                    &mut writer,
+                                    &mut conv,
+                                    &map_key,
+                                    &map,
+                                    log_time,
+                                    &stats,
+                                )?;
+                                summary.maps_written += 1;
+                            }
                         }
                     }
+                    return Ok(());
                 }
-                return Ok(());
+                (Some(MessageKind::CameraFrame), _) => return Ok(()),
+                (None, _) => {
+                    summary.undecodable += 1;
+                    return Ok(());
+                }
+                _ => conv.write(&mut writer, key, data, log_time, &stats)?,
             }
-            (Some(MessageKind::CameraFrame), _) => return Ok(()),
-            _ => conv.write(&mut writer, key, data, log_time, &stats)?,
-        }
-        if let Some(period) = solve_period_ns {
-            let due = *next_solve.get_or_insert(now + period);
-            if now >= due {
-                let map = fusion.solve(now);
-                write_map(&mut writer, &mut conv, &map_key, &map, log_time, &stats)?;
-                summary.maps_written += 1;
-                next_solve = Some(due + period * ((now - due) / period + 1));
+            if let Some(period) = solve_period_ns {
+                let due = *next_solve.get_or_insert(now + period);
+                if now >= due {
+                    let map = fusion.solve(now);
+                    write_map(&mut writer, &mut conv, &map_key, &map, log_time, &stats)?;
+                    summary.maps_written += 1;
+                    next_solve = Some(due + period * ((now - due) / period + 1));
+                }
             }
-        }
-        Ok(())
-    });
-    match res {
-        Ok(outcome) => {
-            if let Some(d) = outcome.damage.filter(|_| !outcome.complete) {
-                tracing::warn!("{}: {d}; re-fused what was readable", input.display());
-            }
-        }
-        Err(ScanError::Visitor(e)) => return Err(e),
-        Err(ScanError::NotMcap(source)) => {
-            return Err(RecordError::NotMcap {
-                path: input.to_path_buf(),
-                source,
-            })
-        }
+            Ok(())
+        },
+    );
+    let outcome = res.map_err(|e| match e.into_record_error(input) {
+        Ok(e) | Err(e) => e,
+    })?;
+    if let Some(d) = &outcome.damage {
+        tracing::warn!("{}: {d}; re-fused what was readable", input.display());
     }
+    summary.input_damage = outcome.damage;
     writer.finish()?;
+    out.commit()?;
     summary.comparison = cmp.finish();
     Ok(summary)
+}
+
+/// The re-fused log's writer: the input's metadata and fleet, and where it came from.
+fn output_writer(
+    path: &Path,
+    input: &Path,
+    h: &LogHeader,
+    solve_at: SolveAt,
+) -> Result<LogWriter, RecordError> {
+    let mut meta = h.metadata.clone();
+    meta.insert(
+        "refused_from".into(),
+        input
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default(),
+    );
+    meta.insert("fusion".into(), format!("offline re-fusion, {solve_at:?}"));
+    LogWriter::create(
+        path,
+        &WriterOptions::default(),
+        &meta,
+        h.fleet_toml.as_deref(),
+        0,
+    )
+}
+
+/// The fleet to re-fuse with: the one given (which must be the fleet the log
+/// was recorded with) or the log's own attachment.
+fn fleet_for(
+    input: &Path,
+    metadata: &BTreeMap<String, String>,
+    given: Option<&Fleet>,
+) -> Result<Fleet, RecordError> {
+    match given {
+        Some(f) => match metadata.get("fleet").filter(|n| **n != f.name) {
+            Some(recorded) => Err(RecordError::FleetMismatch {
+                path: input.to_path_buf(),
+                recorded: recorded.clone(),
+                given: f.name.clone(),
+            }),
+            None => Ok(f.clone()),
+        },
+        None => fleet_of(input, input),
+    }
 }
 
 fn write_map(

@@ -3,7 +3,7 @@
 //! within a time range, sent to a [`ReplaySink`]; republishing them on
 //! Zenoh is `shoal_services::replay`.
 
-use crate::reader::{read_file, scan_wire, ScanError};
+use crate::reader::{scan_wire, summary_channels, ScanError};
 use crate::recorder::envelope_kind;
 use crate::RecordError;
 use proto::MessageKind;
@@ -73,7 +73,6 @@ pub fn replay_into(
     opts: &ReplayOptions,
     stop: &AtomicBool,
 ) -> Result<ReplaySummary, RecordError> {
-    let buf = read_file(path)?;
     let mut declared: HashSet<String> = HashSet::new();
     let mut summary = ReplaySummary::default();
     let mut first_log: Option<u64> = None;
@@ -82,8 +81,12 @@ pub fn replay_into(
     let rate = if opts.rate > 0.0 { opts.rate } else { 1.0 };
     // Declare every publisher up front when the file has a summary (a
     // recovered or cleanly closed log); a killed log declares them as it goes.
-    if let Ok(Some(summary)) = mcap::Summary::read(&buf) {
-        for c in summary.channels.values() {
+    {
+        let channels = summary_channels(path).map_err(|source| RecordError::NotMcap {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        for c in &channels {
             let kind = c
                 .metadata
                 .get("kind")
@@ -103,7 +106,7 @@ pub fn replay_into(
         }
     }
     std::thread::sleep(opts.settle);
-    let res = scan_wire(&buf, |channel, log_time, data| -> Result<(), RecordError> {
+    let res = scan_wire(path, |channel, log_time, data| -> Result<(), RecordError> {
         if stop.load(Ordering::Relaxed) {
             return Err(RecordError::Interrupted);
         }

@@ -13,7 +13,8 @@ use proptest::test_runner::Config as ProptestConfig;
 use shoal_proto::geometry::{pose_from_xyz_rpy, Cov6};
 use shoal_proto::messages::*;
 use shoal_proto::CodeSet;
-use shoal_record::reader::{header, read_file, recover, scan_wire};
+use shoal_record::reader::{header, scan_wire};
+use shoal_record::recover;
 use shoal_record::{info, LogWriter, WriterOptions};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -85,7 +86,7 @@ fn intact() -> &'static (Vec<u8>, Vec<Vec<u8>>) {
             sent.push(bytes);
         }
         w.finish().unwrap();
-        (read_file(&path).unwrap(), sent)
+        (std::fs::read(&path).unwrap(), sent)
     })
 }
 
@@ -108,8 +109,60 @@ fn the_intact_log_reads_completely_over_several_chunks() {
     assert_eq!(&got, sent);
 }
 
+/// The most messages one chunk of the intact log holds (from its summary, by the `mcap` crate's indexed reader).
+fn messages_per_chunk_max() -> usize {
+    let (buf, _) = intact();
+    let summary = shoal_record::mcap::Summary::read(buf).unwrap().unwrap();
+    summary
+        .chunk_indexes
+        .iter()
+        .map(|ci| {
+            summary
+                .read_message_indexes(buf, ci)
+                .unwrap()
+                .values()
+                .map(Vec::len)
+                .sum::<usize>()
+        })
+        .max()
+        .unwrap()
+}
+
+/// Whether `got` is `sent` with some messages left out (same order, each byte for byte).
+fn is_subsequence(got: &[Vec<u8>], sent: &[Vec<u8>]) -> bool {
+    let mut it = sent.iter();
+    got.iter().all(|g| it.any(|s| s == g))
+}
+
 proptest! {
     #![proptest_config(fuzz_config(256))]
+
+    /// Issue #22: one damaged byte anywhere costs at most the record it is
+    /// in. Every message outside the damaged chunk is read, none is altered,
+    /// and the file is never called complete; `recover` keeps the same.
+    #[test]
+    fn one_flipped_byte_costs_at_most_its_record(at in any::<usize>(), v in 1u8..=255) {
+        let (buf, sent) = intact();
+        let mut damaged = buf.clone();
+        let i = at % damaged.len();
+        damaged[i] ^= v;
+        let (got, outcome) = wire_messages(&damaged).expect("one flipped byte keeps it MCAP");
+        prop_assert!(!outcome.complete, "byte {i} flipped, still called complete");
+        prop_assert!(outcome.damage.is_some());
+        prop_assert!(is_subsequence(&got, sent), "byte {i}: a message came out altered or out of order");
+        let lost = sent.len() - got.len();
+        prop_assert!(lost <= messages_per_chunk_max(), "byte {i}: {lost} messages lost ({:?})", outcome.damage);
+        let input = scratch(&format!("flip-{i}.mcap"));
+        let output = scratch(&format!("flip-{i}-recovered.mcap"));
+        std::fs::write(&input, &damaged).unwrap();
+        let report = recover(&input, &output).unwrap();
+        prop_assert_eq!(report.messages, got.len() as u64);
+        let (again, fixed) = wire_messages(&std::fs::read(&output).unwrap()).unwrap();
+        prop_assert!(fixed.complete, "{:?}", fixed.damage);
+        prop_assert_eq!(again, got);
+        let _ = std::fs::remove_file(&input);
+        let _ = std::fs::remove_file(&output);
+    }
 
     /// A recording killed at any byte: a prefix of what was written, read
     /// exactly, and `recover` writes a complete file holding the same.
@@ -132,7 +185,7 @@ proptest! {
                 std::fs::write(&input, damaged).unwrap();
                 let report = recover(&input, &output).unwrap();
                 prop_assert_eq!(report.messages, got.len() as u64);
-                let fixed = read_file(&output).unwrap();
+                let fixed = std::fs::read(&output).unwrap();
                 let (again, outcome) = wire_messages(&fixed).unwrap();
                 prop_assert!(outcome.complete, "recovered file is incomplete: {:?}", outcome.damage);
                 prop_assert_eq!(again, got);
@@ -171,9 +224,39 @@ proptest! {
         std::fs::write(&input, &damaged).unwrap();
         let _ = info(&input);
         if recover(&input, &output).is_ok() {
-            let fixed = read_file(&output).unwrap();
+            let fixed = std::fs::read(&output).unwrap();
             let (_, outcome) = wire_messages(&fixed).expect("recover writes MCAP");
             prop_assert!(outcome.complete);
         }
     }
+}
+
+/// Issue #22, exhaustively: every byte of the log flipped in turn (by a
+/// value that varies with the offset). Not one of them is read as complete,
+/// alters or reorders a message, or costs more than one chunk's messages.
+#[test]
+fn every_byte_flipped_in_turn_costs_at_most_its_record() {
+    let (buf, sent) = intact();
+    let max = messages_per_chunk_max();
+    let mut failures = Vec::new();
+    for i in 0..buf.len() {
+        let v = (i * 37 % 255 + 1) as u8;
+        let mut d = buf.clone();
+        d[i] ^= v;
+        let (got, outcome) = wire_messages(&d).expect("one flipped byte keeps it MCAP");
+        let lost = sent.len() - got.len();
+        if outcome.complete || lost > max || !is_subsequence(&got, sent) {
+            failures.push(format!(
+                "byte {i} ^ {v:#04x}: complete {}, {lost} lost, {:?}",
+                outcome.complete, outcome.damage
+            ));
+        }
+    }
+    assert!(
+        failures.is_empty(),
+        "{} of {} flips: {:#?}",
+        failures.len(),
+        buf.len(),
+        &failures[..failures.len().min(10)]
+    );
 }

@@ -36,7 +36,7 @@ pub fn run(cmd: ConfigCmd) -> anyhow::Result<()> {
                     .with_context(|| format!("cannot read {}", file.display()))?;
                 let m = parse_calibration_yaml(&text)
                     .map_err(|e| anyhow::anyhow!("{}: {e}", file.display()))?;
-                println!(
+                shoal::outln!(
                     "camera {}: {}x{}, fx {:.2} fy {:.2}, principal point ({:.2}, {:.2}), distortion {:?}",
                     file.display(),
                     m.width,
@@ -49,8 +49,8 @@ pub fn run(cmd: ConfigCmd) -> anyhow::Result<()> {
                 );
             } else {
                 let fleet = Fleet::load(&file)?;
-                print!("{}", fleet.summary());
-                println!("ok");
+                shoal::out!("{}", fleet.summary());
+                shoal::outln!("ok");
             }
             Ok(())
         }
@@ -76,7 +76,7 @@ pub fn run(cmd: ConfigCmd) -> anyhow::Result<()> {
                         fleet.vehicles.len()
                     );
                 }
-                None => print!("{text}"),
+                None => shoal::out!("{text}"),
             }
             Ok(())
         }

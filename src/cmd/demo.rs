@@ -1,7 +1,9 @@
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use shoal::demo::{run, DemoConfig};
+use shoal::demo::{run_until, DemoConfig};
 use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
 
 #[derive(Debug, Args)]
 pub struct DemoArgs {
@@ -92,17 +94,30 @@ pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
             st.foxglove_port.unwrap_or_default()
         );
     }
-    let summary = run(&cfg, |t, _total, msg| {
+    // The first Ctrl-C / SIGTERM ends the run cleanly (log finished, figures
+    // printed); a second one exits at once.
+    let stop = Arc::new(AtomicBool::new(false));
+    for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+        signal_hook::flag::register_conditional_shutdown(sig, 130, stop.clone())?;
+        signal_hook::flag::register(sig, stop.clone())?;
+    }
+    let summary = run_until(&cfg, &stop, |t, _total, msg| {
         bar.set_position((t * 10.0) as u64);
         bar.set_message(msg.to_string());
     })?;
     bar.finish_and_clear();
-    println!(
+    if let Some(t) = summary.interrupted_at_s {
+        shoal::outln!(
+            "interrupted at {t:.1} s of {} s simulated: services stopped, log finished",
+            cfg.duration_s
+        );
+    }
+    shoal::outln!(
         "fused relative pose error against ground truth (mean over the second half of the run):"
     );
-    println!("  pair      position error   angle error   localized in");
+    shoal::outln!("  pair      position error   angle error   localized in");
     for p in &summary.pairs {
-        println!(
+        shoal::outln!(
             "  {:>3}-{:<3}  {:>10.1} mm   {:>9.2}°   {}/{} maps",
             p.a,
             p.b,
@@ -112,7 +127,7 @@ pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
             p.maps_evaluated
         );
     }
-    println!(
+    shoal::outln!(
         "frames processed {} (dropped {}), mean per-frame pipeline latency {:.1} ms, frame-to-map latency {:.0} ms, observations {}, maps {}, sim ticks {} ({} skipped), wall time {:.1} s",
         summary.frames_processed,
         summary.frames_dropped,
@@ -124,12 +139,14 @@ pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
         summary.sim_ticks_skipped,
         summary.wall_time_s
     );
-    println!(
+    shoal::outln!(
         "last map: {} hypotheses accepted, {} observations rejected, {} planar-flip twins rejected",
-        summary.edges_accepted, summary.edges_rejected, summary.flip_twins_rejected
+        summary.edges_accepted,
+        summary.edges_rejected,
+        summary.flip_twins_rejected
     );
     if let Some(log) = &summary.log {
-        println!(
+        shoal::outln!(
             "log: {} ({} messages, {} dropped, {:.1} MB) — try `shoal log info {}`",
             log.path.display(),
             log.messages,
@@ -140,7 +157,7 @@ pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
     }
     if let Some(path) = a.summary_json {
         std::fs::write(&path, serde_json::to_string_pretty(&summary)?)?;
-        println!("summary written to {}", path.display());
+        shoal::outln!("summary written to {}", path.display());
     }
     Ok(())
 }

@@ -81,7 +81,7 @@ pub fn run_eval(a: EvalArgs) -> anyhow::Result<()> {
         restore_params: eval::restore_params::from_assignments(&a.restore_param)?,
     };
     let summary = eval::run(experiment, &opts).with_context(|| format!("eval {experiment}"))?;
-    println!("{}", serde_json::to_string_pretty(&summary)?);
-    println!("wrote {}", out.join("summary.json").display());
+    shoal::outln!("{}", serde_json::to_string_pretty(&summary)?);
+    shoal::outln!("wrote {}", out.join("summary.json").display());
     Ok(())
 }

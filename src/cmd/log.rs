@@ -65,7 +65,7 @@ pub fn run_record(a: RecordArgs) -> anyhow::Result<()> {
                 .is_some_and(|d| started.elapsed().as_secs_f64() >= d)
     });
     let s = rec.stop()?;
-    println!(
+    shoal::outln!(
         "wrote {} ({:.2} MB, {} wire messages, {} dropped, {} frames rate-limited, {} undecodable, {} PNG images dropped) in {:.1} s, writer CPU {:.2} s",
         s.path.display(),
         s.file_bytes as f64 / 1e6,
@@ -78,7 +78,7 @@ pub fn run_record(a: RecordArgs) -> anyhow::Result<()> {
         s.writer_cpu_s
     );
     for (topic, c) in &s.channels {
-        println!(
+        shoal::outln!(
             "  {topic:<44} {:>7} messages {:>10.3} MB",
             c.messages,
             c.bytes as f64 / 1e6
@@ -157,7 +157,7 @@ pub fn run_replay(a: ReplayArgs) -> anyhow::Result<()> {
         },
         &stop,
     )?;
-    println!(
+    shoal::outln!(
         "replayed {} messages ({:.2} MB) covering {:.1} s of log in {:.1} s (latest message {:.1} ms behind schedule){}",
         s.messages,
         s.bytes as f64 / 1e6,
@@ -196,7 +196,7 @@ pub fn run_fuse(a: FuseArgs) -> anyhow::Result<()> {
     };
     let started = std::time::Instant::now();
     let s = shoal_record::refuse(&a.file, &a.out, &opts)?;
-    println!(
+    shoal::outln!(
         "re-fused {} observations ({} rejected on arrival) into {} maps in {:.2} s → {}",
         s.observations,
         s.rejected_at_ingest,
@@ -204,9 +204,18 @@ pub fn run_fuse(a: FuseArgs) -> anyhow::Result<()> {
         started.elapsed().as_secs_f64(),
         s.output.display()
     );
+    if s.undecodable > 0 {
+        shoal::outln!(
+            "{} envelopes of the log did not decode and were left out",
+            s.undecodable
+        );
+    }
+    if let Some(d) = &s.input_damage {
+        shoal::outln!("the input log is damaged: {d}");
+    }
     let c = &s.comparison;
     if c.maps_compared > 0 {
-        println!(
+        shoal::outln!(
             "against the {} original maps: {} estimates compared, position difference mean {:.2} mm, max {:.2} mm, angle max {:.3}°",
             s.original_maps,
             c.estimates_compared,
@@ -246,24 +255,32 @@ pub fn run_log(c: LogCmd) -> anyhow::Result<()> {
         LogCmd::Info { file, json } => {
             let i = shoal_record::info(&file)?;
             if json {
-                println!("{}", serde_json::to_string_pretty(&i)?);
+                shoal::outln!("{}", serde_json::to_string_pretty(&i)?);
             } else {
-                print!("{i}");
+                shoal::out!("{i}");
             }
         }
         LogCmd::Recover { file, out } => {
             let r = shoal_record::recover(&file, &out)?;
-            println!(
+            shoal::outln!(
                 "recovered {} messages on {} channels from {} chunks into {}{}",
                 r.messages,
                 r.channels,
                 r.chunks_read,
                 out.display(),
-                r.damage.map_or_else(
+                r.damage.as_ref().map_or_else(
                     || " (the input was intact)".to_string(),
                     |d| format!(" (input: {d})")
                 )
             );
+            for s in &r.skipped {
+                shoal::outln!(
+                    "  skipped bytes {}..{} of the input: {}",
+                    s.offset,
+                    s.offset + s.bytes,
+                    s.reason
+                );
+            }
         }
     }
     Ok(())

@@ -73,7 +73,7 @@ pub fn run_relay(a: RelayArgs) -> anyhow::Result<()> {
     signal_hook::flag::register(signal_hook::consts::SIGUSR2, heal.clone())
         .context("SIGUSR2 handler")?;
     // Printed on stdout so a parent process knows the port when --listen asked for 0.
-    println!("relay {} -> {upstream}", relay.local_addr());
+    shoal::outln!("relay {} -> {upstream}", relay.local_addr());
     tracing::info!(
         "relaying {} -> {upstream} with {plan:?}; SIGUSR1 cuts, SIGUSR2 heals",
         relay.local_addr()
@@ -90,7 +90,7 @@ pub fn run_relay(a: RelayArgs) -> anyhow::Result<()> {
         false
     });
     let s = relay.stats();
-    println!(
+    shoal::outln!(
         "relay: {} connections, {} cut, {} refused, {} bytes, {} stalls",
         s.connections.load(Ordering::Relaxed),
         s.cut.load(Ordering::Relaxed),

@@ -122,7 +122,7 @@ pub fn run_node(a: NodeArgs) -> anyhow::Result<()> {
             path.display()
         );
         let s = shoal::redetect::redetect(&bus, cfg, &path, a.replay_rate, &stop)?;
-        println!(
+        shoal::outln!(
             "vehicle {}: {} frames replayed, {} processed, {} dropped, {} observations published; mean pipeline {} in {:.1} s",
             a.vehicle,
             s.frames_replayed,
@@ -332,9 +332,9 @@ pub fn run_sim(a: SimArgs) -> anyhow::Result<()> {
                 .with_context(|| format!("cannot create {}", dir.display()))?;
         }
         let clean = write_frame_pair(&out_frame, &out)?;
-        println!("wrote {} and {}", out.display(), clean.display());
+        shoal::outln!("wrote {} and {}", out.display(), clean.display());
         for m in &out_frame.visible {
-            println!(
+            shoal::outln!(
                 "  sees {}#{} on vehicle {} at {:.2} m, {:.0}% visible",
                 m.codes,
                 m.marker,

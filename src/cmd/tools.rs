@@ -49,7 +49,7 @@ pub fn run_marker(cmd: MarkerCmd) -> anyhow::Result<()> {
         _ => bail!("{}: output must end in .svg or .png", out.display()),
     };
     std::fs::write(&out, bytes).with_context(|| format!("cannot write {}", out.display()))?;
-    println!("wrote {} ({codes} #{id}, {size_mm} mm)", out.display());
+    shoal::outln!("wrote {} ({codes} #{id}, {size_mm} mm)", out.display());
     Ok(())
 }
 
@@ -119,6 +119,6 @@ pub struct RestoreArgs {
 pub fn run_restore(a: RestoreArgs) -> anyhow::Result<()> {
     let method: Method = a.method.parse()?;
     restore_file(&a.input, &a.output, method, a.water)?;
-    println!("wrote {} ({method})", a.output.display());
+    shoal::outln!("wrote {} ({method})", a.output.display());
     Ok(())
 }

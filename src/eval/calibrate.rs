@@ -222,11 +222,11 @@ fn write_calibration(
             source,
         }
     })?;
-    println!(
+    crate::outln!(
         "calibrate-water: knobs backscatter_scale={:.4} noise_scale={:.4} psf_width_scale={:.4} forward_scatter_scale={:.4} exposure_scale={:.4}",
         best.backscatter_scale, best.noise_scale, best.psf_width_scale, best.forward_scatter_scale, best.exposure_scale
     );
-    println!(
+    crate::outln!(
         "calibrate-water: CLAHE success {:?} vs paper {:?}: max deviation {:.2} ({})",
         best_rates,
         PAPER_CLAHE,

@@ -206,7 +206,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
         "shipped_tilt_deg",
         "shipped_roll_deg",
     ]);
-    println!(
+    crate::outln!(
         "range   located  flips  lateral mm (fit / shipped)   depth mm (fit / shipped)   tilt ° (fit / shipped)   roll ° (fit / shipped)"
     );
     let mut rows = Vec::new();
@@ -231,7 +231,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
             cell(Some(d[2].to_degrees())),
             cell(Some(d[3].to_degrees())),
         ]);
-        println!(
+        crate::outln!(
             "{:>4.2} m  {:>3}/{:<3}  {:>4}  {:>6.2} ({:.2} / {:.2})     {:>6.2} ({:.2} / {:.2})     {:>5.3} ({:.3} / {:.3})    {:>5.3} ({:.3} / {:.3})",
             s.range_m,
             s.located,

@@ -96,7 +96,7 @@ fn write_table(path: &Path, source: &str, (n, k, codes): Table) -> Result<(), Ev
         path: path.to_path_buf(),
         source,
     })?;
-    println!(
+    crate::outln!(
         "{}: {} codes, {n}x{n}, max_correction_bits = {k}",
         path.display(),
         codes.len()

@@ -195,7 +195,7 @@ pub fn run(a: &HoirmArgs) -> Result<(), EvalError> {
             ok += usize::from(found);
             line.push(if found { '+' } else { '.' });
             if a.verbose || k == 0 {
-                println!(
+                crate::outln!(
                     "  c {c:5.2} frame {k:3}: est c {:5.2} noise {:.2} ΔI {:5.2} B {:5.1} gain {:.2} clip {:.1} denoise σ {:.2} psf p {:.2} σ {:.2} measured {:?} rois {:?} found {found} ({} dets)",
                     fp.water.c_per_m,
                     fp.water.noise_sigma,
@@ -212,7 +212,7 @@ pub fn run(a: &HoirmArgs) -> Result<(), EvalError> {
                 );
             }
         }
-        println!(
+        crate::outln!(
             "c {c:5.2}: success {:.2} ({ok}/{}) {line}  median error {:.3} mm {:.3}°",
             ok as f64 / a.frames.max(1) as f64,
             a.frames,

@@ -80,7 +80,7 @@ pub fn run(a: &PsfScaleArgs) -> Result<(), EvalError> {
         let r = Rect::new(x0 as i32, y0 as i32, (x1 - x0) as i32, (y1 - y0) as i32);
         let (clean, obs) = (to_f32(&out.clean, r)?, to_f32(&out.image, r)?);
         let p_hoirm = water::psf_p(c, &params);
-        println!("c = {c}: HOIRM p(c) = {p_hoirm:.2}; residual RMS (grey levels) per p, s:");
+        crate::outln!("c = {c}: HOIRM p(c) = {p_hoirm:.2}; residual RMS (grey levels) per p, s:");
         let mut best = (f64::MAX, 0.0, 0.0);
         for p in SHAPES.into_iter().chain([p_hoirm]) {
             let mut line = format!("  p {p:4.2}:");
@@ -105,11 +105,13 @@ pub fn run(a: &PsfScaleArgs) -> Result<(), EvalError> {
                     best = (e, p, s);
                 }
             }
-            println!("{line}");
+            crate::outln!("{line}");
         }
-        println!(
+        crate::outln!(
             "  best: p {:.2}, s {} px/unit (residual {:.3})",
-            best.1, best.2, best.0
+            best.1,
+            best.2,
+            best.0
         );
     }
     Ok(())

@@ -6,7 +6,7 @@
 
 use crate::eval::EvalError;
 use shoal_record::foxglove;
-use shoal_record::reader::{read_file, scan, Item};
+use shoal_record::reader::{scan, Item};
 use shoal_record::writer::{LogWriter, WriterOptions};
 use std::path::PathBuf;
 use std::time::Instant;
@@ -35,10 +35,9 @@ pub fn run(a: &RecordCostArgs) -> Result<(), EvalError> {
     let path = &a.mcap;
     // The recorder's errors name the file themselves.
     let log = |e: shoal_record::RecordError| EvalError::Setup(e.to_string());
-    let buf = read_file(path).map_err(log)?;
-    let fleet = shoal_record::refuse::fleet_of(&buf, path).map_err(log)?;
+    let fleet = shoal_record::refuse::fleet_of(path, path).map_err(log)?;
     let mut frames: Vec<(String, Vec<u8>)> = Vec::new();
-    scan(&buf, |item| -> Result<(), shoal_record::reader::Stop> {
+    scan(path, |item| -> Result<(), shoal_record::reader::Stop> {
         if let Item::Message { channel, data, .. } = item {
             if channel.is_wire() && channel.topic.ends_with("/frame") && frames.len() < MAX_FRAMES {
                 frames.push((channel.topic.clone(), data.to_vec()));
@@ -116,12 +115,12 @@ pub fn run(a: &RecordCostArgs) -> Result<(), EvalError> {
             source,
         })?
         .len() as f64;
-    println!(
+    crate::outln!(
         "PNG alone {:.1} ms, base64 alone {:.1} ms",
         t_png_only / n * 1e3,
         t_b64 / n * 1e3
     );
-    println!(
+    crate::outln!(
         "{} frames{}, zstd level {}: per frame decode {:.1} ms, PNG+base64+JSON {:.1} ms, raw write+zstd {:.1} ms, Foxglove write+zstd {:.1} ms; {:.2} MB per frame on disk (raw + PNG)",
         n,
         if a.raw_only { " (raw only)" } else { "" },

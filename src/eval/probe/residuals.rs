@@ -109,7 +109,7 @@ impl Stats {
             s.2 += 1;
         }
         if a.per_frame {
-            println!("{} frame {k} errors (px) {}", self.label, line.join(" "));
+            crate::outln!("{} frame {k} errors (px) {}", self.label, line.join(" "));
         }
         let keep: Vec<bool> = d
             .corner_ids
@@ -193,7 +193,7 @@ fn variants() -> Vec<(&'static str, DetectParams)> {
 
 /// Print each variant's pose errors and per-corner bias and spread.
 fn report(a: &ResidualsArgs, method: Method, codes: CodeSet, stats: &mut [Stats]) {
-    println!(
+    crate::outln!(
         "water {} /m, {} frames, {method}{}, {codes} at {} m, yaw {}°",
         a.c,
         a.frames,
@@ -202,7 +202,7 @@ fn report(a: &ResidualsArgs, method: Method, codes: CodeSet, stats: &mut [Stats]
         a.yaw_deg
     );
     for st in stats.iter_mut() {
-        println!(
+        crate::outln!(
             "{:>18}: median dist {:.3} mm, angle {:.4} deg, missed {}, flips (> 3°) {}, detect {:.1} ms/frame",
             st.label,
             median(&mut st.dist),
@@ -221,9 +221,12 @@ fn report(a: &ResidualsArgs, method: Method, codes: CodeSet, stats: &mut [Stats]
                 (s2[0] / nf - mean[0] * mean[0]).max(0.0).sqrt(),
                 (s2[1] / nf - mean[1] * mean[1]).max(0.0).sqrt(),
             ];
-            println!(
+            crate::outln!(
                 "    corner {cid:2}: n {n:3} bias ({:+.3}, {:+.3}) px  sd ({:.3}, {:.3}) px",
-                mean[0], mean[1], sd[0], sd[1]
+                mean[0],
+                mean[1],
+                sd[0],
+                sd[1]
             );
         }
     }

@@ -108,7 +108,7 @@ pub fn run(a: &RestoreSheetArgs) -> Result<(), EvalError> {
             let img = shoal_node::mat::gray_to_mat(&out.image)?;
             let (res, p) = hoirm.restore_with_params(&img, (t * 1e9) as u64)?;
             if k == HISTORY {
-                println!(
+                crate::outln!(
                     "c = {c:5.2}: estimated c {:.2}, backscatter {:.0}, α {:.2}, clip {:.2}, p {:.2}, σ {:.2} px, level {}, ROIs {:?}",
                     p.c_per_m, p.water.backscatter, p.alpha, p.clahe_clip, p.psf.p, p.psf.sigma_px,
                     res.pyramid_level, res.rois
@@ -148,7 +148,7 @@ pub fn run(a: &RestoreSheetArgs) -> Result<(), EvalError> {
         for (i, (name, m)) in columns.iter().enumerate() {
             let value = cnr(&gray_from_mat(m)?, &white, &black)
                 .map_or("n/a".to_string(), |v| format!("{v:7.2}"));
-            println!("  {i:2} {name:<28} CNR {value}");
+            crate::outln!("  {i:2} {name:<28} CNR {value}");
             if let Some(dir) = &a.stages_dir {
                 let file: String = name
                     .chars()
@@ -192,6 +192,6 @@ pub fn run(a: &RestoreSheetArgs) -> Result<(), EvalError> {
         }
     }
     imwrite(&a.out, &sheet)?;
-    println!("wrote {}", a.out.display());
+    crate::outln!("wrote {}", a.out.display());
     Ok(())
 }

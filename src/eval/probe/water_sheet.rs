@@ -76,9 +76,9 @@ pub fn run(a: &WaterSheetArgs) -> Result<(), EvalError> {
             roi.iter().min().copied().unwrap_or(0),
             roi.iter().max().copied().unwrap_or(0),
         );
-        println!("c = {c:>6.3} /m: crop min {lo:>3} max {hi:>3}");
+        crate::outln!("c = {c:>6.3} /m: crop min {lo:>3} max {hi:>3}");
     }
     write_png(&sheet, &a.out)?;
-    println!("wrote {}", a.out.display());
+    crate::outln!("wrote {}", a.out.display());
     Ok(())
 }
