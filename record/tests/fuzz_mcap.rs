@@ -128,6 +128,25 @@ fn messages_per_chunk_max() -> usize {
         .unwrap()
 }
 
+/// Messages of the intact log's chunks that end at or before byte `cut`.
+fn messages_in_chunks_before(cut: usize) -> usize {
+    let (buf, _) = intact();
+    let summary = shoal_record::mcap::Summary::read(buf).unwrap().unwrap();
+    summary
+        .chunk_indexes
+        .iter()
+        .filter(|ci| (ci.chunk_start_offset + ci.chunk_length) as usize <= cut)
+        .map(|ci| {
+            summary
+                .read_message_indexes(buf, ci)
+                .unwrap()
+                .values()
+                .map(Vec::len)
+                .sum::<usize>()
+        })
+        .sum()
+}
+
 /// Whether `got` is `sent` with some messages left out (same order, each byte for byte).
 fn is_subsequence(got: &[Vec<u8>], sent: &[Vec<u8>]) -> bool {
     let mut it = sent.iter();
@@ -176,6 +195,8 @@ proptest! {
             Some((got, outcome)) => {
                 prop_assert!(got.len() <= sent.len());
                 prop_assert_eq!(&got[..], &sent[..got.len()]);
+                // Every chunk that ends before the cut is read, whole.
+                prop_assert_eq!(got.len(), messages_in_chunks_before(cut_at), "cut at {}", cut_at);
                 if cut_at < buf.len() {
                     prop_assert!(!outcome.complete);
                     prop_assert!(outcome.damage.is_some());

@@ -106,15 +106,21 @@ impl<R: Read + Seek> Framer<R> {
     }
 
     /// Whether the record at `at` (of body `len`) is followed by a plausible
-    /// record, the end of the file, or — for a footer — the closing magic.
+    /// record, the end of the file, or — for a footer — the closing magic. A
+    /// record the file ends inside (a recording killed while writing it)
+    /// counts as plausible here: it must not cost the complete one before it.
     pub fn framed(&mut self, opcode: u8, len: u64, at: u64) -> io::Result<bool> {
         let next = at + HEAD + len;
         if next == self.len || (opcode == op::FOOTER && next + 8 == self.len) {
             return Ok(true);
         }
         Ok(match self.head(next)? {
-            Some((o, l)) => plausible(o, l, next, self.len),
-            None => false,
+            Some((o, l)) => {
+                plausible(o, l, next, self.len)
+                    || ((op::HEADER..=op::DATA_END).contains(&o) && l <= MAX_RECORD)
+            }
+            // Fewer than nine bytes left: the file ends inside the next head.
+            None => true,
         })
     }
 
