@@ -31,6 +31,18 @@ pub struct ChannelInfo {
     pub schema_id: u16,
 }
 
+impl From<mcap::records::Channel> for ChannelInfo {
+    fn from(c: mcap::records::Channel) -> Self {
+        Self {
+            id: c.id,
+            topic: c.topic,
+            message_encoding: c.message_encoding,
+            metadata: c.metadata,
+            schema_id: c.schema_id,
+        }
+    }
+}
+
 impl ChannelInfo {
     /// A raw shoal wire channel (envelope bytes of a Zenoh key).
     pub fn is_wire(&self) -> bool {
@@ -538,13 +550,7 @@ fn handle<E>(
             }
         }
         Record::Channel(c) => {
-            let c = ChannelInfo {
-                id: c.id,
-                topic: c.topic,
-                message_encoding: c.message_encoding,
-                metadata: c.metadata,
-                schema_id: c.schema_id,
-            };
+            let c = ChannelInfo::from(c);
             if out.channels.get(&c.id) != Some(&c) {
                 visit(Item::Channel(&c))?;
                 out.channels.insert(c.id, c);
@@ -606,13 +612,7 @@ fn declare_from_summary<E>(
             out.schemas.insert(s.id, s);
         }
     }
-    let c = ChannelInfo {
-        id: c.id,
-        topic: c.topic.clone(),
-        message_encoding: c.message_encoding.clone(),
-        metadata: c.metadata.clone(),
-        schema_id: c.schema_id,
-    };
+    let c = ChannelInfo::from(c.clone());
     visit(Item::Channel(&c))?;
     out.channels.insert(c.id, c);
     Ok(())
@@ -630,17 +630,7 @@ pub struct LogHeader {
 pub fn summary_channels(src: impl LogSource) -> Result<Vec<ChannelInfo>, NotMcap> {
     let mut f = Framer::new(src.open()?)?;
     Ok(match f.summary()? {
-        Ok(Some(index)) => index
-            .channels
-            .into_iter()
-            .map(|c| ChannelInfo {
-                id: c.id,
-                topic: c.topic,
-                message_encoding: c.message_encoding,
-                metadata: c.metadata,
-                schema_id: c.schema_id,
-            })
-            .collect(),
+        Ok(Some(index)) => index.channels.into_iter().map(ChannelInfo::from).collect(),
         _ => Vec::new(),
     })
 }

@@ -109,41 +109,40 @@ fn the_intact_log_reads_completely_over_several_chunks() {
     assert_eq!(&got, sent);
 }
 
-/// The most messages one chunk of the intact log holds (from its summary, by the `mcap` crate's indexed reader).
+/// Each chunk of the intact log as (byte where it ends, messages it holds),
+/// from its summary by the `mcap` crate's indexed reader.
+fn chunks() -> &'static [(usize, usize)] {
+    static CHUNKS: OnceLock<Vec<(usize, usize)>> = OnceLock::new();
+    CHUNKS.get_or_init(|| {
+        let (buf, _) = intact();
+        let summary = shoal_record::mcap::Summary::read(buf).unwrap().unwrap();
+        summary
+            .chunk_indexes
+            .iter()
+            .map(|ci| {
+                let messages = summary
+                    .read_message_indexes(buf, ci)
+                    .unwrap()
+                    .values()
+                    .map(Vec::len)
+                    .sum();
+                ((ci.chunk_start_offset + ci.chunk_length) as usize, messages)
+            })
+            .collect()
+    })
+}
+
+/// The most messages one chunk of the intact log holds.
 fn messages_per_chunk_max() -> usize {
-    let (buf, _) = intact();
-    let summary = shoal_record::mcap::Summary::read(buf).unwrap().unwrap();
-    summary
-        .chunk_indexes
-        .iter()
-        .map(|ci| {
-            summary
-                .read_message_indexes(buf, ci)
-                .unwrap()
-                .values()
-                .map(Vec::len)
-                .sum::<usize>()
-        })
-        .max()
-        .unwrap()
+    chunks().iter().map(|&(_, n)| n).max().unwrap()
 }
 
 /// Messages of the intact log's chunks that end at or before byte `cut`.
 fn messages_in_chunks_before(cut: usize) -> usize {
-    let (buf, _) = intact();
-    let summary = shoal_record::mcap::Summary::read(buf).unwrap().unwrap();
-    summary
-        .chunk_indexes
+    chunks()
         .iter()
-        .filter(|ci| (ci.chunk_start_offset + ci.chunk_length) as usize <= cut)
-        .map(|ci| {
-            summary
-                .read_message_indexes(buf, ci)
-                .unwrap()
-                .values()
-                .map(Vec::len)
-                .sum::<usize>()
-        })
+        .filter(|&&(end, _)| end <= cut)
+        .map(|&(_, n)| n)
         .sum()
 }
 
