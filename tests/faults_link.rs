@@ -441,6 +441,7 @@ fn central_map_stays_within_bound_under_delay_jitter_stalls_and_link_cuts() {
         loss_stall_probability: 0.05,
         loss_stall: Duration::from_millis(200),
         flap: None,
+        rate_bps: None,
         seed: 3,
     };
     let net = two_sides("faults-delay", plan);

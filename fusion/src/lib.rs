@@ -70,6 +70,7 @@ extern crate shoal_proto as proto;
 pub mod client;
 pub mod consistency;
 pub mod formation;
+pub mod link;
 mod solve;
 pub mod solver;
 mod window;

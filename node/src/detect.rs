@@ -164,6 +164,11 @@ impl ShoalDetector {
         &self.params
     }
 
+    /// Use `lens` for the frames that follow (a calibration fitted to their size).
+    pub fn set_lens(&mut self, lens: Option<shoal_proto::camera::CameraModel>) {
+        self.params.lens = lens;
+    }
+
     /// Detect in a [`shoal_proto::image::GrayImage`] (wrapped without copying).
     pub fn detect_gray(
         &mut self,
@@ -226,6 +231,12 @@ impl ShoalDetector {
             });
         }
         let p = &self.params;
+        // A frame narrower or lower than the smallest readable marker holds
+        // none (and its half-resolution level would be empty).
+        let (w, h) = (images.view.width as f64, images.view.height as f64);
+        if w < p.min_code_side_px.max(2.0) || h < p.min_code_side_px.max(2.0) {
+            return Ok(Vec::new());
+        }
         let mut quads = quads::find_quads(p, images.gray)?;
         let mut found: Vec<CodeSquare> = Vec::new();
         let undecoded = self.read_codes(images, &quads, &mut found);

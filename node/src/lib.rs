@@ -8,6 +8,7 @@
 //! - [`detect`]: contour/quad detection, grid code reading, 12 sub-pixel corners;
 //! - [`pose`]: IPPE-initialized iterative PnP keeping both planar hypotheses, with covariance;
 //! - [`baseline`]: OpenCV's ArUco detector and AprilTag 3 behind the same interface;
+//! - [`image_file`]: the one bounded reader of image files (size, pixel and truncation checks, 16-bit scaling);
 //! - [`print`]: printable markers (SVG, PNG);
 //! - [`mat`]: zero-fuss conversions between `GrayImage` and `cv::Mat`;
 //! - [`pipeline`]: one camera's chain, restore → detect → PnP → body-frame observations;
@@ -20,6 +21,7 @@
 
 pub mod baseline;
 pub mod detect;
+pub mod image_file;
 pub mod mat;
 pub mod metrics;
 pub mod pipeline;

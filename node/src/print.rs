@@ -18,9 +18,20 @@ pub enum PrintError {
     BadSize(f64),
     #[error("resolution must be between 72 and 2400 dpi, got {0}")]
     BadDpi(f64),
+    #[error("a {page_mm:.0} mm page at {dpi} dpi is {side_px}x{side_px} pixels, more than the {} Mpx limit of a PNG marker; use --dpi {max_dpi:.0} or less, or write an SVG (any size, exact)", MAX_PNG_PIXELS as f64 / 1e6)]
+    TooManyPixels {
+        page_mm: f64,
+        dpi: f64,
+        side_px: u64,
+        max_dpi: f64,
+    },
     #[error("OpenCV: {0}")]
     OpenCv(#[from] opencv::Error),
 }
+
+/// The most pixels a PNG marker page may have: 100 Mpx (a 10 000 px square,
+/// 100 MB in memory; 1 m of page at 254 dpi).
+pub const MAX_PNG_PIXELS: u64 = 100_000_000;
 
 /// White margin outside the quiet zone, for cut marks and the label (mm).
 const MARGIN_MM: f64 = 15.0;
@@ -161,7 +172,16 @@ pub fn marker_png(
     }
     let l = layout(codes, id, side_mm)?;
     let px_per_mm = dpi / 25.4;
-    let size = (l.page_mm * px_per_mm).round() as i32;
+    let side_px = (l.page_mm * px_per_mm).round() as u64;
+    if side_px * side_px > MAX_PNG_PIXELS {
+        return Err(PrintError::TooManyPixels {
+            page_mm: l.page_mm,
+            dpi,
+            side_px,
+            max_dpi: ((MAX_PNG_PIXELS as f64).sqrt() / l.page_mm * 25.4).floor(),
+        });
+    }
+    let size = side_px as i32;
     let mut img = Mat::new_rows_cols_with_default(size, size, CV_8UC1, Scalar::all(255.0))?;
     {
         let data = img.data_bytes_mut()?;
@@ -258,6 +278,28 @@ fn crc32(data: &[u8]) -> u32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Issue #22: size and dpi were checked apart, so 390 mm at 2 400 dpi
+    /// asked for 2.2 GB. The page's pixel count is checked before any allocation,
+    /// and the error says which dpi would fit.
+    #[test]
+    fn a_png_page_over_the_pixel_limit_is_refused_with_the_dpi_that_fits() {
+        let e = marker_png(CodeSet::Shoal, 17, 390.0, 2400.0).unwrap_err();
+        let PrintError::TooManyPixels {
+            max_dpi, side_px, ..
+        } = e
+        else {
+            panic!("{e}");
+        };
+        assert!(side_px * side_px > MAX_PNG_PIXELS);
+        assert!(e.to_string().contains("SVG"), "{e}");
+        // The suggested dpi is the largest that fits, and it does.
+        let l = layout(CodeSet::Shoal, 17, 390.0).unwrap();
+        let px = |dpi: f64| (l.page_mm * dpi / 25.4).round() as u64;
+        assert!(px(max_dpi).pow(2) <= MAX_PNG_PIXELS);
+        assert!(px(max_dpi + 2.0).pow(2) > MAX_PNG_PIXELS);
+        assert!(marker_png(CodeSet::Shoal, 17, 100.0, 300.0).is_ok());
+    }
 
     #[test]
     fn crc32_matches_the_png_reference_value() {

@@ -428,8 +428,10 @@ pub enum RestoreError {
         value: f64,
         reason: &'static str,
     },
-    #[error("cannot read image {path}: {reason}")]
-    Read { path: String, reason: String },
+    #[error("input image {width}x{height} ({} Mpx) is more than the {} Mpx restoration limit (peak memory grows ~55 bytes per pixel with dcp)", (*width as f64 * *height as f64 / 1e6), MAX_RESTORE_PIXELS as f64 / 1e6)]
+    TooLarge { width: i32, height: i32 },
+    #[error(transparent)]
+    File(#[from] crate::image_file::ImageError),
     #[error("cannot write image {path}: {reason}")]
     Write { path: String, reason: String },
     #[error("OpenCV")]
@@ -462,19 +464,7 @@ pub fn restore_file(
     method: Method,
     c_per_m: Option<f64>,
 ) -> Result<(), RestoreError> {
-    let in_name = input.display().to_string();
-    let img = imgcodecs::imread(&in_name, imgcodecs::IMREAD_GRAYSCALE).map_err(|e| {
-        RestoreError::Read {
-            path: in_name.clone(),
-            reason: e.to_string(),
-        }
-    })?;
-    if img.empty() {
-        return Err(RestoreError::Read {
-            path: in_name,
-            reason: "not an image, or missing".into(),
-        });
-    }
+    let img = crate::image_file::read_gray_for(input, MAX_RESTORE_PIXELS, " for restoration")?.gray;
     let params = RestoreParams {
         c_per_m,
         ..RestoreParams::default()
@@ -484,21 +474,43 @@ pub fn restore_file(
     }
     let out = restorer(method, &params).restore(&img, 0)?;
     let out_name = output.display().to_string();
-    let ok =
-        imgcodecs::imwrite(&out_name, &out.image, &opencv::core::Vector::new()).map_err(|e| {
-            RestoreError::Write {
-                path: out_name.clone(),
-                reason: e.to_string(),
-            }
+    let write = |reason: String| RestoreError::Write {
+        path: out_name.clone(),
+        reason,
+    };
+    let ext = output
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(|e| format!(".{e}"))
+        .ok_or_else(|| {
+            write("no extension to choose the format by (.png, .jpg, .bmp, .tif)".into())
         })?;
+    let mut encoded = opencv::core::Vector::<u8>::new();
+    let ok = imgcodecs::imencode(&ext, &out.image, &mut encoded, &opencv::core::Vector::new())
+        .map_err(|e| write(e.to_string()))?;
     if !ok {
-        return Err(RestoreError::Write {
-            path: out_name,
-            reason: "unsupported extension or unwritable".into(),
-        });
+        return Err(write(format!("cannot encode as {ext}")));
     }
+    shoal_proto::files::OutputFile::write_whole(output, &[input], encoded.as_slice())
+        .map_err(|e| write(error_chain(&e)))?;
     Ok(())
 }
+
+/// An error and its sources, `: `-separated.
+fn error_chain(e: &dyn std::error::Error) -> String {
+    let mut s = e.to_string();
+    let mut src = e.source();
+    while let Some(inner) = src {
+        s += &format!(": {inner}");
+        src = inner.source();
+    }
+    s
+}
+
+/// The most pixels a frame may have to be restored: 16 Mpx. The dark-channel
+/// baselines peak at ~55 bytes per pixel (864 MB on a 16 Mpx frame,
+/// `docs/results.md`, "Hostile files"), so any method stays under 1 GB.
+pub const MAX_RESTORE_PIXELS: u64 = 16_000_000;
 
 /// The smallest frame any method accepts (the 1/8 level must be at least 2x2... and
 /// the SSIM window fit).
@@ -511,6 +523,12 @@ pub(crate) fn check_input(gray: &Mat) -> Result<(), RestoreError> {
     }
     if gray.typ() != CV_8UC1 {
         return Err(RestoreError::NotGray8 { typ: gray.typ() });
+    }
+    if gray.cols() as u64 * gray.rows() as u64 > MAX_RESTORE_PIXELS {
+        return Err(RestoreError::TooLarge {
+            width: gray.cols(),
+            height: gray.rows(),
+        });
     }
     if gray.cols() < MIN_SIDE_PX || gray.rows() < MIN_SIDE_PX {
         return Err(RestoreError::TooSmall {

@@ -7,7 +7,7 @@
 use crate::mat::mat_to_gray;
 use opencv::core::Mat;
 use opencv::prelude::*;
-use opencv::{imgcodecs, imgproc, videoio};
+use opencv::{imgproc, videoio};
 use shoal_proto::image::GrayImage;
 use shoal_proto::messages::{CameraFrame, CameraInfo, PixelFormat, VehicleId};
 use shoal_proto::queue::DropOldestQueue;
@@ -49,6 +49,9 @@ pub enum SourceError {
     /// `what` (a folder, file or camera device) cannot be opened or read.
     #[error("source {what}: {reason}")]
     Unreadable { what: String, reason: String },
+    /// An image file that is not read (its name is in the error).
+    #[error("source {0}")]
+    Image(#[from] crate::image_file::ImageError),
     #[error("cannot start thread: {0}")]
     Thread(#[from] std::io::Error),
 }
@@ -87,15 +90,8 @@ pub fn image_files(dir: &Path) -> Result<Vec<PathBuf>, SourceError> {
 /// missing, truncated or undecodable file is an error naming it, never a panic.
 pub fn read_image_gray(path: &Path) -> Result<GrayImage, SourceError> {
     let name = path.display().to_string();
-    let mat = imgcodecs::imread(&path.to_string_lossy(), imgcodecs::IMREAD_GRAYSCALE)
-        .map_err(|e| source_error(name.clone(), format!("cannot decode: {e}")))?;
-    if mat.empty() {
-        return Err(source_error(
-            name,
-            "unreadable image (missing, truncated or not an image)",
-        ));
-    }
-    mat_to_gray(&mat).map_err(|e| source_error(name, e.to_string()))
+    let file = crate::image_file::read_gray(path, crate::image_file::MAX_IMAGE_PIXELS)?;
+    mat_to_gray(&file.gray).map_err(|e| source_error(name, e.to_string()))
 }
 
 fn to_gray(mat: &Mat) -> opencv::Result<Mat> {
@@ -127,20 +123,15 @@ pub fn spawn_reader(
     // Open up front so a bad path is an error of `spawn`, not a log line.
     enum Opened {
         Files(Vec<PathBuf>, f64),
-        Capture(videoio::VideoCapture, bool),
+        /// The capture, whether it is live, the frame count the file declares.
+        Capture(videoio::VideoCapture, bool, u64),
     }
     let opened = match &source {
         LocalSource::Images { dir, rate_hz, .. } => Opened::Files(image_files(dir)?, *rate_hz),
         LocalSource::Video { path, .. } => {
-            let cap = videoio::VideoCapture::from_file(&path.to_string_lossy(), videoio::CAP_ANY)
-                .map_err(|e| source_error(path.display().to_string(), e.to_string()))?;
-            if !cap.is_opened().unwrap_or(false) {
-                return Err(source_error(
-                    path.display().to_string(),
-                    "cannot open video",
-                ));
-            }
-            Opened::Capture(cap, false)
+            let (cap, declared) =
+                crate::image_file::open_video(path, crate::image_file::MAX_IMAGE_PIXELS)?;
+            Opened::Capture(cap, false, declared)
         }
         LocalSource::Live { device, .. } => {
             let cap = videoio::VideoCapture::new(*device, videoio::CAP_ANY)
@@ -151,7 +142,7 @@ pub fn spawn_reader(
                     "cannot open camera",
                 ));
             }
-            Opened::Capture(cap, true)
+            Opened::Capture(cap, true, 0)
         }
     };
     let make_frame = move |g: GrayImage, seq: u64, stamp_ns: u64| -> CameraFrame {
@@ -190,7 +181,7 @@ pub fn spawn_reader(
                     std::thread::sleep(period);
                 }
             }
-            Opened::Capture(mut cap, live) => {
+            Opened::Capture(mut cap, live, declared) => {
                 let fps = cap.get(videoio::CAP_PROP_FPS).unwrap_or(0.0);
                 let period = Duration::from_secs_f64(if fps > 0.0 { 1.0 / fps } else { 0.1 });
                 let mut seq = 0u64;
@@ -220,6 +211,13 @@ pub fn spawn_reader(
                     seq += 1;
                     if !live {
                         std::thread::sleep(period);
+                    }
+                }
+                if !stop.load(Ordering::Relaxed) {
+                    if let Some(why) = crate::image_file::video_shortfall(seq, declared) {
+                        // The frames the file declares but could not give are unreadable ones.
+                        unreadable.fetch_add(declared - seq, Ordering::Relaxed);
+                        tracing::warn!("vehicle {vehicle} camera {camera}: {why}");
                     }
                 }
             }

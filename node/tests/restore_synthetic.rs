@@ -3,6 +3,7 @@
 
 use opencv::core::{Mat, Scalar, CV_8UC1, CV_8UC3};
 use opencv::prelude::*;
+use shoal_node::image_file::ImageError;
 use shoal_node::metrics::{cnr_mat, gray_from_mat, ssim};
 use shoal_node::restore::{
     restore_file, restorer, Hoirm, Method, RestoreError, RestoreParams, Restorer, StageOrder,
@@ -410,8 +411,37 @@ fn restore_file_writes_a_restored_png() {
     assert_eq!(back.size().unwrap(), f.degraded.size().unwrap());
     assert!(matches!(
         restore_file(&dir.join("missing.png"), &output, Method::None, None),
-        Err(RestoreError::Read { .. })
+        Err(RestoreError::File(ImageError::Io { .. }))
     ));
+    // Issue #22: the output is never the input, and a failed run leaves an
+    // existing output as it was.
+    let before = std::fs::read(&output).unwrap();
+    let e = restore_file(&input, &input, Method::None, None).unwrap_err();
+    assert!(e.to_string().contains("is the input"), "{e}");
+    std::fs::write(dir.join("junk.png"), b"not a png").unwrap();
+    assert!(restore_file(&dir.join("junk.png"), &output, Method::None, None).is_err());
+    assert_eq!(std::fs::read(&output).unwrap(), before);
+    // An image over the restoration limit is refused from its header, before decoding.
+    let big = opencv::core::Mat::new_rows_cols_with_default(
+        4001,
+        4000,
+        opencv::core::CV_8UC1,
+        opencv::core::Scalar::all(0.0),
+    )
+    .unwrap();
+    let big_path = dir.join("big.png");
+    opencv::imgcodecs::imwrite(
+        big_path.to_str().unwrap(),
+        &big,
+        &opencv::core::Vector::new(),
+    )
+    .unwrap();
+    let e = restore_file(&big_path, &output, Method::Dcp, None).unwrap_err();
+    assert!(
+        matches!(e, RestoreError::File(ImageError::TooManyPixels { .. })),
+        "{e}"
+    );
+    assert!(e.to_string().contains("for restoration"), "{e}");
     std::fs::remove_dir_all(&dir).ok();
 }
 

@@ -64,12 +64,21 @@ impl CameraModel {
         (xd, yd)
     }
 
-    /// Invert [`CameraModel::distort`] by fixed-point iteration (as OpenCV's
-    /// `undistortPoints`); accurate to ~1e-12 for the moderate distortions used here.
+    /// Invert [`CameraModel::distort`]: fixed-point iteration (as OpenCV's
+    /// `undistortPoints`), then Newton steps from the better of that and the
+    /// distorted point, so strong distortion near the image corners (where
+    /// the fixed point stops contracting) is inverted too. Accurate to
+    /// ~1e-12 wherever the model is one-to-one
+    /// ([`CameraModel::distortion_fold`] checks the image is).
     pub fn undistort(&self, xd: f64, yd: f64) -> (f64, f64) {
         let [k1, k2, p1, p2, k3] = self.distortion;
+        let residual = |x: f64, y: f64| {
+            let (dx, dy) = self.distort(x, y);
+            (dx - xd, dy - yd)
+        };
+        let size = |(a, b): (f64, f64)| a.abs() + b.abs();
         let (mut x, mut y) = (xd, yd);
-        for _ in 0..50 {
+        for _ in 0..20 {
             let r2 = x * x + y * y;
             let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
             let dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
@@ -79,9 +88,33 @@ impl CameraModel {
             let done = (nx - x).abs() + (ny - y).abs() < 1e-15;
             x = nx;
             y = ny;
-            if done {
+            if done || !(x.is_finite() && y.is_finite()) {
                 break;
             }
+        }
+        let fixed = size(residual(x, y));
+        let start = size(residual(xd, yd));
+        if fixed.is_nan() || fixed >= start {
+            (x, y) = (xd, yd);
+        }
+        for _ in 0..30 {
+            let (ex, ey) = residual(x, y);
+            if size((ex, ey)) < 1e-15 {
+                break;
+            }
+            let (j00, j01, j10, j11) = self.distortion_jacobian(x, y);
+            let det = j00 * j11 - j01 * j10;
+            if det.is_nan() || det.abs() <= 1e-300 {
+                break;
+            }
+            let (nx, ny) = (
+                x - (j11 * ex - j01 * ey) / det,
+                y - (-j10 * ex + j00 * ey) / det,
+            );
+            if !(nx.is_finite() && ny.is_finite()) {
+                break;
+            }
+            (x, y) = (nx, ny);
         }
         (x, y)
     }
@@ -123,13 +156,201 @@ impl CameraModel {
                 self.fx, self.fy
             ));
         }
+        self.distortion_fold()
+    }
+
+    /// Why the lens model is not one-to-one over the image, or `None`.
+    ///
+    /// Walking out from the principal point towards each corner and edge
+    /// midpoint, the distorted point must keep moving outwards (positive
+    /// Jacobian determinant and radial progress) until it leaves the image.
+    /// A model that folds back inside the image (absurd or mistyped
+    /// coefficients) maps two directions to one pixel: PnP through it gives
+    /// poses kilometres away, so it is refused. A ray must leave the image
+    /// within 85° of the axis (`tan 85° ≈ 11.4`): a lens seeing further is no
+    /// pinhole-and-polynomial lens.
+    pub fn distortion_fold(&self) -> Option<String> {
+        const R_MAX: f64 = 11.4;
+        let (w, h) = (f64::from(self.width) - 0.5, f64::from(self.height) - 0.5);
+        let targets = [
+            ("top-left corner", -0.5, -0.5),
+            ("top-right corner", w, -0.5),
+            ("bottom-left corner", -0.5, h),
+            ("bottom-right corner", w, h),
+            ("top edge", self.cx, -0.5),
+            ("bottom edge", self.cx, h),
+            ("left edge", -0.5, self.cy),
+            ("right edge", w, self.cy),
+        ];
+        let inside = |u: f64, v: f64| (-0.5..=w).contains(&u) && (-0.5..=h).contains(&v);
+        for (towards, tu, tv) in targets {
+            let (dx, dy) = ((tu - self.cx) / self.fx, (tv - self.cy) / self.fy);
+            let len = dx.hypot(dy);
+            if len < 1e-12 {
+                continue;
+            }
+            let (ux, uy) = (dx / len, dy / len);
+            let mut prev_along = 0.0;
+            let mut left = false;
+            // Steps of 1 % of the undistorted distance to the target, growing
+            // by 1 % per step beyond it (a few hundred evaluations per ray).
+            let mut r = 0.0;
+            while r < R_MAX {
+                r += (len / 100.0).max(r * 0.01);
+                let (x, y) = (r * ux, r * uy);
+                let (xd, yd) = self.distort(x, y);
+                let along = xd * ux + yd * uy;
+                let (j00, j01, j10, j11) = self.distortion_jacobian(x, y);
+                if along <= prev_along || j00 * j11 - j01 * j10 <= 0.0 {
+                    return Some(format!(
+                        "the lens distortion {:?} folds back {:.0}° off axis, inside the {}x{} image (towards its {towards}): not a valid calibration for this resolution",
+                        self.distortion,
+                        r.atan().to_degrees(),
+                        self.width,
+                        self.height
+                    ));
+                }
+                let (xu, yu) = self.undistort(xd, yd);
+                if (xu - x).hypot(yu - y) > 1e-6 * (1.0 + r) {
+                    return Some(format!(
+                        "the lens distortion {:?} is too strong to invert {:.0}° off axis, inside the {}x{} image (towards its {towards}): not a valid calibration for this resolution",
+                        self.distortion,
+                        r.atan().to_degrees(),
+                        self.width,
+                        self.height
+                    ));
+                }
+                prev_along = along;
+                if !inside(self.fx * xd + self.cx, self.fy * yd + self.cy) {
+                    left = true;
+                    break;
+                }
+            }
+            if !left {
+                return Some(format!(
+                    "with distortion {:?} a ray 85° off axis still lands inside the {}x{} image (towards its {towards}): not a pinhole lens",
+                    self.distortion, self.width, self.height
+                ));
+            }
+        }
         None
+    }
+
+    /// `d(xd, yd) / d(x, y)` of [`CameraModel::distort`] (row-major).
+    fn distortion_jacobian(&self, x: f64, y: f64) -> (f64, f64, f64, f64) {
+        let [k1, k2, p1, p2, k3] = self.distortion;
+        let r2 = x * x + y * y;
+        let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+        // d radial / d r2
+        let dradial = k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3);
+        let j00 = radial + x * dradial * 2.0 * x + 2.0 * p1 * y + p2 * 6.0 * x;
+        let j01 = x * dradial * 2.0 * y + 2.0 * p1 * x + p2 * 2.0 * y;
+        let j10 = y * dradial * 2.0 * x + p1 * 2.0 * x + 2.0 * p2 * y;
+        let j11 = radial + y * dradial * 2.0 * y + p1 * 6.0 * y + 2.0 * p2 * x;
+        (j00, j01, j10, j11)
+    }
+
+    /// This calibration for frames of `width` x `height`: itself when the
+    /// sizes match; scaled when the frames are the calibrated sensor
+    /// resized by one factor (a binned or downscaled stream, aspect equal
+    /// within 0.2 %); an error naming both sizes otherwise (a calibration
+    /// of another camera or a cropped stream would give wrong poses).
+    pub fn for_frame(&self, width: u32, height: u32) -> Result<FrameCamera, String> {
+        if (width, height) == (self.width, self.height) {
+            return Ok(FrameCamera::Same(*self));
+        }
+        let sx = f64::from(width) / f64::from(self.width);
+        let sy = f64::from(height) / f64::from(self.height);
+        if (sx / sy - 1.0).abs() > 2e-3 {
+            return Err(format!(
+                "the frame is {width}x{height} but the calibration is for {}x{} (another aspect ratio: another camera or a cropped stream, so poses would be wrong)",
+                self.width, self.height
+            ));
+        }
+        // Pixel centres at integers: x' = (x + 0.5) s - 0.5.
+        let scaled = CameraModel {
+            width,
+            height,
+            fx: self.fx * sx,
+            fy: self.fy * sy,
+            cx: (self.cx + 0.5) * sx - 0.5,
+            cy: (self.cy + 0.5) * sy - 0.5,
+            distortion: self.distortion,
+        };
+        Ok(FrameCamera::Scaled {
+            camera: scaled,
+            scale: sx,
+            from: (self.width, self.height),
+        })
+    }
+}
+
+/// A calibration made fit for a frame by [`CameraModel::for_frame`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum FrameCamera {
+    /// The frame has the calibrated size.
+    Same(CameraModel),
+    /// The frame is the calibrated sensor resized by `scale`.
+    Scaled {
+        camera: CameraModel,
+        scale: f64,
+        from: (u32, u32),
+    },
+}
+
+impl FrameCamera {
+    pub fn camera(&self) -> &CameraModel {
+        match self {
+            FrameCamera::Same(c) | FrameCamera::Scaled { camera: c, .. } => c,
+        }
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn shipped_cameras_do_not_fold_and_absurd_distortion_does() {
+        assert_eq!(CameraModel::vehicle_1440().problem(), None);
+        assert_eq!(CameraModel::paper_eq3().problem(), None);
+        // Strong barrel that folds inside the frame: r(1 - 2 r^2) peaks at r = 0.41,
+        // while the 1440x1080 corner is at r = 0.72.
+        let mut cam = CameraModel::vehicle_1440();
+        cam.distortion = [-2.0, 0.0, 0.0, 0.0, 0.0];
+        let why = cam.problem().expect("folds");
+        assert!(why.contains("folds back"), "{why}");
+        // The same coefficient on a narrow lens (corner at r = 0.11) does not fold there.
+        let mut narrow = CameraModel::paper_eq3();
+        narrow.distortion = [-2.0, 0.0, 0.0, 0.0, 0.0];
+        assert_eq!(narrow.problem(), None);
+        // Pincushion so strong the image is never left: still one-to-one, refused as no pinhole lens
+        // only when the rays stay inside; a moderate one is fine.
+        let mut pin = CameraModel::vehicle_1440();
+        pin.distortion = [0.3, 0.1, 0.0, 0.0, 0.0];
+        assert_eq!(pin.problem(), None);
+        // A mistyped tangential term (0.5 for 0.0005) folds too.
+        let mut tang = CameraModel::vehicle_1440();
+        tang.distortion = [-0.05, 0.01, 0.5, 0.0, 0.0];
+        assert!(tang.problem().is_some());
+    }
+
+    #[test]
+    fn a_calibration_fits_its_own_size_a_resized_stream_and_nothing_else() {
+        let cam = CameraModel::paper_eq3();
+        assert_eq!(cam.for_frame(2448, 2048), Ok(FrameCamera::Same(cam)));
+        let half = cam.for_frame(1224, 1024).unwrap();
+        let c = half.camera();
+        assert!((c.fx - cam.fx / 2.0).abs() < 1e-9);
+        assert!((c.cx - ((cam.cx + 0.5) / 2.0 - 0.5)).abs() < 1e-9);
+        // A point projects to the same place, halved in pixel-edge coordinates.
+        let p = Point3::new(0.1, -0.05, 2.0);
+        let (a, b) = (cam.project(&p).unwrap(), c.project(&p).unwrap());
+        assert!(((a.x + 0.5) / 2.0 - 0.5 - b.x).abs() < 1e-9);
+        assert!(((a.y + 0.5) / 2.0 - 0.5 - b.y).abs() < 1e-9);
+        let e = cam.for_frame(1440, 1080).unwrap_err();
+        assert!(e.contains("1440x1080") && e.contains("2448x2048"), "{e}");
+    }
 
     #[test]
     fn undistort_inverts_distort() {

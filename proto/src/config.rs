@@ -38,9 +38,10 @@ pub enum ConfigError {
 #[serde(deny_unknown_fields)]
 pub struct MountSpec {
     /// Translation, metres.
+    #[serde(deserialize_with = "exactly")]
     pub xyz_m: [f64; 3],
     /// Roll, pitch, yaw in degrees, `R = Rz(yaw)·Ry(pitch)·Rx(roll)`.
-    #[serde(default)]
+    #[serde(default, deserialize_with = "exactly")]
     pub rpy_deg: [f64; 3],
 }
 
@@ -60,8 +61,54 @@ pub struct IntrinsicsSpec {
     pub fy: f64,
     pub cx: f64,
     pub cy: f64,
-    #[serde(default)]
+    /// `k1 k2 p1 p2 [k3]`; further coefficients only when zero (as in a calibration file).
+    #[serde(default, deserialize_with = "plumb_bob_coefficients")]
     pub distortion: [f64; 5],
+}
+
+/// A fixed-length array written as a TOML array of exactly `N` numbers (a
+/// plain `[f64; N]` would take the first `N` of a longer one and drop the rest).
+fn exactly<'de, D, const N: usize>(d: D) -> Result<[f64; N], D::Error>
+where
+    D: serde::Deserializer<'de>,
+{
+    let v: Vec<f64> = Vec::deserialize(d)?;
+    let n = v.len();
+    v.try_into().map_err(|_| {
+        serde::de::Error::invalid_length(n, &format!("an array of exactly {N} numbers").as_str())
+    })
+}
+
+fn plumb_bob_coefficients<'de, D>(d: D) -> Result<[f64; 5], D::Error>
+where
+    D: serde::Deserializer<'de>,
+{
+    let v: Vec<f64> = Vec::deserialize(d)?;
+    plumb_bob(&v).map_err(serde::de::Error::custom)
+}
+
+/// The 5 plumb-bob coefficients `k1 k2 p1 p2 k3` from a list of 4 or more
+/// (OpenCV writes 4, 5, 8, 12 or 14): the rational and thin-prism terms
+/// beyond the fifth are accepted only when zero, never dropped.
+pub fn plumb_bob(d: &[f64]) -> Result<[f64; 5], String> {
+    if d.len() < 4 && !d.is_empty() {
+        return Err(format!(
+            "{} distortion coefficients; the plumb-bob model has k1 k2 p1 p2 [k3]",
+            d.len()
+        ));
+    }
+    if let Some((i, v)) = d.iter().enumerate().skip(5).find(|(_, v)| **v != 0.0) {
+        return Err(format!(
+            "distortion coefficient {} is {v} (of {}); only the 5-parameter plumb-bob model (k1 k2 p1 p2 k3) is supported",
+            i + 1,
+            d.len()
+        ));
+    }
+    let mut out = [0.0; 5];
+    for (o, v) in out.iter_mut().zip(d) {
+        *o = *v;
+    }
+    Ok(out)
 }
 
 impl From<IntrinsicsSpec> for CameraModel {
@@ -228,11 +275,23 @@ fn parse_markers(
     specs: &[MarkerSpec],
     invalid: &impl Fn(String, String) -> ConfigError,
 ) -> Result<Vec<Marker>, ConfigError> {
-    let mut markers = Vec::new();
+    let mut markers: Vec<Marker> = Vec::new();
     for (mi, m) in specs.iter().enumerate() {
         let mfield = format!("{field}.markers[{mi}]");
         let codes = CodeSet::from_name(&m.codes)
             .map_err(|e| invalid(format!("{mfield}.codes"), e.to_string()))?;
+        if let Some(prev) = markers
+            .iter()
+            .position(|p| p.codes == codes && p.id == m.id)
+        {
+            return Err(invalid(
+                format!("{mfield}.id"),
+                format!(
+                    "{codes}#{} is already {field}.markers[{prev}]: one vehicle cannot carry the same marker twice (its observations could not say which one was seen)",
+                    m.id
+                ),
+            ));
+        }
         if (m.id as usize) >= codes.len() && !codes.table().codes.is_empty() {
             return Err(invalid(
                 format!("{mfield}.id"),
@@ -479,8 +538,8 @@ pub enum CalibrationError {
     NotPinhole { what: String },
     #[error("`distortion_model: {model}` is not supported (supported: plumb_bob; a calibration in another model must not be read as plumb-bob)")]
     UnsupportedModel { model: String },
-    #[error("`distortion_coefficients` has {got} values; only the 5-parameter plumb-bob model is supported")]
-    TooManyCoefficients { got: usize },
+    #[error("`distortion_coefficients`: {0}")]
+    Coefficients(String),
     #[error("{0}")]
     Implausible(String),
 }
@@ -573,13 +632,7 @@ pub fn parse_calibration_yaml(text: &str) -> Result<CameraModel, CalibrationErro
         .get("distortion_coefficients")
         .cloned()
         .unwrap_or_default();
-    if d.len() > 5 && d[5..].iter().any(|v| *v != 0.0) {
-        return Err(CalibrationError::TooManyCoefficients { got: d.len() });
-    }
-    let mut dist = [0.0; 5];
-    for (i, v) in d.iter().take(5).enumerate() {
-        dist[i] = *v;
-    }
+    let dist = plumb_bob(&d).map_err(CalibrationError::Coefficients)?;
     let model = CameraModel {
         width: get_u32("image_width")?,
         height: get_u32("image_height")?,
@@ -672,6 +725,73 @@ markers = [ { codes = "shoal", id = 7, side_m = 0.1, body_from_marker = { xyz_m 
             .unwrap_err()
             .to_string();
         assert!(e.contains("markers[0].codes"), "{e}");
+    }
+
+    /// Issue #22: extra array elements were dropped (even wrong-typed ones),
+    /// rational-model coefficients silently cut to five, and one vehicle
+    /// could list the same marker twice.
+    #[test]
+    fn arrays_have_their_length_and_markers_are_listed_once() {
+        let parse = |text: &str| Fleet::parse(text, Path::new("f.toml")).map(|_| ());
+        assert!(parse(MINI).is_ok());
+        for (from, to) in [
+            ("xyz_m = [0.5, 0, 0]", "xyz_m = [0.5, 0, 0, 7]"),
+            ("xyz_m = [0.5, 0, 0]", "xyz_m = [0.5, 0, 0, \"x\"]"),
+            ("xyz_m = [0.5, 0, 0]", "xyz_m = [0.5, 0]"),
+            ("rpy_deg = [90, 0, 90]", "rpy_deg = [90, 0, 90, 0]"),
+            ("rpy_deg = [-90, 0, 0]", "rpy_deg = [-90, 0]"),
+        ] {
+            assert!(MINI.contains(from), "{from}");
+            let e = parse(&MINI.replacen(from, to, 1)).unwrap_err().to_string();
+            assert!(e.contains("f.toml"), "{to}: {e}");
+            assert!(e.contains("3") || e.contains("invalid type"), "{to}: {e}");
+        }
+        let inline = |d: &str| {
+            MINI.replace(
+                "preset = \"vehicle_1440\"",
+                &format!("intrinsics = {{ width = 1440, height = 1080, fx = 1250.0, fy = 1250.0, cx = 719.5, cy = 539.5, distortion = {d} }}"),
+            )
+        };
+        assert!(parse(&inline("[-0.05, 0.01, 0, 0, 0]")).is_ok());
+        assert!(parse(&inline("[-0.05, 0.01, 0, 0]")).is_ok());
+        assert!(parse(&inline("[-0.05, 0.01, 0, 0, 0, 0, 0, 0]")).is_ok());
+        let e = parse(&inline("[-0.05, 0.01, 0, 0, 0, 0.2, 0, 0]"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("coefficient 6 is 0.2"), "{e}");
+        assert!(parse(&inline("[-0.05, 0.01]")).is_err());
+        // A distortion that folds inside the frame is no calibration.
+        let e = parse(&inline("[-2.0, 0, 0, 0, 0]"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("folds back"), "{e}");
+
+        let twice = MINI.replace(
+            "markers = [ { codes = \"shoal\", id = 7, side_m = 0.1, body_from_marker = { xyz_m = [0, 0.07, 0], rpy_deg = [-90, 0, 0] } } ]",
+            "markers = [ { codes = \"shoal\", id = 7, side_m = 0.1, body_from_marker = { xyz_m = [0, 0.07, 0], rpy_deg = [-90, 0, 0] } }, { codes = \"shoal\", id = 7, side_m = 0.1, body_from_marker = { xyz_m = [0, -0.07, 0], rpy_deg = [90, 0, 0] } } ]",
+        );
+        assert_ne!(twice, MINI);
+        let e = parse(&twice).unwrap_err().to_string();
+        assert!(
+            e.contains("vehicles[1].markers[1].id") && e.contains("markers[0]"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn calibration_coefficients_beyond_five_must_be_zero_and_must_not_fold() {
+        let ros = |d: &str| {
+            format!("image_width: 640\nimage_height: 480\ncamera_matrix:\n  rows: 3\n  cols: 3\n  data: [500, 0, 320, 0, 500, 240, 0, 0, 1]\ndistortion_model: plumb_bob\ndistortion_coefficients:\n  data: [{d}]\n")
+        };
+        assert!(parse_calibration_yaml(&ros("0.1, 0, 0, 0, 0, 0, 0, 0")).is_ok());
+        assert!(matches!(
+            parse_calibration_yaml(&ros("0.1, 0, 0, 0, 0, 0.3, 0, 0")),
+            Err(CalibrationError::Coefficients(_))
+        ));
+        assert!(matches!(
+            parse_calibration_yaml(&ros("-3.0, 0, 0, 0, 0")),
+            Err(CalibrationError::Implausible(p)) if p.contains("folds back")
+        ));
     }
 
     #[test]

@@ -55,6 +55,12 @@ pub enum OutputError {
         #[source]
         source: std::io::Error,
     },
+    #[error("{}: cannot write", path.display())]
+    Write {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
     #[error("{}: cannot move the finished file into place", path.display())]
     Commit {
         path: PathBuf,
@@ -98,6 +104,20 @@ impl OutputFile {
             temp,
             committed: false,
         })
+    }
+
+    /// Write `bytes` to `target` whole or not at all (refusing `inputs`, as [`OutputFile::new`]).
+    pub fn write_whole(
+        target: &Path,
+        inputs: &[&Path],
+        bytes: &[u8],
+    ) -> Result<PathBuf, OutputError> {
+        let out = Self::new(target, inputs)?;
+        std::fs::write(out.temp_path(), bytes).map_err(|source| OutputError::Write {
+            path: target.to_path_buf(),
+            source,
+        })?;
+        out.commit()
     }
 
     /// Where to write until [`commit`](Self::commit).

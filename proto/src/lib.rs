@@ -12,6 +12,7 @@
 //!   and detector;
 //! - [`marker`]: code sets (enhanced marker, ArUco, AprilTag) and their layouts;
 //! - [`config`]: fleet files and camera calibrations;
+//! - [`compact`]: the 53-byte observation for acoustic-rate links (versioned, quantized);
 //! - [`files`]: the bounded reader of every small input file and the output that appears only when complete;
 //! - [`queue`]: the bounded drop-oldest queue every shoal queue is;
 //! - [`clock`]: injected clocks (wall time, or simulation and replay time).
@@ -22,6 +23,7 @@
 pub mod camera;
 pub mod clock;
 pub mod codec;
+pub mod compact;
 pub mod config;
 pub mod files;
 pub mod geometry;

@@ -12,6 +12,7 @@
 //! | packet loss | a lost segment on TCP is retransmitted: with probability `loss_stall_probability` per chunk, the chunk (and everything behind it) is held `loss_stall` longer (Linux's minimum RTO is 200 ms) |
 //! | link loss / partition | [`LinkSwitch::cut`]: every open connection is shut down (both peers see the session break) and new ones are closed on accept until [`LinkSwitch::heal`]; Zenoh's routers then reconnect on their own |
 //! | flapping link | [`Flap`]: the link is cut for `down` every `period` |
+//! | bandwidth cap (acoustic modem) | `rate_bps`: each direction passes at most that many bits a second (a token bucket of 1 s burst); the relay reads no faster, so the sender's TCP window fills and its queue backs up (Zenoh's `CongestionControl::Drop` publishers then drop) — the kernel buffers on both sides still hold bytes, so latency grows until they are full: an acoustic link carries packets, not TCP, which is what `shoal eval links` measures |
 //!
 //! Message-level loss, duplication and reordering (a vehicle's radio
 //! retransmitting, two paths to the ground station, a store-and-forward
@@ -30,6 +31,7 @@ use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
+use shoal_fusion::link::TokenBucket;
 use shoal_proto::splitmix::SplitMix64;
 
 /// Errors of the relay.
@@ -67,6 +69,8 @@ pub struct FaultPlan {
     pub loss_stall: Duration,
     /// Periodic link cuts.
     pub flap: Option<Flap>,
+    /// Bits per second each direction passes at most (`None`: unlimited).
+    pub rate_bps: Option<f64>,
     /// Seed of the relay's random stream.
     pub seed: u64,
 }
@@ -80,6 +84,7 @@ impl Default for FaultPlan {
             loss_stall_probability: 0.0,
             loss_stall: Duration::from_millis(200),
             flap: None,
+            rate_bps: None,
             seed: 1,
         }
     }
@@ -93,6 +98,13 @@ impl FaultPlan {
                 "loss_stall_probability {} is not in [0, 1]",
                 self.loss_stall_probability
             )));
+        }
+        if let Some(r) = self.rate_bps {
+            if !(r.is_finite() && r >= 8.0) {
+                return Err(RelayError::Plan(format!(
+                    "rate {r} bit/s is not a finite rate of at least one byte a second"
+                )));
+            }
         }
         if let Some(f) = self.flap {
             if f.period.is_zero() || f.down >= f.period {
@@ -117,6 +129,8 @@ pub struct RelayStats {
     pub bytes_forwarded: AtomicU64,
     pub chunks_forwarded: AtomicU64,
     pub stalls: AtomicU64,
+    /// Bytes passed through the bandwidth cap.
+    pub rate_limited_bytes: AtomicU64,
 }
 
 /// The link's switch: cut (partition) and heal, from any thread.
@@ -382,7 +396,14 @@ fn pump(
         return;
     };
     let mut last_due = Instant::now();
-    let mut buf = vec![0u8; 64 * 1024];
+    let started = Instant::now();
+    let elapsed_ns = || started.elapsed().as_nanos() as u64;
+    // A cap: a bucket of one second's bits, and reads no larger than that.
+    let mut bucket = plan.rate_bps.and_then(|r| TokenBucket::new(r, r, 0).ok());
+    let read_max = plan
+        .rate_bps
+        .map_or(64 * 1024, |r| ((r / 8.0) as usize).clamp(1, 64 * 1024));
+    let mut buf = vec![0u8; read_max];
     loop {
         let n = match from.read(&mut buf) {
             Ok(0) | Err(_) => break,
@@ -390,6 +411,22 @@ fn pump(
         };
         if !switch.is_up() {
             break;
+        }
+        if let Some(b) = bucket.as_mut() {
+            let bits = (n * 8) as f64;
+            while !b.try_take(bits, elapsed_ns()) {
+                let wait = b
+                    .wait_ns(bits, elapsed_ns())
+                    .unwrap_or(1_000_000)
+                    .max(1_000_000);
+                std::thread::sleep(Duration::from_nanos(wait));
+                if !switch.is_up() {
+                    break;
+                }
+            }
+            stats
+                .rate_limited_bytes
+                .fetch_add(n as u64, Ordering::Relaxed);
         }
         let mut extra = plan.latency;
         if !plan.jitter.is_zero() {
@@ -562,6 +599,41 @@ mod tests {
             relay.stats().bytes_forwarded.load(Ordering::Relaxed),
             400_000
         );
+    }
+
+    /// Issue #22: the bandwidth cap passes the stream intact at its rate:
+    /// 60 kB through a 160 kbit/s cap (one second's burst, 20 kB) takes at
+    /// least 2 s each way, where the clean relay takes milliseconds.
+    #[test]
+    fn capped_link_passes_the_stream_intact_at_its_rate() {
+        let (echo, _t) = echo_server();
+        let plan = FaultPlan {
+            rate_bps: Some(160_000.0),
+            ..FaultPlan::default()
+        };
+        let relay = Relay::start("127.0.0.1:0", echo, plan).unwrap();
+        let payload: Vec<u8> = (0..60_000u32).map(|i| (i * 13 % 251) as u8).collect();
+        let mut s = TcpStream::connect(relay.local_addr()).unwrap();
+        s.set_read_timeout(Some(Duration::from_secs(20))).unwrap();
+        let t0 = Instant::now();
+        let writer = {
+            let mut w = s.try_clone().unwrap();
+            let p = payload.clone();
+            std::thread::spawn(move || w.write_all(&p).unwrap())
+        };
+        let mut got = vec![0u8; payload.len()];
+        s.read_exact(&mut got).unwrap();
+        let took = t0.elapsed();
+        writer.join().unwrap();
+        assert_eq!(got, payload);
+        assert!(took >= Duration::from_millis(1900), "{took:?}");
+        assert!(took < Duration::from_secs(12), "{took:?}");
+        assert!(relay.stats().rate_limited_bytes.load(Ordering::Relaxed) >= 60_000);
+        let bad = FaultPlan {
+            rate_bps: Some(0.0),
+            ..FaultPlan::default()
+        };
+        assert!(bad.validate().is_err());
     }
 
     #[test]

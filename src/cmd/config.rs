@@ -24,6 +24,9 @@ pub enum ConfigCmd {
         /// Output file (default: standard output).
         #[arg(long)]
         out: Option<PathBuf>,
+        /// The TLS files are on the router's host, not this one: do not check them here.
+        #[arg(long)]
+        files_elsewhere: bool,
     },
 }
 
@@ -32,8 +35,11 @@ pub fn run(cmd: ConfigCmd) -> anyhow::Result<()> {
         ConfigCmd::Check { file } => {
             let ext = file.extension().and_then(|e| e.to_str()).unwrap_or("");
             if ext == "yaml" || ext == "yml" {
-                let text = std::fs::read_to_string(&file)
-                    .with_context(|| format!("cannot read {}", file.display()))?;
+                let text = shoal_proto::files::read_text_bounded(
+                    &file,
+                    shoal_proto::files::MAX_CONFIG_BYTES,
+                )
+                .with_context(|| format!("cannot read {}", file.display()))?;
                 let m = parse_calibration_yaml(&text)
                     .map_err(|e| anyhow::anyhow!("{}: {e}", file.display()))?;
                 shoal::outln!(
@@ -59,17 +65,25 @@ pub fn run(cmd: ConfigCmd) -> anyhow::Result<()> {
             listen,
             tls_dir,
             out,
+            files_elsewhere,
         } => {
             let fleet = Fleet::load(&fleet)?;
-            let text = shoal_bus::acl::router_config(
-                &fleet,
-                &listen,
-                &shoal_bus::acl::TlsFiles::in_dir(tls_dir),
-            )?;
+            let tls = shoal_bus::acl::TlsFiles::in_dir(tls_dir);
+            let text = shoal_bus::acl::router_config(&fleet, &listen, &tls)?;
+            let problems = tls.problems();
+            if !files_elsewhere && !problems.is_empty() {
+                anyhow::bail!(
+                    "the router could not start with these TLS files:\n  {}\n(make them with docs/deploy.md section 1, or pass --files-elsewhere when they are on the router's host)",
+                    problems.join("\n  ")
+                );
+            }
             match out {
                 Some(path) => {
-                    std::fs::write(&path, &text)
-                        .with_context(|| format!("cannot write {}", path.display()))?;
+                    shoal_proto::files::OutputFile::write_whole(
+                        &path,
+                        &[&fleet.source],
+                        text.as_bytes(),
+                    )?;
                     eprintln!(
                         "wrote {} ({} vehicles)",
                         path.display(),

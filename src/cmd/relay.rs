@@ -40,6 +40,9 @@ pub struct RelayArgs {
     /// ... for this many milliseconds.
     #[arg(long, default_value_t = 500)]
     flap_down_ms: u64,
+    /// Cap each direction at this many bits per second (an acoustic modem: 300 … 5000).
+    #[arg(long, value_parser = super::args::positive)]
+    rate_bps: Option<f64>,
     #[arg(long, default_value_t = 1)]
     seed: u64,
 }
@@ -61,6 +64,7 @@ pub fn run_relay(a: RelayArgs) -> anyhow::Result<()> {
             period: Duration::from_secs_f64(a.flap_period_s),
             down: Duration::from_millis(a.flap_down_ms),
         }),
+        rate_bps: a.rate_bps,
         seed: a.seed,
     };
     let relay = Relay::start(&a.listen, upstream, plan)?;

@@ -48,7 +48,7 @@ pub fn run_marker(cmd: MarkerCmd) -> anyhow::Result<()> {
         "png" => shoal_node::print::marker_png(codes, id, size_mm, dpi)?,
         _ => bail!("{}: output must end in .svg or .png", out.display()),
     };
-    std::fs::write(&out, bytes).with_context(|| format!("cannot write {}", out.display()))?;
+    shoal_proto::files::OutputFile::write_whole(&out, &[], &bytes)?;
     shoal::outln!("wrote {} ({codes} #{id}, {size_mm} mm)", out.display());
     Ok(())
 }
@@ -73,8 +73,9 @@ pub fn run_detect(a: DetectArgs) -> anyhow::Result<()> {
     let codes: CodeSet = a.codes.parse()?;
     let camera = match &a.camera {
         Some(p) => {
-            let text = std::fs::read_to_string(p)
-                .with_context(|| format!("cannot read {}", p.display()))?;
+            let text =
+                shoal_proto::files::read_text_bounded(p, shoal_proto::files::MAX_CONFIG_BYTES)
+                    .with_context(|| format!("cannot read {}", p.display()))?;
             Some(
                 parse_calibration_yaml(&text)
                     .map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?,
@@ -95,11 +96,19 @@ pub fn run_detect(a: DetectArgs) -> anyhow::Result<()> {
         &mut out,
     )?;
     eprintln!(
-        "{} files, {} frames, {} detections, {} unreadable",
-        summary.files, summary.frames, summary.detections, summary.errors
+        "{} files, {} frames, {} detections, {} unreadable or incomplete, {} warnings",
+        summary.files, summary.frames, summary.detections, summary.errors, summary.warnings
     );
     if summary.errors > 0 && summary.frames == 0 {
         bail!("no input could be read");
+    }
+    if summary.errors > 0 {
+        // What could be read is printed; the exit status says not everything was.
+        bail!(
+            "{} of {} inputs unreadable or incomplete (see their \"error\" lines)",
+            summary.errors,
+            summary.files
+        );
     }
     Ok(())
 }

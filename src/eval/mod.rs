@@ -17,6 +17,7 @@
 //! | `calibrate-water` | Table 5's CLAHE row    | [`calibrate`]   |
 //! | `fusion`          | (shoal's own)          | [`fusion`]      |
 //! | `swarm`           | §6.3                   | [`swarm`]       |
+//! | `links`           | (acoustic-rate links)  | [`links`]       |
 //! | `real`            | (real recordings)      | [`real`]        |
 //!
 //! `quick` runs a reduced version of each (seconds in a debug build) for CI.
@@ -27,6 +28,7 @@ pub mod calibrate;
 pub mod detection;
 pub mod features;
 pub mod fusion;
+pub mod links;
 pub mod noise;
 pub mod plot;
 pub mod probe;
@@ -55,11 +57,12 @@ pub enum Experiment {
     FitNoise,
     Fusion,
     Swarm,
+    Links,
     Real,
 }
 
 impl Experiment {
-    pub const ALL: [Experiment; 11] = [
+    pub const ALL: [Experiment; 12] = [
         Experiment::Features,
         Experiment::Accuracy,
         Experiment::AccuracyYaw,
@@ -70,6 +73,7 @@ impl Experiment {
         Experiment::FitNoise,
         Experiment::Fusion,
         Experiment::Swarm,
+        Experiment::Links,
         Experiment::Real,
     ];
 
@@ -85,6 +89,7 @@ impl Experiment {
             Experiment::FitNoise => "fit-noise",
             Experiment::Fusion => "fusion",
             Experiment::Swarm => "swarm",
+            Experiment::Links => "links",
             Experiment::Real => "real",
         }
     }
@@ -244,6 +249,7 @@ pub fn run(experiment: Experiment, opts: &EvalOptions) -> Result<serde_json::Val
         Experiment::FitNoise => noise::run(opts)?,
         Experiment::Fusion => fusion::run(opts)?,
         Experiment::Swarm => swarm::run(opts)?,
+        Experiment::Links => links::run(opts)?,
         Experiment::Real => real::run(opts)?,
     };
     if let Some(obj) = summary.as_object_mut() {

@@ -37,12 +37,13 @@ use super::plot::{self, Grouped};
 use super::table::Csv;
 use super::{EvalError, EvalOptions};
 use opencv::core::Mat;
+use opencv::imgproc;
 use opencv::prelude::*;
-use opencv::{imgcodecs, imgproc, videoio};
 use score::{scores, MethodRun, Read};
 use serde_json::{json, Value};
 use shoal_node::baseline::{AprilTag, OpenCvAruco};
 use shoal_node::detect::{DetectParams, MarkerDetector, ShoalDetector};
+use shoal_node::image_file;
 use shoal_node::pose::estimate_pose;
 use shoal_node::restore::{restorer, Method, RestoreParams, Restorer};
 use shoal_proto::camera::CameraModel;
@@ -154,12 +155,8 @@ fn for_frames(
     let mut n = 0;
     if let Some(video) = &m.video {
         let path = dir.join(video);
-        let mut cap =
-            videoio::VideoCapture::from_file(&path.display().to_string(), videoio::CAP_ANY)
-                .map_err(|e| unreadable(&path, &format!("cannot open as a video: {e}")))?;
-        if !cap.is_opened().unwrap_or(false) {
-            return Err(unreadable(&path, "cannot open as a video"));
-        }
+        let (mut cap, _) = image_file::open_video(&path, image_file::MAX_IMAGE_PIXELS)
+            .map_err(|e| EvalError::Setup(e.to_string()))?;
         let mut frame = Mat::default();
         for idx in 0..range[1] {
             match cap.read(&mut frame) {
@@ -180,12 +177,9 @@ fn for_frames(
     } else {
         for (idx, name) in m.images.iter().enumerate().take(range[1]).skip(range[0]) {
             let path = dir.join(name);
-            let img = imgcodecs::imread(&path.display().to_string(), imgcodecs::IMREAD_GRAYSCALE)
-                .map_err(|e| unreadable(&path, &format!("cannot read: {e}")))?;
-            if img.empty() {
-                return Err(unreadable(&path, "not an image, or missing"));
-            }
-            each(idx, name, &img)?;
+            let img = image_file::read_gray(&path, image_file::MAX_IMAGE_PIXELS)
+                .map_err(|e| EvalError::Setup(e.to_string()))?;
+            each(idx, name, &img.gray)?;
             n += 1;
         }
     }

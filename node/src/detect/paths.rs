@@ -4,9 +4,9 @@
 use super::{DetectError, MarkerDetector, ShoalDetector};
 use crate::pose::estimate_pose;
 use opencv::core::Mat;
+use opencv::imgproc;
 use opencv::prelude::*;
-use opencv::{imgcodecs, imgproc, videoio};
-use shoal_proto::camera::CameraModel;
+use shoal_proto::camera::{CameraModel, FrameCamera};
 use shoal_proto::marker::CodeSet;
 use std::io::Write;
 use std::path::Path;
@@ -17,8 +17,11 @@ pub struct DetectSummary {
     pub files: usize,
     pub frames: usize,
     pub detections: usize,
-    /// Files that could not be read (each reported as an `"error"` line).
+    /// Files that could not be read, or not wholly (each reported as an `"error"` line).
     pub errors: usize,
+    /// Things done to make a file usable that the user should know (each a `"warning"` line):
+    /// 16-bit pixels scaled, a calibration scaled to a resized stream.
+    pub warnings: usize,
 }
 
 const VIDEO_EXTENSIONS: [&str; 6] = ["mp4", "avi", "mkv", "mov", "webm", "mjpeg"];
@@ -30,7 +33,7 @@ fn is_video(path: &Path) -> bool {
 }
 
 fn to_gray(frame: &Mat) -> Result<Mat, DetectError> {
-    if frame.channels() == 1 {
+    if frame.channels() == 1 && frame.depth() == opencv::core::CV_8U {
         return Ok(frame.try_clone()?);
     }
     let mut g = Mat::default();
@@ -39,8 +42,158 @@ fn to_gray(frame: &Mat) -> Result<Mat, DetectError> {
     } else {
         imgproc::COLOR_BGR2GRAY
     };
-    imgproc::cvt_color_def(frame, &mut g, code)?;
+    if frame.channels() == 1 {
+        frame.convert_to(&mut g, opencv::core::CV_8U, 1.0, 0.0)?;
+    } else {
+        imgproc::cvt_color_def(frame, &mut g, code)?;
+    }
     Ok(g)
+}
+
+/// Why one input file was not (wholly) used. Writing the output is not such
+/// a failure: it ends the run ([`DetectError::Io`]).
+enum FileFailure {
+    /// Reported as the file's `"error"` line; the run goes on.
+    Input(String),
+    Output(DetectError),
+}
+
+impl From<DetectError> for FileFailure {
+    fn from(e: DetectError) -> Self {
+        match e {
+            DetectError::Io(_) => FileFailure::Output(e),
+            other => FileFailure::Input(other.to_string()),
+        }
+    }
+}
+
+impl From<std::io::Error> for FileFailure {
+    fn from(e: std::io::Error) -> Self {
+        FileFailure::Output(DetectError::Io(e))
+    }
+}
+
+/// The run's settings and its output, shared by every file.
+struct Run<'a> {
+    det: ShoalDetector,
+    /// The calibration as given, and the marker side.
+    camera: Option<CameraModel>,
+    side_m: Option<f64>,
+    out: &'a mut dyn Write,
+    sum: DetectSummary,
+}
+
+impl Run<'_> {
+    fn line(&mut self, source: &str, key: &str, text: &str) -> std::io::Result<()> {
+        writeln!(
+            self.out,
+            "{}",
+            serde_json::json!({"source": source, key: text})
+        )
+    }
+
+    fn warn(&mut self, source: &str, text: &str) -> std::io::Result<()> {
+        self.sum.warnings += 1;
+        self.line(source, "warning", text)
+    }
+
+    /// The calibration for a `w` x `h` frame of `source`, set on the detector;
+    /// a scaled one is announced (once per file, `announced`).
+    fn fit_camera(
+        &mut self,
+        source: &str,
+        w: i32,
+        h: i32,
+        announced: &mut bool,
+    ) -> Result<Option<CameraModel>, FileFailure> {
+        let Some(cam) = self.camera else {
+            return Ok(None);
+        };
+        let fitted = cam
+            .for_frame(w.max(0) as u32, h.max(0) as u32)
+            .map_err(FileFailure::Input)?;
+        if let FrameCamera::Scaled { scale, from, .. } = fitted {
+            if !*announced {
+                *announced = true;
+                self.warn(
+                    source,
+                    &format!(
+                        "the calibration for {}x{} is scaled by {scale:.4} to these {w}x{h} frames",
+                        from.0, from.1
+                    ),
+                )?;
+            }
+        }
+        let fitted = *fitted.camera();
+        if self.det.params().lens != Some(fitted) {
+            self.det.set_lens(Some(fitted));
+        }
+        Ok(Some(fitted))
+    }
+
+    fn frame(
+        &mut self,
+        gray: &Mat,
+        source: &str,
+        index: Option<usize>,
+        announced: &mut bool,
+    ) -> Result<(), FileFailure> {
+        let camera = self.fit_camera(source, gray.cols(), gray.rows(), announced)?;
+        self.sum.frames += 1;
+        self.sum.detections += detect_one(
+            &mut self.det,
+            gray,
+            source,
+            index,
+            camera.as_ref(),
+            self.side_m,
+            self.out,
+        )?;
+        Ok(())
+    }
+
+    fn video(&mut self, path: &Path, source: &str) -> Result<(), FileFailure> {
+        let (mut cap, declared) =
+            crate::image_file::open_video(path, crate::image_file::MAX_IMAGE_PIXELS)
+                .map_err(|e| FileFailure::Input(e.to_string()))?;
+        let mut frame = Mat::default();
+        let mut idx = 0usize;
+        let mut announced = false;
+        loop {
+            match cap.read(&mut frame) {
+                Ok(true) if !frame.empty() => {}
+                // The end of the stream.
+                Ok(_) => break,
+                // A decoder error mid-stream: say where, keep what was read.
+                Err(e) => {
+                    return Err(FileFailure::Input(format!(
+                        "video read failed after frame {idx}: {e}"
+                    )))
+                }
+            }
+            let gray = to_gray(&frame)?;
+            self.frame(&gray, source, Some(idx), &mut announced)?;
+            idx += 1;
+        }
+        if let Some(why) = crate::image_file::video_shortfall(idx as u64, declared) {
+            return Err(FileFailure::Input(why));
+        }
+        if idx == 0 {
+            return Err(FileFailure::Input(
+                "opened as a video, but it has no frames".into(),
+            ));
+        }
+        Ok(())
+    }
+
+    fn image(&mut self, path: &Path, source: &str) -> Result<(), FileFailure> {
+        let file = crate::image_file::read_gray(path, crate::image_file::MAX_IMAGE_PIXELS)
+            .map_err(|e| FileFailure::Input(e.to_string()))?;
+        for note in &file.notes {
+            self.warn(source, note)?;
+        }
+        self.frame(&file.gray, source, None, &mut false)
+    }
 }
 
 /// Detect markers of `codes` in every image or video in `paths`, writing one
@@ -52,7 +205,16 @@ fn to_gray(frame: &Mat) -> Result<Mat, DetectError> {
 /// square `{"first_corner", "found_by", "corners"}`) — plus
 /// `"camera_from_marker"` (translation in metres, quaternion `[x, y, z, w]`,
 /// RMS, 6x6 covariance, and the flipped alternative) when `camera` and
-/// `side_m` are given. A file that cannot be read gives `{"source", "error"}`.
+/// `side_m` are given.
+///
+/// Every image file goes through [`crate::image_file::read_gray`] (size,
+/// pixel and truncation checks, 16-bit scaling) and every video through
+/// [`crate::image_file::open_video`]. A file that cannot be used, or not
+/// wholly (cut short, a frame whose size the calibration does not fit), gives
+/// `{"source", "error"}` and the run goes on with the next file; what was
+/// done to make one usable gives `{"source", "warning"}`. Only a failure to
+/// write `out`, an invalid `camera` or a `side_m` that is not a positive
+/// length ends the run.
 pub fn detect_paths(
     paths: &[impl AsRef<Path>],
     codes: CodeSet,
@@ -60,88 +222,52 @@ pub fn detect_paths(
     side_m: Option<f64>,
     out: &mut dyn Write,
 ) -> Result<DetectSummary, DetectError> {
-    let mut det = ShoalDetector::new(
-        codes,
-        super::DetectParams {
-            lens: camera,
-            ..super::DetectParams::default()
-        },
-    );
-    let mut sum = DetectSummary::default();
-    for path in paths {
-        let path = path.as_ref();
-        sum.files += 1;
-        let source = path.display().to_string();
-        let emit_error = |out: &mut dyn Write, reason: String| -> Result<(), DetectError> {
-            writeln!(
-                out,
-                "{}",
-                serde_json::json!({"source": source, "error": reason})
-            )?;
-            Ok(())
-        };
-        if !path.is_file() {
-            sum.errors += 1;
-            emit_error(out, "no such file".into())?;
-            continue;
-        }
-        if is_video(path) {
-            let mut cap = match videoio::VideoCapture::from_file(&source, videoio::CAP_ANY) {
-                Ok(c) if c.is_opened().unwrap_or(false) => c,
-                _ => {
-                    sum.errors += 1;
-                    emit_error(out, "cannot open as a video".into())?;
-                    continue;
-                }
-            };
-            let mut frame = Mat::default();
-            let mut idx = 0usize;
-            let mut read_failed = false;
-            loop {
-                match cap.read(&mut frame) {
-                    Ok(true) if !frame.empty() => {}
-                    // The end of the stream.
-                    Ok(_) => break,
-                    // A decoder error mid-stream: say where, keep what was read.
-                    Err(e) => {
-                        sum.errors += 1;
-                        emit_error(out, format!("video read failed after frame {idx}: {e}"))?;
-                        read_failed = true;
-                        break;
-                    }
-                }
-                let gray = to_gray(&frame)?;
-                sum.frames += 1;
-                sum.detections += detect_one(
-                    &mut det,
-                    &gray,
-                    &source,
-                    Some(idx),
-                    camera.as_ref(),
-                    side_m,
-                    out,
-                )?;
-                idx += 1;
-            }
-            if idx == 0 && !read_failed {
-                sum.errors += 1;
-                emit_error(out, "opened as a video, but it has no frames".into())?;
-            }
-        } else {
-            let img = match imgcodecs::imread(&source, imgcodecs::IMREAD_GRAYSCALE) {
-                Ok(m) if !m.empty() => m,
-                _ => {
-                    sum.errors += 1;
-                    emit_error(out, "cannot read as an image".into())?;
-                    continue;
-                }
-            };
-            sum.frames += 1;
-            sum.detections +=
-                detect_one(&mut det, &img, &source, None, camera.as_ref(), side_m, out)?;
+    if let Some(side) = side_m {
+        if !(side.is_finite() && side > 0.0) {
+            return Err(DetectError::Input {
+                path: "marker side".into(),
+                reason: format!("{side} m is not a positive length"),
+            });
         }
     }
-    Ok(sum)
+    if let Some(p) = camera.as_ref().and_then(CameraModel::problem) {
+        return Err(DetectError::Input {
+            path: "camera".into(),
+            reason: p,
+        });
+    }
+    let mut run = Run {
+        det: ShoalDetector::new(
+            codes,
+            super::DetectParams {
+                lens: camera,
+                ..super::DetectParams::default()
+            },
+        ),
+        camera,
+        side_m,
+        out,
+        sum: DetectSummary::default(),
+    };
+    for path in paths {
+        let path = path.as_ref();
+        run.sum.files += 1;
+        let source = path.display().to_string();
+        let result = if is_video(path) {
+            run.video(path, &source)
+        } else {
+            run.image(path, &source)
+        };
+        match result {
+            Ok(()) => {}
+            Err(FileFailure::Output(e)) => return Err(e),
+            Err(FileFailure::Input(reason)) => {
+                run.sum.errors += 1;
+                run.line(&source, "error", &reason)?;
+            }
+        }
+    }
+    Ok(run.sum)
 }
 
 fn detect_one(
