@@ -9,3 +9,4 @@ pub mod stdout;
 pub mod demo;
 pub mod eval;
 pub mod redetect;
+pub mod soak;

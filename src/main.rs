@@ -65,6 +65,8 @@ enum Command {
     /// Validate configuration files.
     #[command(subcommand)]
     Config(cmd::config::ConfigCmd),
+    /// The simulated swarm for an hour with link cuts, fusion restarts and vehicle dropouts; memory, open files and maps watched.
+    Soak(cmd::soak::SoakArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -92,6 +94,7 @@ fn main() -> std::process::ExitCode {
         Command::Eval(a) => cmd::eval::run_eval(a),
         Command::Relay(a) => cmd::relay::run_relay(a),
         Command::Router(a) => cmd::relay::run_router(a),
+        Command::Soak(a) => cmd::soak::run_soak(a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -480,7 +480,14 @@ fn unknown_experiment_names_the_known_ones() {
 #[test]
 fn links_quick_compact_observations_keep_the_map_within_5_cm_at_1000_bits() {
     let (dir, s) = run_quick(Experiment::Links);
-    assert_files(&dir, &["links.csv"]);
+    assert_files(
+        &dir,
+        &[
+            "links.csv",
+            "eval-links-difference.png",
+            "eval-links-unknown.svg",
+        ],
+    );
     let compact = &s["results"]["holding"]["compact"]["1000"];
     assert!(num(&compact["max_diff_cm"]["max"]) <= 5.0, "{compact}");
     assert!(num(&compact["pairs_missing"]["max"]) == 0.0, "{compact}");

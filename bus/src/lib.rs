@@ -73,6 +73,10 @@ pub enum Connect {
     File(PathBuf),
     /// An in-process router for the demo and tests: listens on `port`.
     Router { port: u16 },
+    /// An in-process router on `port` that also connects to the routers on
+    /// `routers` (loopback ports), retrying every ≤ 0.5 s: two sides of a
+    /// link, possibly through a relay.
+    RouterLinked { port: u16, routers: Vec<u16> },
     /// A client of a router on loopback `port` (the demo's components).
     Client { port: u16 },
 }
@@ -132,6 +136,20 @@ impl Connect {
                 set(&mut c, "listen/endpoints", &endpoints(&[*port]))?;
                 set(&mut c, "connect/endpoints", "[]")?;
                 set(&mut c, "scouting/multicast/enabled", "false")?;
+                Ok(c)
+            }
+            Connect::RouterLinked { port, routers } => {
+                let mut c = zenoh::Config::default();
+                set(&mut c, "mode", "\"router\"")?;
+                set(&mut c, "listen/endpoints", &endpoints(&[*port]))?;
+                set(&mut c, "connect/endpoints", &endpoints(routers))?;
+                set(
+                    &mut c,
+                    "connect/retry",
+                    "{ period_init_ms: 100, period_max_ms: 500, period_increase_factor: 2 }",
+                )?;
+                set(&mut c, "scouting/multicast/enabled", "false")?;
+                set(&mut c, "scouting/gossip/enabled", "false")?;
                 Ok(c)
             }
         }

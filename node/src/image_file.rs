@@ -414,6 +414,9 @@ fn bmp_truncation(bytes: &[u8], w: u64, h: u64) -> Option<String> {
             .get(at..at + 4)
             .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
     };
+    if le32(14)? < 40 {
+        return None; // an OS/2 core header: other field offsets, the decoder's business.
+    }
     let offset = u64::from(le32(10)?);
     let bpp = u64::from(u16::from_le_bytes([*bytes.get(28)?, *bytes.get(29)?]));
     let compression = le32(30)?;

@@ -390,7 +390,9 @@ mod tests {
         use shoal_sim_bridge::world::{Formation, SwarmWorld};
         let fleet = paper_fleet();
         let vehicle = fleet.vehicle(10).unwrap().clone();
-        let truth = SwarmWorld::new(&fleet, Formation::Line, 2.0, 1).truth();
+        let truth = SwarmWorld::new(&fleet, Formation::Line, 2.0, 1)
+            .unwrap()
+            .truth();
         let water = WaterPresets::builtin().get(0.5).unwrap();
         // Vehicle 10's starboard camera sees vehicle 15's marker 2 m away.
         let view = render_fleet_view(

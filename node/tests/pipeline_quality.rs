@@ -24,7 +24,9 @@ const MIN_CNR: f32 = 3.0;
 fn observations_carry_the_marker_contrast_and_cnr_of_their_frame() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
     let fleet = Fleet::load(&root.join("configs/fleets/paper.toml")).expect("paper fleet");
-    let truth = SwarmWorld::new(&fleet, Formation::Line, 2.0, 1).truth();
+    let truth = SwarmWorld::new(&fleet, Formation::Line, 2.0, 1)
+        .unwrap()
+        .truth();
     let water = WaterPresets::builtin().get(0.5).expect("0.5 /m preset");
     let frame = render_fleet_view(
         &mut Renderer::new(),

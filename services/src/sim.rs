@@ -153,7 +153,8 @@ fn pace(cfg: &SimConfig, started: Instant, t_s: f64, dt: f64) -> bool {
 /// Start the simulator on `bus`; `clock` follows simulation time.
 pub fn spawn(bus: &Bus, cfg: SimConfig, clock: Arc<ManualClock>) -> Result<SimHandle, BusError> {
     let keys = cfg.fleet.keys();
-    let mut world = SwarmWorld::new(&cfg.fleet, cfg.formation, cfg.spacing_m, cfg.seed);
+    let mut world = SwarmWorld::new(&cfg.fleet, cfg.formation, cfg.spacing_m, cfg.seed)
+        .map_err(|e| BusError::ConfigValue(format!("simulator: {e}")))?;
     for &v in &cfg.commanded {
         if let Err(e) = world.set_mode(v, Mode::Commanded) {
             tracing::warn!("simulator: {e}");

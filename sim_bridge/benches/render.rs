@@ -19,7 +19,7 @@ fn bench(c: &mut Criterion) {
     let fleet =
         Fleet::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/fleets/paper.toml"))
             .expect("paper fleet");
-    let world = SwarmWorld::new(&fleet, Formation::Line, 2.0, 1);
+    let world = SwarmWorld::new(&fleet, Formation::Line, 2.0, 1).unwrap();
     let mut truth = world.truth();
     truth[2].world_from_body.translation.z += 0.5;
     let water = WaterParams::preset(0.5);

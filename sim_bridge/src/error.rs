@@ -21,6 +21,8 @@ pub enum SimError {
     },
     #[error("attenuation coefficient {c_per_m} /m is outside the presets' range {min}..={max} /m")]
     WaterOutOfRange { c_per_m: f64, min: f64, max: f64 },
+    #[error("formation spacing {0} m must be positive and finite")]
+    Spacing(f64),
     #[error("camera model unusable: {0}")]
     Camera(String),
     #[error("{what} pose is not finite")]

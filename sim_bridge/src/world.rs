@@ -172,12 +172,17 @@ impl SwarmWorld {
     /// Every vehicle of `fleet` at its slot of `formation` (neighbours
     /// `spacing_m` apart), at [`DEFAULT_DEPTH_M`], heading north, in
     /// formation mode; the formation moves north at 0.2 m/s.
-    pub fn new(fleet: &Fleet, formation: Formation, spacing_m: f64, seed: u64) -> Self {
-        let spacing_m = if spacing_m.is_finite() && spacing_m > 0.0 {
-            spacing_m
-        } else {
-            1.5
-        };
+    /// A spacing that is not a positive finite length is an error (it was
+    /// once replaced by 1.5 m without a word).
+    pub fn new(
+        fleet: &Fleet,
+        formation: Formation,
+        spacing_m: f64,
+        seed: u64,
+    ) -> Result<Self, SimError> {
+        if !(spacing_m.is_finite() && spacing_m > 0.0) {
+            return Err(SimError::Spacing(spacing_m));
+        }
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let reference = Vector3::new(0.0, 0.0, DEFAULT_DEPTH_M);
         let vehicles = fleet
@@ -204,7 +209,7 @@ impl SwarmWorld {
                 ],
             })
             .collect();
-        SwarmWorld {
+        Ok(SwarmWorld {
             vehicles,
             time_ns: 0,
             rng,
@@ -218,7 +223,7 @@ impl SwarmWorld {
             drift_tau_s: 30.0,
             wobble_rad: 0.5f64.to_radians(),
             max_speed_mps: 1.0,
-        }
+        })
     }
 
     /// Simulation time (ns since the start).
@@ -416,9 +421,18 @@ mod tests {
     }
 
     #[test]
+    fn a_spacing_that_is_no_length_is_refused() {
+        let fleet = paper_fleet();
+        for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+            let e = SwarmWorld::new(&fleet, Formation::Line, bad, 1).unwrap_err();
+            assert!(matches!(e, SimError::Spacing(_)), "{bad}: {e}");
+        }
+    }
+
+    #[test]
     fn line_puts_vehicles_side_by_side_along_east_heading_north() {
         let fleet = paper_fleet();
-        let w = SwarmWorld::new(&fleet, Formation::Line, 1.5, 1);
+        let w = SwarmWorld::new(&fleet, Formation::Line, 1.5, 1).unwrap();
         let truth = w.truth();
         let east: Vec<f64> = truth
             .iter()
@@ -435,7 +449,7 @@ mod tests {
     fn same_seed_same_trajectories_and_clock_in_ns() {
         let fleet = paper_fleet();
         let run = |seed| {
-            let mut w = SwarmWorld::new(&fleet, Formation::V, 2.0, seed);
+            let mut w = SwarmWorld::new(&fleet, Formation::V, 2.0, seed).unwrap();
             w.set_current([0.05, -0.02, 0.0]).unwrap();
             w.set_mode(15, Mode::Random).unwrap();
             for _ in 0..200 {
@@ -448,7 +462,7 @@ mod tests {
         let (_, c) = run(4);
         assert_eq!(t1, 20_000_000_000);
         assert_eq!(a, b);
-        let w = SwarmWorld::new(&fleet, Formation::V, 2.0, 3);
+        let w = SwarmWorld::new(&fleet, Formation::V, 2.0, 3).unwrap();
         let truth = w.sim_truth(0, 0.5, Vec::new());
         assert_eq!(truth.vehicles.len(), 3);
         assert!(shoal_proto::WireMessage::validate(&truth).is_ok());
@@ -458,7 +472,7 @@ mod tests {
     #[test]
     fn commanded_vehicle_follows_first_order_dynamics() {
         let fleet = paper_fleet();
-        let mut w = SwarmWorld::new(&fleet, Formation::Column, 2.0, 9);
+        let mut w = SwarmWorld::new(&fleet, Formation::Column, 2.0, 9).unwrap();
         w.drift_std_m = 0.0;
         let cmd = VehicleCommand {
             vehicle: 10,
@@ -489,7 +503,7 @@ mod tests {
     #[test]
     fn yaw_rate_command_turns_to_starboard() {
         let fleet = paper_fleet();
-        let mut w = SwarmWorld::new(&fleet, Formation::Line, 2.0, 9);
+        let mut w = SwarmWorld::new(&fleet, Formation::Line, 2.0, 9).unwrap();
         w.apply_command(&VehicleCommand {
             vehicle: 17,
             stamp_ns: 0,
@@ -508,7 +522,7 @@ mod tests {
     #[test]
     fn formation_holds_against_a_current() {
         let fleet = paper_fleet();
-        let mut w = SwarmWorld::new(&fleet, Formation::Circle, 2.0, 5);
+        let mut w = SwarmWorld::new(&fleet, Formation::Circle, 2.0, 5).unwrap();
         w.set_current([0.0, 0.1, 0.0]).unwrap();
         let before = w.truth();
         w.step(60.0);

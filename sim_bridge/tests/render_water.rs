@@ -293,7 +293,7 @@ fn fleet_view_shows_the_neighbours_marker_where_truth_says() {
     let fleet =
         Fleet::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/fleets/paper.toml"))
             .unwrap();
-    let world = SwarmWorld::new(&fleet, Formation::Line, 2.0, 3);
+    let world = SwarmWorld::new(&fleet, Formation::Line, 2.0, 3).unwrap();
     let truth = world.truth();
     let starboard = 4;
     let out = render_fleet_view(

@@ -42,7 +42,7 @@ fn line_abreast_every_vehicle_sees_a_neighbours_whole_marker() {
     // Side cameras see ±30° along-track and sit 0.6–0.95 m ahead of the
     // mid-body markers, so a mutual pair needs ≳ 1.7 m between hulls.
     for (spacing, steps) in [(1.75, 1), (2.0, 4)] {
-        let mut world = SwarmWorld::new(&fleet, Formation::Line, spacing, 11);
+        let mut world = SwarmWorld::new(&fleet, Formation::Line, spacing, 11).unwrap();
         for step in 0..steps {
             let views = whole_views(&fleet, &world);
             println!(
@@ -63,7 +63,7 @@ fn line_abreast_every_vehicle_sees_a_neighbours_whole_marker() {
 #[test]
 fn own_markers_are_not_seen_by_own_cameras() {
     let fleet = paper_fleet();
-    let world = SwarmWorld::new(&fleet, Formation::Line, 1.5, 1);
+    let world = SwarmWorld::new(&fleet, Formation::Line, 1.5, 1).unwrap();
     let truth = world.truth();
     let scene = Scene::from_fleet(&fleet, &truth);
     for t in &truth {

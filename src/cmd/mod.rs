@@ -8,5 +8,6 @@ pub mod log;
 pub mod net;
 pub mod relay;
 pub mod services;
+pub mod soak;
 pub mod station;
 pub mod tools;

@@ -315,7 +315,7 @@ pub fn run_sim(a: SimArgs) -> anyhow::Result<()> {
                 .with_context(|| format!("vehicle {vehicle} has no camera {camera:?}"))?,
         };
         let water = WaterPresets::builtin().get(water)?;
-        let world = SwarmWorld::new(&fleet, formation(&f)?, spacing, seed);
+        let world = SwarmWorld::new(&fleet, formation(&f)?, spacing, seed)?;
         let out_frame = render_fleet_view(
             &mut Renderer::new(),
             &fleet,

@@ -151,6 +151,26 @@ impl Sender {
     }
 }
 
+/// Columns of `links.csv`, one row per (formation, encoding, rate, seed).
+const CSV_COLUMNS: [&str; 16] = [
+    "formation",
+    "encoding",
+    "rate_bps",
+    "seed",
+    "median_diff_cm",
+    "p95_diff_cm",
+    "max_diff_cm",
+    "pairs_missing",
+    "median_oldest_news_s",
+    "p95_local_vs_truth_cm",
+    "p95_full_rate_vs_truth_cm",
+    "packets_per_s",
+    "bytes_per_packet",
+    "superseded",
+    "expired",
+    "queue_full_drops",
+];
+
 /// One trial's comparison of every vehicle's map with the full-rate one.
 #[derive(Debug, Clone, Default)]
 struct Trial {
@@ -347,6 +367,42 @@ fn range(v: &[f64]) -> Value {
     json!({"mean": mean, "min": lo, "max": hi})
 }
 
+/// The two bar plots: the 95th-percentile difference and the pairs unknown,
+/// per rate (`values[series][rate]`).
+fn plots(
+    out: &Path,
+    rates: &[f64],
+    series: Vec<String>,
+    p95_values: &[Vec<Option<f64>>],
+    unknown_values: &[Vec<Option<f64>>],
+) -> Value {
+    let categories: Vec<String> = rates.iter().map(|r| format!("{r} bit/s")).collect();
+    let p1 = super::features::plot_or_warn(super::plot::bars(
+        &out.join("eval-links-difference"),
+        &super::plot::Grouped {
+            title: "Decentralized map against the full-rate map (95th percentile, pairs it has)"
+                .into(),
+            x_label: "link rate per vehicle".into(),
+            y_label: "difference (cm)".into(),
+            categories: categories.clone(),
+            series: series.clone(),
+        },
+        p95_values,
+    ));
+    let p2 = super::features::plot_or_warn(super::plot::bars(
+        &out.join("eval-links-unknown"),
+        &super::plot::Grouped {
+            title: "Vehicle pairs a decentralized map does not have".into(),
+            x_label: "link rate per vehicle".into(),
+            y_label: "pairs unknown (%)".into(),
+            categories,
+            series,
+        },
+        unknown_values,
+    ));
+    json!([p1, p2])
+}
+
 pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     let fleet = Fleet::parse(
         crate::demo::PAPER_FLEET,
@@ -367,29 +423,19 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
         FORMATIONS.len() * encodings.len() * rates.len() * seeds.len(),
         "links: trials",
     );
-    let mut csv = Csv::new(&[
-        "formation",
-        "encoding",
-        "rate_bps",
-        "seed",
-        "median_diff_cm",
-        "p95_diff_cm",
-        "max_diff_cm",
-        "pairs_missing",
-        "median_oldest_news_s",
-        "p95_local_vs_truth_cm",
-        "p95_full_rate_vs_truth_cm",
-        "packets_per_s",
-        "bytes_per_packet",
-        "superseded",
-        "expired",
-        "queue_full_drops",
-    ]);
+    let mut csv = Csv::new(&CSV_COLUMNS);
     let mut results = Map::new();
+    // Per "formation, encoding": the mean over seeds of the p95 difference, per rate.
+    let mut series = Vec::new();
+    let mut p95_values: Vec<Vec<Option<f64>>> = Vec::new();
+    let mut unknown_values: Vec<Vec<Option<f64>>> = Vec::new();
     for (formation, drift_m) in FORMATIONS {
         let mut by_encoding = Map::new();
         for enc in encodings {
             let mut per = Map::new();
+            series.push(format!("{formation}, {}", enc.name()));
+            p95_values.push(Vec::new());
+            unknown_values.push(Vec::new());
             for &rate in &rates {
                 let mut cell = Cell::default();
                 for &seed in &seeds {
@@ -431,6 +477,13 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
                     cell.bytes_per_packet.push(t.bytes_per_packet);
                     bar.inc(1);
                 }
+                let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+                if let Some(last) = p95_values.last_mut() {
+                    last.push(Some(mean(&cell.p95_cm)));
+                }
+                if let Some(last) = unknown_values.last_mut() {
+                    last.push(Some(100.0 * mean(&cell.missing)));
+                }
                 per.insert(
                     format!("{rate}"),
                     json!({
@@ -450,7 +503,9 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     }
     bar.finish_and_clear();
     csv.write(&opts.out.join("links.csv"))?;
+    let plots = plots(&opts.out, &rates, series, &p95_values, &unknown_values);
     Ok(json!({
+        "plots": plots,
         "setup": format!(
             "paper fleet, line abreast {SPACING_M} m, holding station or drifting ±0.3 m / ±5° on a 60 s cycle; obs_synth at 2 Hz per camera; per-vehicle link at each rate, {} s latency, {} % loss per receiver, {MODEM_OVERHEAD_BYTES} bytes framing per packet; decentralized window {LINK_WINDOW_S} s; maps compared every second after {WARMUP_S} s with the full-rate map (default fusion fed every observation at once); {} s per trial",
             LATENCY_NS as f64 * 1e-9,

@@ -61,7 +61,8 @@ fn run_trial(
     what: &str,
 ) -> Result<Trial, EvalError> {
     let water = opts.presets()?.get(WATER_C_PER_M)?;
-    let mut world = SwarmWorld::new(fleet, Formation::Line, spacing_m, opts.seed);
+    let mut world = SwarmWorld::new(fleet, Formation::Line, spacing_m, opts.seed)
+        .map_err(|e| EvalError::Setup(e.to_string()))?;
     let mut renderer = Renderer::new();
     let setup = |e: shoal_node::pipeline::PipelineError| EvalError::Setup(e.to_string());
     let mut pipelines = Vec::new();
