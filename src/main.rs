@@ -99,7 +99,7 @@ fn main() -> std::process::ExitCode {
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            shoal::errln!("error: {e:#}");
             std::process::ExitCode::FAILURE
         }
     }

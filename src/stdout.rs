@@ -3,6 +3,8 @@
 //! the reader of a pipe goes away (`shoal log info x.mcap | head`). A closed
 //! stdout ends the output quietly and the command finishes its work (a demo
 //! still closes its log); any other write error is reported once on stderr.
+//! Standard error goes through [`errln!`](crate::errln), which drops what
+//! cannot be written (`shoal detect … 2>&-` must not panic either).
 
 use std::io::Write;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -27,7 +29,7 @@ pub fn write(args: std::fmt::Arguments<'_>, newline: bool) {
         }
         Err(e) => {
             if !FAILED.swap(true, Ordering::Relaxed) {
-                eprintln!("shoal: cannot write to standard output: {e}");
+                crate::errln!("shoal: cannot write to standard output: {e}");
             }
         }
     }
@@ -49,4 +51,16 @@ macro_rules! outln {
 #[macro_export]
 macro_rules! out {
     ($($arg:tt)*) => { $crate::stdout::write(format_args!($($arg)*), false) };
+}
+
+/// Write `args` and a newline to stderr, ignoring failure (used by [`errln!`](crate::errln)).
+pub fn write_err(args: std::fmt::Arguments<'_>) {
+    let mut e = std::io::stderr().lock();
+    let _ = e.write_fmt(args).and_then(|()| e.write_all(b"\n"));
+}
+
+/// `eprintln!` that does not panic on a closed stderr.
+#[macro_export]
+macro_rules! errln {
+    ($($arg:tt)*) => { $crate::stdout::write_err(format_args!($($arg)*)) };
 }

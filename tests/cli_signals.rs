@@ -145,3 +145,27 @@ fn a_closed_stdout_never_panics_a_command() {
         assert_ne!(out.status.code(), Some(101), "{args:?}: {stderr}");
     }
 }
+
+/// A closed stderr (`2>&-`, or a reader that went away) must not panic a
+/// command either: the summary and error lines are dropped, the exit status
+/// still says what happened.
+#[test]
+fn a_closed_stderr_never_panics_a_command() {
+    let dir = scratch("closed-stderr");
+    let missing = dir.join("missing.png");
+    let missing = missing.to_str().unwrap();
+    for (args, code) in [
+        (vec!["detect", missing], Some(1)),
+        (vec!["config", "check", "/nonexistent.toml"], Some(1)),
+    ] {
+        let (reader, writer) = std::io::pipe().unwrap();
+        drop(reader);
+        let out = Command::new(env!("CARGO_BIN_EXE_shoal"))
+            .args(&args)
+            .stdout(Stdio::piped())
+            .stderr(writer)
+            .output()
+            .unwrap();
+        assert_eq!(out.status.code(), code, "{args:?}");
+    }
+}

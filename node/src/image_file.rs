@@ -10,9 +10,10 @@
 //!   smaller one, [`crate::restore::MAX_RESTORE_PIXELS`]). A format whose header
 //!   cannot be read here is refused: a decoder must not be the first to learn
 //!   how large a picture is.
-//! - PNG (chunk walk to `IEND`), JPEG (`EOI` after the scan), BMP and binary
-//!   PNM (pixel data as long as the header says) are checked for truncation;
-//!   the decoders of those formats return a partial picture without an error.
+//! - PNG (chunk walk to `IEND`), JPEG (`EOI` after the scan), BMP, binary
+//!   PNM and TIFF (pixel data as long as the header or the strip table says)
+//!   are checked for truncation; the decoders of those formats return a
+//!   partial picture without an error.
 //! - 16-bit grey (a 12-bit machine-vision camera's PNGs) is scaled from its
 //!   significant bits (the PNG `sBIT` chunk, else the largest value) instead
 //!   of keeping only the top byte, which leaves 12-bit data a few grey levels.
@@ -363,6 +364,7 @@ fn truncation(kind: imagesize::ImageType, bytes: &[u8], w: u64, h: u64) -> Optio
         ImageType::Jpeg => jpeg_truncation(bytes),
         ImageType::Bmp => bmp_truncation(bytes, w, h),
         ImageType::Pnm => pnm_truncation(bytes, w, h),
+        ImageType::Tiff => tiff_truncation(bytes),
         _ => None,
     }
 }
@@ -427,6 +429,90 @@ fn bmp_truncation(bytes: &[u8], w: u64, h: u64) -> Option<String> {
     let need = offset + row * h;
     (need > bytes.len() as u64)
         .then(|| format!("its pixels need {need} bytes, the file has {}", bytes.len()))
+}
+
+/// A TIFF's first image: every strip (or tile) its directory lists must lie
+/// inside the file (libtiff decodes what it finds and leaves the rest blank).
+fn tiff_truncation(bytes: &[u8]) -> Option<String> {
+    let little = match bytes.get(..2)? {
+        b"II" => true,
+        b"MM" => false,
+        _ => return None,
+    };
+    let u16_at = |at: usize| -> Option<u64> {
+        let b = bytes.get(at..at + 2)?;
+        Some(u64::from(if little {
+            u16::from_le_bytes([b[0], b[1]])
+        } else {
+            u16::from_be_bytes([b[0], b[1]])
+        }))
+    };
+    let u32_at = |at: usize| -> Option<u64> {
+        let b = bytes.get(at..at + 4)?;
+        Some(u64::from(if little {
+            u32::from_le_bytes([b[0], b[1], b[2], b[3]])
+        } else {
+            u32::from_be_bytes([b[0], b[1], b[2], b[3]])
+        }))
+    };
+    let short = |what: &str| {
+        Some(format!(
+            "its {what} lies past the end of the file ({} bytes)",
+            bytes.len()
+        ))
+    };
+    if u16_at(2)? != 42 {
+        return None; // BigTIFF: 64-bit offsets, the decoder's business.
+    }
+    let ifd = usize::try_from(u32_at(4)?).ok()?;
+    let Some(entries) = u16_at(ifd) else {
+        return short("image directory");
+    };
+    // The directory ends with the offset of the next one.
+    if u32_at(ifd + 2 + 12 * entries as usize).is_none() {
+        return short("image directory");
+    }
+    // The strip (or tile) offsets and byte counts, inline or where the entry points.
+    let mut offsets = None;
+    let mut counts = None;
+    for k in 0..entries as usize {
+        let e = ifd + 2 + 12 * k;
+        let (Some(tag), Some(typ), Some(n)) = (u16_at(e), u16_at(e + 2), u32_at(e + 4)) else {
+            return short("image directory");
+        };
+        let size = match typ {
+            3 => 2,
+            4 => 4,
+            _ => continue,
+        };
+        let values_at = if n * size <= 4 {
+            e + 8
+        } else {
+            usize::try_from(u32_at(e + 8)?).ok()?
+        };
+        let read = |i: usize| {
+            if size == 2 {
+                u16_at(values_at + 2 * i)
+            } else {
+                u32_at(values_at + 4 * i)
+            }
+        };
+        let values: Option<Vec<u64>> = (0..n.min(1 << 20) as usize).map(read).collect();
+        match (tag, values) {
+            (273 | 324, Some(v)) => offsets = Some(v),
+            (279 | 325, Some(v)) => counts = Some(v),
+            (273 | 324 | 279 | 325, None) => return short("strip table"),
+            _ => {}
+        }
+    }
+    let (offsets, counts) = (offsets?, counts?);
+    let end = offsets.iter().zip(&counts).map(|(o, c)| o + c).max()?;
+    (end > bytes.len() as u64).then(|| {
+        format!(
+            "its pixel data ends at byte {end}, the file has {}",
+            bytes.len()
+        )
+    })
 }
 
 /// Binary PNM (`P4`, `P5`, `P6`): the header, then exactly the pixels.
@@ -505,7 +591,7 @@ mod tests {
 
     #[test]
     fn a_file_cut_short_is_truncated_not_a_grey_bottomed_picture() {
-        for ext in [".png", ".jpg", ".bmp", ".pgm"] {
+        for ext in [".png", ".jpg", ".bmp", ".pgm", ".tif"] {
             let bytes = encode(ext, &ramp());
             let cut = &bytes[..bytes.len() * 3 / 4];
             let e = decode_gray("f", cut, MAX_IMAGE_PIXELS).unwrap_err();

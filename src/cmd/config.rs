@@ -84,7 +84,7 @@ pub fn run(cmd: ConfigCmd) -> anyhow::Result<()> {
                         &[&fleet.source],
                         text.as_bytes(),
                     )?;
-                    eprintln!(
+                    shoal::errln!(
                         "wrote {} ({} vehicles)",
                         path.display(),
                         fleet.vehicles.len()

@@ -81,12 +81,14 @@ pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
         ProgressStyle::with_template("{spinner} sim {pos:>4}/{len} ds [{bar:30}] {elapsed} {msg}")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
-    eprintln!(
+    shoal::errln!(
         "shoal demo: 3 vehicles, water {} /m, {} s simulated at {} frames/s per camera",
-        cfg.water_c_per_m, cfg.duration_s, cfg.frame_rate_hz
+        cfg.water_c_per_m,
+        cfg.duration_s,
+        cfg.frame_rate_hz
     );
     if let Some(st) = &cfg.station {
-        eprintln!(
+        shoal::errln!(
             "ground station: open http://{}:{}/ in a browser (Foxglove: ws://{}:{}); --no-station to skip",
             st.bind,
             st.http_port,

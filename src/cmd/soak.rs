@@ -42,7 +42,7 @@ pub fn run_soak(a: SoakArgs) -> anyhow::Result<()> {
         signal_hook::flag::register_conditional_shutdown(sig, 130, stop.clone())?;
         signal_hook::flag::register(sig, stop.clone())?;
     }
-    let report = run(&cfg, &stop, |line| eprintln!("{line}"))?;
+    let report = run(&cfg, &stop, |line| shoal::errln!("{line}"))?;
     if let Some(path) = &a.report {
         let json = serde_json::to_vec_pretty(&report)?;
         shoal_proto::files::OutputFile::write_whole(path, &[], &json)?;

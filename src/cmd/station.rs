@@ -45,9 +45,9 @@ pub fn run_station(a: StationArgs) -> anyhow::Result<()> {
             rate_hz: a.rate,
         },
     )?;
-    eprintln!("shoal station: open {} in a browser", station.url());
+    shoal::errln!("shoal station: open {} in a browser", station.url());
     if let Some(p) = station.foxglove_port() {
-        eprintln!("shoal station: Foxglove live at ws://{}:{p}", a.bind);
+        shoal::errln!("shoal station: Foxglove live at ws://{}:{p}", a.bind);
     }
     wait_for_ctrl_c(|| false);
     station.stop();

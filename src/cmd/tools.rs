@@ -84,7 +84,7 @@ pub fn run_detect(a: DetectArgs) -> anyhow::Result<()> {
         None => None,
     };
     if camera.is_some() != a.size_mm.is_some() {
-        eprintln!("note: poses need both --camera and --size-mm; printing corners only");
+        shoal::errln!("note: poses need both --camera and --size-mm; printing corners only");
     }
     let stdout = std::io::stdout();
     let mut out = stdout.lock();
@@ -95,9 +95,13 @@ pub fn run_detect(a: DetectArgs) -> anyhow::Result<()> {
         a.size_mm.map(|s| s / 1000.0),
         &mut out,
     )?;
-    eprintln!(
+    shoal::errln!(
         "{} files, {} frames, {} detections, {} unreadable or incomplete, {} warnings",
-        summary.files, summary.frames, summary.detections, summary.errors, summary.warnings
+        summary.files,
+        summary.frames,
+        summary.detections,
+        summary.errors,
+        summary.warnings
     );
     if summary.errors > 0 && summary.frames == 0 {
         bail!("no input could be read");

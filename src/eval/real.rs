@@ -292,7 +292,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     let root = data_root(opts.data.as_deref())?;
     let (recordings, missing) = find_recordings(&root, Path::new(MANIFEST_DIR))?;
     for m in &missing {
-        eprintln!(
+        crate::errln!(
             "note: {}: its frames are not under {} (skipped)",
             m.display(),
             root.display()
@@ -393,7 +393,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
         },
         &values,
     )?;
-    eprintln!("{table}");
+    crate::errln!("{table}");
     Ok(json!({
         "data": root.display().to_string(),
         "skipped_manifests": missing.iter().map(|p| p.display().to_string()).collect::<Vec<_>>(),
