@@ -90,7 +90,9 @@ pub fn estimate_pose(
     {
         return Err(PoseError::NonFinite);
     }
-    if let Some(problem) = cam.problem() {
+    // Per detection: the lens was checked where the camera entered (fleet
+    // file, calibration, command line, wire).
+    if let Some(problem) = cam.parameter_problem() {
         return Err(PoseError::Camera(problem));
     }
     if let Some(s) = corner_sigma_px {

@@ -134,8 +134,19 @@ impl CameraModel {
         self.undistort((u - self.cx) / self.fx, (v - self.cy) / self.fy)
     }
 
-    /// A short description of why the model is unusable, or `None`.
+    /// A short description of why the model is unusable, or `None`: its
+    /// parameters ([`CameraModel::parameter_problem`]) and its lens over the
+    /// image ([`CameraModel::distortion_fold`], a walk of a few thousand
+    /// evaluations). For where a calibration enters: loading, the command
+    /// line, the wire.
     pub fn problem(&self) -> Option<String> {
+        self.parameter_problem().or_else(|| self.distortion_fold())
+    }
+
+    /// [`CameraModel::problem`] without the lens walk: resolution, finite
+    /// values, positive focal lengths. For hot paths handed a camera that was
+    /// checked where it entered (one PnP per detection).
+    pub fn parameter_problem(&self) -> Option<String> {
         if self.width == 0 || self.height == 0 || self.width > 16384 || self.height > 16384 {
             return Some(format!(
                 "resolution {}x{} is outside 1..=16384",
@@ -156,7 +167,7 @@ impl CameraModel {
                 self.fx, self.fy
             ));
         }
-        self.distortion_fold()
+        None
     }
 
     /// Why the lens model is not one-to-one over the image, or `None`.
