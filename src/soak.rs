@@ -112,8 +112,9 @@ pub struct SoakReport {
     pub duration_s: f64,
     pub maps_received: u64,
     pub observations_published: u64,
-    /// Longest time without a map outside fusion restarts.
+    /// Longest time without a map outside fusion restarts, and when it ended (s since start).
     pub longest_map_gap_s: f64,
+    pub longest_map_gap_at_s: f64,
     pub events: Vec<SoakEvent>,
     pub samples: Vec<SoakSample>,
     pub rss_growth_kb: i64,
@@ -138,7 +139,7 @@ impl SoakReport {
         let worst = recovered.iter().copied().fold(0.0, f64::max);
         let mut s = format!(
             "soak: {:.0} s{}, {} observations published, {} maps received\n\
-             events: {} ({} recovered, slowest {:.1} s); longest gap between maps outside restarts {:.1} s\n\
+             events: {} ({} recovered, slowest {:.1} s); longest gap between maps outside restarts {:.2} s (at {:.0} s)\n\
              memory: {} -> {} kB ({:+} kB); open files: {} -> {} ({:+})\n",
             self.duration_s,
             if self.interrupted { " (interrupted)" } else { "" },
@@ -148,6 +149,7 @@ impl SoakReport {
             recovered.len(),
             worst,
             self.longest_map_gap_s,
+            self.longest_map_gap_at_s,
             self.samples.first().map_or(0, |x| x.rss_kb),
             self.samples.last().map_or(0, |x| x.rss_kb),
             self.rss_growth_kb,
@@ -328,6 +330,8 @@ pub fn run(
     let (mut maps_received, mut published) = (0u64, 0u64);
     let mut last_map_at = 0.0f64;
     let mut longest_gap = 0.0f64;
+    // When the longest gap ended (s since start).
+    let mut longest_gap_at = 0.0f64;
     // Until this time, a gap between maps is the fusion restart's.
     let mut restart_grace_until = 0.0f64;
     let mut next_vehicle = 0usize;
@@ -428,8 +432,9 @@ pub fn run(
             }
             last_seq = m.msg.seq;
             let at = since();
-            if at > restart_grace_until {
-                longest_gap = longest_gap.max(at - last_map_at);
+            if at > restart_grace_until && at - last_map_at > longest_gap {
+                longest_gap = at - last_map_at;
+                longest_gap_at = at;
             }
             last_map_at = at;
             if let Some((i, from)) = awaiting {
@@ -439,8 +444,12 @@ pub fn run(
                 }
             }
         }
-        if now - last_map_at > MAX_MAP_GAP_S && now > restart_grace_until && now > 5.0 {
-            longest_gap = longest_gap.max(now - last_map_at);
+        if now - last_map_at > longest_gap.max(MAX_MAP_GAP_S)
+            && now > restart_grace_until
+            && now > 5.0
+        {
+            longest_gap = now - last_map_at;
+            longest_gap_at = now;
         }
 
         if now >= next_sample {
@@ -504,7 +513,7 @@ pub fn run(
     }
     if longest_gap > MAX_MAP_GAP_S {
         problems.push(format!(
-            "{longest_gap:.1} s without a map outside a fusion restart"
+            "{longest_gap:.2} s without a map outside a fusion restart (ending {longest_gap_at:.0} s into the run)"
         ));
     }
     let end = since();
@@ -531,6 +540,7 @@ pub fn run(
         maps_received,
         observations_published: published,
         longest_map_gap_s: longest_gap,
+        longest_map_gap_at_s: longest_gap_at,
         events,
         samples,
         rss_growth_kb,
