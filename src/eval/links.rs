@@ -57,7 +57,7 @@ const FULL_QUEUE: usize = 16;
 /// A decentralized vehicle's fusion window: what crosses the link arrives
 /// 1 s old or more, so the default 2 s window would keep little of it.
 /// Chosen from the link's latency and the modem's packet time before any
-/// run; 3 s and 4 s were tried after (seeds 1–2): better when manoeuvring,
+/// run; 3 s and 4 s were tried after (seeds 1–2, 4 s also 11–15): better when manoeuvring,
 /// worse when holding station (`docs/results.md`, "links").
 pub const LINK_WINDOW_S: f64 = 8.0;
 
