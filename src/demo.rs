@@ -57,6 +57,9 @@ pub struct DemoConfig {
     pub log_frames: bool,
     /// Ground-station page and Foxglove live server (`shoal-station`); `None`: none.
     pub station: Option<shoal_station::StationConfig>,
+    /// The vehicles publish their own navigation (simulated depth, IMU, DVL)
+    /// and fusion settles planar flips with it.
+    pub nav: bool,
 }
 
 impl Default for DemoConfig {
@@ -75,6 +78,7 @@ impl Default for DemoConfig {
             log: Some(PathBuf::from("out/demo.mcap")),
             log_frames: false,
             station: None,
+            nav: true,
         }
     }
 }
@@ -89,6 +93,11 @@ pub struct PairError {
     /// Maps in which the pair was localized (both Live), of those evaluated.
     pub maps_localized: usize,
     pub maps_evaluated: usize,
+    /// Of the maps localizing the pair, those more than 10° off (a planar-flip twin).
+    pub maps_flipped: usize,
+    /// Mean normalized estimation error squared over those maps (6 DoF: 6
+    /// when the reported covariance is the error's own; NaN without maps).
+    pub mean_nees: f64,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -108,6 +117,12 @@ pub struct DemoSummary {
     pub edges_accepted: usize,
     pub edges_rejected: usize,
     pub flip_twins_rejected: usize,
+    /// Over every map of the run, distinct observations: those the vehicles'
+    /// nav refused outright (every hypothesis `Gravity` / `Depth` /
+    /// `Heading` in some map: a misread, or a true one lost), and those with
+    /// only some hypotheses refused by nav (a planar-flip twin, mostly).
+    pub observations_refused_by_nav: usize,
+    pub twins_refused_by_nav: usize,
     pub sim_ticks: u64,
     pub sim_ticks_skipped: u64,
     pub wall_time_s: f64,
@@ -222,6 +237,9 @@ impl SimulatedSwarm {
                 time_scale: cfg.time_scale,
                 duration_s: Some(cfg.duration_s),
                 commanded,
+                nav: cfg
+                    .nav
+                    .then(shoal_sim_bridge::nav::NavSensorParams::default),
             },
             clock,
         )?);
@@ -370,7 +388,8 @@ impl TrialWatch {
 }
 
 /// Edges of `map` accepted, rejected (other than as flip twins), and
-/// rejected as flip twins; zeros without a map.
+/// rejected as flip twins (`FlippedHypothesis`, or `Gravity` / `Heading`:
+/// the twin the vehicles' nav refused); zeros without a map.
 fn verdict_counts(map: Option<&FleetMap>) -> (usize, usize, usize) {
     map.map(|m| {
         let count = |f: &dyn Fn(&Option<RejectReason>) -> bool| {
@@ -378,14 +397,55 @@ fn verdict_counts(map: Option<&FleetMap>) -> (usize, usize, usize) {
         };
         (
             count(&|r| r.is_none()),
-            count(&|r| {
-                r.as_ref()
-                    .is_some_and(|r| *r != RejectReason::FlippedHypothesis)
-            }),
-            count(&|r| r.as_ref() == Some(&RejectReason::FlippedHypothesis)),
+            count(&|r| r.as_ref().is_some_and(|r| !is_twin(r))),
+            count(&|r| r.as_ref().is_some_and(is_twin)),
         )
     })
     .unwrap_or((0, 0, 0))
+}
+
+/// Distinct observations over `maps` whose every hypothesis the nav checks
+/// refused (in some map), and those with one refused by nav (and not all).
+fn nav_verdicts(maps: &[FleetMap]) -> (usize, usize) {
+    type Key = (u64, VehicleId, u8, u64, u32);
+    let is_nav = |r: &Option<RejectReason>| {
+        matches!(
+            r,
+            Some(RejectReason::Gravity | RejectReason::Depth | RejectReason::Heading)
+        )
+    };
+    // Per observation: refused outright in some map, refused in part in some map.
+    let mut seen: BTreeMap<Key, (bool, bool)> = BTreeMap::new();
+    for m in maps {
+        // Per observation in this map: hypotheses reported, refused by nav.
+        let mut per: BTreeMap<Key, (usize, usize)> = BTreeMap::new();
+        for e in &m.edges {
+            let k = (
+                e.stamp_ns,
+                e.observer,
+                e.camera,
+                e.frame_seq,
+                e.target_marker,
+            );
+            let v = per.entry(k).or_default();
+            v.0 += 1;
+            v.1 += usize::from(is_nav(&e.rejected));
+        }
+        for (k, (n, nav)) in per.into_iter().filter(|(_, v)| v.1 > 0) {
+            let s = seen.entry(k).or_default();
+            s.0 |= nav == n;
+            s.1 |= nav < n;
+        }
+    }
+    let refused = seen.values().filter(|(all, _)| *all).count();
+    (refused, seen.len() - refused)
+}
+
+fn is_twin(r: &RejectReason) -> bool {
+    matches!(
+        r,
+        RejectReason::FlippedHypothesis | RejectReason::Gravity | RejectReason::Heading
+    )
 }
 
 /// The formation controller of a closed-loop demo: steers the followers
@@ -557,6 +617,7 @@ pub fn run_until(
     let evaluated = &maps[half..];
     let pairs = pair_errors(&fleet, evaluated, &truths);
     let (acc, rej, twins) = verdict_counts(evaluated.last());
+    let (nav_refused, nav_twins) = nav_verdicts(&maps);
     Ok(DemoSummary {
         pairs,
         frames_processed,
@@ -576,6 +637,8 @@ pub fn run_until(
         edges_accepted: acc,
         edges_rejected: rej,
         flip_twins_rejected: twins,
+        observations_refused_by_nav: nav_refused,
+        twins_refused_by_nav: nav_twins,
         sim_ticks,
         sim_ticks_skipped,
         wall_time_s: started.elapsed().as_secs_f64(),
@@ -604,6 +667,9 @@ fn formation_from_truth(fleet: &Fleet, truth: &SimTruth) -> FormationController 
     c
 }
 
+/// A pair this far off in rotation in one map is on a planar-flip twin, degrees.
+pub const FLIP_ERROR_DEG: f64 = 10.0;
+
 /// Mean error of every pair over `maps`. A map is the fused estimate as of its
 /// newest accepted observation (the window's freshest information), so each
 /// map is scored against the ground truth of that observation's capture time.
@@ -622,6 +688,7 @@ pub fn pair_errors(
     for (i, &a) in ids.iter().enumerate() {
         for &b in &ids[i + 1..] {
             let (mut pos, mut ang, mut n) = (0.0, 0.0, 0usize);
+            let (mut flipped, mut nees, mut n_nees) = (0usize, 0.0, 0usize);
             for view in &views {
                 let map = view.map();
                 let valid_at = map
@@ -654,7 +721,13 @@ pub fn pair_errors(
                 let true_a_from_b = wa.inverse() * wb;
                 let d = difference(&rel.a_from_b.pose, &true_a_from_b);
                 pos += d.fixed_rows::<3>(0).norm();
-                ang += d.fixed_rows::<3>(3).norm().to_degrees();
+                let angle = d.fixed_rows::<3>(3).norm().to_degrees();
+                ang += angle;
+                flipped += usize::from(angle > FLIP_ERROR_DEG);
+                if let Some(info) = rel.a_from_b.covariance.try_inverse() {
+                    nees += (d.transpose() * info * d)[0];
+                    n_nees += 1;
+                }
                 n += 1;
             }
             out.push(PairError {
@@ -664,6 +737,12 @@ pub fn pair_errors(
                 angle_error_deg: if n > 0 { ang / n as f64 } else { f64::NAN },
                 maps_localized: n,
                 maps_evaluated: maps.len(),
+                maps_flipped: flipped,
+                mean_nees: if n_nees > 0 {
+                    nees / n_nees as f64
+                } else {
+                    f64::NAN
+                },
             });
         }
     }

@@ -505,3 +505,37 @@ fn links_quick_compact_observations_keep_the_map_within_5_cm_at_1000_bits() {
         "{slow} vs {compact}"
     );
 }
+
+/// Issue #21: with both vehicles' IMU roll/pitch, depth and compass heading,
+/// no map puts a vehicle on its planar-flip twin, even where one camera's
+/// track is the only evidence and every primary is the twin (without nav,
+/// every such map is wrong); and no true hypothesis is refused by the nav
+/// checks anywhere.
+#[test]
+fn nav_quick_settles_every_planar_flip_and_refuses_no_true_hypothesis() {
+    let (dir, s) = run_quick(Experiment::Nav);
+    assert_files(
+        &dir,
+        &["nav.csv", "eval-nav-flips.png", "eval-nav-flips.svg"],
+    );
+    let r = &s["results"];
+    assert!(
+        num(&r["one-track"]["no_nav"]["maps_flipped_fraction"]) >= 0.5,
+        "premise: without nav the lone track's twin wins: {}",
+        r["one-track"]
+    );
+    for scenario in ["one-track", "grid-3", "grid-10"] {
+        let full = &r[scenario]["tilt_depth_heading"];
+        assert_eq!(num(&full["maps_flipped"]), 0.0, "{scenario}: {full}");
+        for setting in ["tilt_depth", "tilt_depth_heading"] {
+            let v = &r[scenario][setting];
+            assert_eq!(
+                num(&v["true_rejected_by_nav"]),
+                0.0,
+                "{scenario} {setting}: {v}"
+            );
+            assert!(num(&v["maps"]) > 0.0, "{scenario} {setting}: {v}");
+        }
+    }
+    assert!(num(&r["one-track"]["tilt_depth_heading"]["false_rejected_by_nav"]) > 0.0);
+}

@@ -7,6 +7,10 @@
 //!
 //! 1. **frames**: each observation's hypotheses with their covariance
 //!    inflated by age ([`AgeInflation`]);
+//!    With the vehicles' own navigation ([`nav`]), each hypothesis whose
+//!    implied tilt, depth or heading of the target contradicts the target's
+//!    IMU, pressure sensor or compass is taken out here (`Gravity`, `Depth`,
+//!    `Heading`);
 //! 2. **groups**: each track's frames (same observer, camera and marker) cut
 //!    into time-consistent groups, newest frame first; an older group that no
 //!    longer agrees with the newest frame is `Superseded` (the vehicles
@@ -71,19 +75,21 @@ pub mod client;
 pub mod consistency;
 pub mod formation;
 pub mod link;
+pub mod nav;
 mod solve;
 pub mod solver;
 mod window;
 
 pub use client::{LatestMap, MapView, RelativePose};
 pub use consistency::ConsistencyParams;
+pub use nav::{NavParams, NavRejected};
 pub use solve::motion::MotionModel;
 pub use solver::RobustKernel;
 pub use window::AgeInflation;
 
 use proto::config::Fleet;
 use proto::geometry::{Cov6, Pose};
-use proto::{EdgeReport, Observation, RejectReason, VehicleId};
+use proto::{EdgeReport, NavState, Observation, RejectReason, VehicleId};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use window::{early_report, Admission, Window};
@@ -117,6 +123,9 @@ pub struct FusionParams {
     /// Constant-velocity compensation of each track's frames.
     #[serde(default)]
     pub motion: MotionModel,
+    /// Gravity and depth checks with the vehicles' own navigation.
+    #[serde(default)]
+    pub nav: NavParams,
 }
 
 impl Default for FusionParams {
@@ -135,13 +144,14 @@ impl Default for FusionParams {
             max_pending_reports: 4096,
             record_solve_time: true,
             motion: MotionModel::default(),
+            nav: NavParams::default(),
         }
     }
 }
 
 /// Counts per [`RejectReason`].
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct ReasonCounts([u64; 12]);
+pub struct ReasonCounts([u64; 15]);
 
 impl ReasonCounts {
     pub(crate) fn index(reason: &RejectReason) -> usize {
@@ -159,6 +169,9 @@ impl ReasonCounts {
             Invalid => 9,
             Duplicate => 10,
             Superseded => 11,
+            Gravity => 12,
+            Depth => 13,
+            Heading => 14,
         }
     }
     pub fn get(&self, reason: &RejectReason) -> u64 {
@@ -188,6 +201,10 @@ pub struct SolveStats {
     pub localized: usize,
     pub lm_iterations: usize,
     pub gate_rounds: usize,
+    /// Hypotheses checked against both vehicles' roll/pitch, their depths and their headings.
+    pub nav_tilt_checked: usize,
+    pub nav_depth_checked: usize,
+    pub nav_heading_checked: usize,
     /// The solver failed and the spanning-tree poses were reported instead.
     pub solver_failed: bool,
     /// Wall time of the consistency checks and of the LM solves (incl. gate
@@ -209,6 +226,9 @@ pub struct FusionStats {
     pub expired: u64,
     /// Early rejections not reported because the pending list was full.
     pub reports_dropped: u64,
+    /// Nav states admitted, and refused (unknown vehicle, wrong key, invalid, stale, skewed).
+    pub nav_ingested: u64,
+    pub nav_rejected: u64,
     pub solves: u64,
     pub last_solve: SolveStats,
 }
@@ -220,6 +240,7 @@ pub struct Fusion {
     producer: String,
     params: FusionParams,
     window: Window,
+    nav: nav::NavWindow,
     pending: Vec<EdgeReport>,
     alive: BTreeMap<VehicleId, bool>,
     last_seen: BTreeMap<VehicleId, u64>,
@@ -247,6 +268,7 @@ impl Fusion {
             producer: producer.to_string(),
             params,
             window: Window::default(),
+            nav: nav::NavWindow::default(),
             pending: Vec::new(),
             alive: fleet.vehicles.iter().map(|v| (v.id, true)).collect(),
             last_seen: BTreeMap::new(),
@@ -309,6 +331,35 @@ impl Fusion {
                 Err(reason)
             }
         }
+    }
+
+    /// Admit a vehicle's own navigation state that arrived on `arrived_on`'s
+    /// key at `now_ns` (the same window and clock-skew bounds as observations).
+    pub fn ingest_nav(
+        &mut self,
+        nav: NavState,
+        arrived_on: VehicleId,
+        now_ns: u64,
+    ) -> Result<(), NavRejected> {
+        let limits = self.admission();
+        let r = self.nav.admit(
+            &self.fleet,
+            nav,
+            arrived_on,
+            now_ns,
+            &limits,
+            self.params.nav.max_samples_per_vehicle,
+        );
+        match r {
+            Ok(()) => self.stats.nav_ingested += 1,
+            Err(_) => self.stats.nav_rejected += 1,
+        }
+        r
+    }
+
+    /// Nav samples currently held (all vehicles).
+    pub fn nav_len(&self) -> usize {
+        self.nav.len()
     }
 
     /// Liveliness of a vehicle's node (its token appeared or disappeared).

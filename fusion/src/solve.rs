@@ -2,9 +2,9 @@
 //! output types:
 //!
 //! ```text
-//! window ─▶ frames ─▶ groups ─▶ motion ─▶ hypotheses ─▶ init ─▶ gate (LM ⇄ chi-square) ─▶ map
-//!          (age       (tracks    (velocity  (PCM clusters,  (graph,   (solver.rs, re-solve     (verdicts,
-//!          inflation)  cut by     of each    triangle votes, spanning  without the rejects)     vehicle states)
+//! window ─▶ frames ─▶ nav ─▶ groups ─▶ motion ─▶ hypotheses ─▶ init ─▶ gate (LM ⇄ chi-square) ─▶ map
+//!          (age       (gravity, (tracks    (velocity  (PCM clusters,  (graph,   (solver.rs, re-solve     (verdicts,
+//!          inflation)  depth)    cut by     of each    triangle votes, spanning  without the rejects)     vehicle states)
 //!                      time)      group)     spanning tree)  tree init)
 //! ```
 
@@ -15,6 +15,7 @@ mod hypotheses;
 mod init;
 mod map;
 pub(crate) mod motion;
+mod nav;
 #[cfg(test)]
 pub(crate) mod testing;
 
@@ -35,11 +36,14 @@ impl Fusion {
         let started = self.params.record_solve_time.then(Instant::now);
         let window_ns = seconds_to_ns(self.params.window_s);
         self.stats.expired += self.window.evict(now_ns, window_ns) as u64;
+        let nav_keep_ns = window_ns.saturating_add(seconds_to_ns(self.params.nav.max_gap_s));
+        self.nav.evict(now_ns, nav_keep_ns);
         let reference = self.fleet.reference_vehicle;
         let consistency = &self.params.consistency;
         let entries: Vec<(&ObservationKey, &Stored)> = self.window.entries.iter().collect();
 
         let mut frames = frames::measured(&entries, now_ns, &self.params.age_inflation);
+        let (nav_verdicts, nav_stats) = nav::check(&mut frames, &self.nav, &self.params.nav);
         let groups = groups::group_tracks(&frames, consistency.gate_chi2, consistency.fuse_tracks);
         let superseded = groups.superseded_frames(frames.len());
         let moving_groups = motion::compensate(&mut frames, &groups, &self.params.motion);
@@ -68,7 +72,14 @@ impl Fusion {
         let gated = gate::solve_and_gate(&frames, &groups, &hyps, reference, &gate_params);
         let lm_us = elapsed_us(lm_started);
 
-        let verdicts = map::verdicts(&entries, &frames, &hyps.accepted, &gated, &superseded);
+        let verdicts = map::verdicts(
+            &entries,
+            &frames,
+            &hyps.accepted,
+            &gated,
+            &superseded,
+            &nav_verdicts,
+        );
         let in_window: BTreeSet<VehicleId> = entries
             .iter()
             .flat_map(|(_, s)| [s.obs.observer, s.target])
@@ -83,6 +94,9 @@ impl Fusion {
             localized: gated.solution.len().max(1),
             lm_iterations: gated.lm_iterations,
             gate_rounds: gated.rounds,
+            nav_tilt_checked: nav_stats.tilt_checked,
+            nav_depth_checked: nav_stats.depth_checked,
+            nav_heading_checked: nav_stats.heading_checked,
             solver_failed: gated.solver_failed,
             consistency_us,
             lm_us,

@@ -602,3 +602,118 @@ fn a_manoeuvring_vehicle_is_followed_not_outvoted_by_its_past() {
         "{still} m vs {still_without} m without the motion model"
     );
 }
+
+/// Frames of every camera at 10 Hz with every vehicle's nav beside them
+/// (`nav`: `None` sends none; `only_observer`: the other vehicles' cameras
+/// are not heard); returns the map after the last frame, the observations
+/// and the truth in the reference's frame.
+fn run_with_nav(
+    n: usize,
+    only_observer: Option<u32>,
+    flip_rate: f64,
+    nav: Option<shoal_sim_bridge::nav::NavSensorParams>,
+    fusion_params: FusionParams,
+    seed: u64,
+) -> (
+    shoal_proto::FleetMap,
+    Vec<shoal_sim_bridge::obs_synth::SyntheticObservation>,
+    BTreeMap<u32, shoal_proto::Pose>,
+) {
+    let fleet = synthetic_fleet(n, CodeSet::Aruco4x4_1000).unwrap();
+    let ids: Vec<u32> = (1..=n as u32).collect();
+    let columns = (n as f64).sqrt().ceil() as usize;
+    let truth = grid_formation(&ids, columns, 1.5, FormationJitter::default(), seed);
+    let params = ObsSynthParams {
+        outliers: OutlierModel {
+            flip_rate,
+            alternative_rate: 1.0,
+            ..OutlierModel::default()
+        },
+        ..ObsSynthParams::default()
+    };
+    let mut synth = shoal_sim_bridge::obs_synth::ObsSynth::new(&fleet, params, seed);
+    let mut sensors = nav.map(|p| shoal_sim_bridge::nav::NavSensors::new(p, seed).unwrap());
+    let mut fusion = Fusion::new(&fleet, fusion_params, "central");
+    let mut all = Vec::new();
+    let mut now = T0_NS;
+    for k in 0..10 {
+        now = T0_NS + k * FRAME_NS;
+        if let Some(s) = sensors.as_mut() {
+            for t in &truth {
+                fusion
+                    .ingest_nav(s.measure(t, now), t.vehicle, now)
+                    .unwrap();
+            }
+        }
+        for s in synth.observe(&truth, now) {
+            if only_observer.is_some_and(|o| o != s.obs.observer) {
+                continue;
+            }
+            let _ = fusion.ingest(s.obs.clone(), s.obs.observer, now);
+            all.push(s);
+        }
+    }
+    let map = fusion.solve(now);
+    (map, all, truth_poses(&fleet, &truth))
+}
+
+#[test]
+fn gravity_settles_planar_flips_that_votes_cannot() {
+    // Two vehicles, one camera heard, every visible flip taken as the
+    // primary: no other track or triangle to vote with, the twin's cluster as
+    // large as the truth's.
+    let nav = shoal_sim_bridge::nav::NavSensorParams::default();
+    let (map, obs, truth) = run_with_nav(2, Some(1), 1.0, Some(nav), FusionParams::default(), 3);
+    let flipped = obs
+        .iter()
+        .filter(|o| o.outlier == OutlierKind::Flipped)
+        .count();
+    assert!(flipped >= 10, "{flipped} flipped of {}", obs.len());
+    let s = score(&map, &obs);
+    assert_eq!((s.true_rejected, s.false_accepted), (0, 0), "{s:?}");
+    let gravity = map
+        .edges
+        .iter()
+        .filter(|e| e.rejected == Some(RejectReason::Gravity))
+        .count();
+    assert!(
+        gravity >= flipped,
+        "{gravity} gravity rejections, {flipped} flips"
+    );
+    let (t_err, r_err, live) = map_error(&map, &truth);
+    assert_eq!(live, 2);
+    assert!(
+        t_err < 0.02 && r_err.to_degrees() < 1.0,
+        "{t_err} m, {} deg",
+        r_err.to_degrees()
+    );
+
+    // The premise: the same frames without nav put the pair on its twin.
+    let (map, _, truth) = run_with_nav(2, Some(1), 1.0, None, FusionParams::default(), 3);
+    let (_, r_err, _) = map_error(&map, &truth);
+    assert!(
+        r_err.to_degrees() > 10.0,
+        "without nav: {} deg",
+        r_err.to_degrees()
+    );
+}
+
+#[test]
+fn nav_checks_reject_no_true_hypothesis_in_a_jittered_grid() {
+    // Ten vehicles rolled and pitched up to 8°, a third of the primaries
+    // flipped, default sensors: every flip settled, nothing true lost.
+    let nav = shoal_sim_bridge::nav::NavSensorParams::default();
+    for seed in [1, 2, 3] {
+        let (map, obs, truth) =
+            run_with_nav(10, None, 0.3, Some(nav), FusionParams::default(), seed);
+        let s = score(&map, &obs);
+        assert_eq!(
+            (s.true_rejected, s.false_accepted),
+            (0, 0),
+            "seed {seed}: {s:?}"
+        );
+        let (t_err, _, live) = map_error(&map, &truth);
+        assert_eq!(live, 10, "seed {seed}");
+        assert!(t_err < 0.02, "seed {seed}: {t_err} m");
+    }
+}

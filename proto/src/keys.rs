@@ -6,6 +6,7 @@
 //! shoal/<fleet>/<vehicle>/status           node diagnostics
 //! shoal/<fleet>/<vehicle>/alive            liveliness token of a node
 //! shoal/<fleet>/<vehicle>/cmd              velocity commands to a vehicle
+//! shoal/<fleet>/<vehicle>/nav              the vehicle's own navigation (depth, roll/pitch, velocity)
 //! shoal/<fleet>/map                        fused fleet map (put) and its queryable
 //! shoal/<fleet>/map/<producer>             a decentralized fusion instance's map
 //! shoal/<fleet>/sim/truth                  simulator ground truth
@@ -23,6 +24,7 @@ pub enum KeyKind {
     Status { vehicle: VehicleId },
     Alive { vehicle: VehicleId },
     Command { vehicle: VehicleId },
+    Nav { vehicle: VehicleId },
     Map { producer: Option<String> },
     Truth,
 }
@@ -80,6 +82,9 @@ impl Keys {
     pub fn command(&self, v: VehicleId) -> String {
         self.vehicle(v, "cmd")
     }
+    pub fn nav(&self, v: VehicleId) -> String {
+        self.vehicle(v, "nav")
+    }
     pub fn map(&self) -> String {
         format!("shoal/{}/map", self.fleet)
     }
@@ -113,6 +118,9 @@ impl Keys {
     }
     pub fn all_commands(&self) -> String {
         self.vehicle_wild("cmd")
+    }
+    pub fn all_nav(&self) -> String {
+        self.vehicle_wild("nav")
     }
     pub fn all_maps(&self) -> String {
         format!("shoal/{}/map/**", self.fleet)
@@ -150,6 +158,7 @@ impl Keys {
                     ["status"] => Ok(KeyKind::Status { vehicle }),
                     ["alive"] => Ok(KeyKind::Alive { vehicle }),
                     ["cmd"] => Ok(KeyKind::Command { vehicle }),
+                    ["nav"] => Ok(KeyKind::Nav { vehicle }),
                     ["cam", k, "frame"] => Ok(KeyKind::Frame {
                         vehicle,
                         camera: k.parse().map_err(|_| bad())?,
@@ -184,6 +193,7 @@ mod tests {
             k.parse(&k.alive(17)).unwrap(),
             KeyKind::Alive { vehicle: 17 }
         );
+        assert_eq!(k.parse(&k.nav(10)).unwrap(), KeyKind::Nav { vehicle: 10 });
         assert_eq!(k.parse(&k.map()).unwrap(), KeyKind::Map { producer: None });
         assert_eq!(k.parse(&k.truth()).unwrap(), KeyKind::Truth);
         assert!(k.parse("shoal/other/15/obs").is_err());

@@ -23,16 +23,18 @@ pub enum MessageKind {
     SimTruth = 4,
     NodeStatus = 5,
     VehicleCommand = 6,
+    NavState = 7,
 }
 
 impl MessageKind {
-    pub const ALL: [MessageKind; 6] = [
+    pub const ALL: [MessageKind; 7] = [
         MessageKind::Observation,
         MessageKind::FleetMap,
         MessageKind::CameraFrame,
         MessageKind::SimTruth,
         MessageKind::NodeStatus,
         MessageKind::VehicleCommand,
+        MessageKind::NavState,
     ];
 
     pub fn from_u16(v: u16) -> Option<MessageKind> {
@@ -48,6 +50,7 @@ impl MessageKind {
             MessageKind::SimTruth => "shoal.SimTruth",
             MessageKind::NodeStatus => "shoal.NodeStatus",
             MessageKind::VehicleCommand => "shoal.VehicleCommand",
+            MessageKind::NavState => "shoal.NavState",
         }
     }
 }
@@ -202,6 +205,17 @@ pub enum RejectReason {
     /// longer agrees with the track's newest frame: the vehicles have moved
     /// since, so it describes a past relative pose, not a wrong one.
     Superseded,
+    /// The hypothesis implies a tilt of the target that its own IMU, seen
+    /// through the observer's, contradicts (the planar-flip twin, mostly):
+    /// see `shoal_proto::nav`.
+    Gravity,
+    /// The hypothesis puts the target at a depth, relative to the observer,
+    /// that their pressure sensors contradict (a misread ID, mostly).
+    Depth,
+    /// The hypothesis implies a heading of the target, relative to the
+    /// observer, that their compasses contradict (the twin turned about the
+    /// vertical, which gravity cannot see).
+    Heading,
 }
 
 /// Verdict on one edge (an observation between two vehicles).

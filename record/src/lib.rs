@@ -26,6 +26,7 @@ pub mod recorder;
 pub mod recover;
 pub mod refuse;
 pub mod replay;
+pub mod truth_score;
 pub mod writer;
 
 /// The `mcap` crate this one is built on (for strict readers in tests and tools).

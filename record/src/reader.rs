@@ -283,7 +283,27 @@ pub fn scan<E>(
                 None => break,
             }
         };
-        let body = f.body(at, len)?;
+        let mut body = f.body(at, len)?;
+        let mut len = len;
+        if let Some(extent) = chunk_extent(opcode, body).filter(|&e| e < len) {
+            // A chunk whose length field grew (one damaged byte) still
+            // frames: its own fields say where it ends. Read it to there and
+            // go on with the next record, rather than jump over the chunks
+            // in between; the file is not called complete. (MCAP allows
+            // fields appended to a record in later versions; shoal's writer
+            // appends none, and a foreign file that did would be read the
+            // same way, flagged.)
+            out.skip(
+                at,
+                0,
+                format!(
+                    "the chunk record at byte {at} says it is {len} bytes long, its contents {extent}: its length is damaged"
+                ),
+            );
+            data_crc = None;
+            len = extent;
+            body = &body[..extent as usize];
+        }
         if opcode == op::DATA_END {
             data_end = Some(match mcap::parse_record(opcode, body) {
                 Ok(Record::DataEnd(d)) => d.data_section_crc,
@@ -321,6 +341,27 @@ pub fn scan<E>(
     out.decompressed_bytes = decompression_budget(f.len) - budget;
     finish(&mut out, index.as_ref(), data_end, data_crc);
     Ok(out)
+}
+
+/// The length a chunk record's own fields give its body (start, end,
+/// uncompressed size and CRC, the compression name, the records' length and
+/// the records), when they fit in `body`; `None` for other records.
+fn chunk_extent(opcode: u8, body: &[u8]) -> Option<u64> {
+    if opcode != op::CHUNK {
+        return None;
+    }
+    let u32_at = |i: usize| -> Option<u64> {
+        Some(u64::from(u32::from_le_bytes(
+            body.get(i..i + 4)?.try_into().ok()?,
+        )))
+    };
+    let u64_at = |i: usize| -> Option<u64> {
+        Some(u64::from_le_bytes(body.get(i..i + 8)?.try_into().ok()?))
+    };
+    let name_len = u32_at(28)?;
+    let records_at = 32u64.checked_add(name_len)?;
+    let records_len = u64_at(usize::try_from(records_at).ok()?)?;
+    records_at.checked_add(8)?.checked_add(records_len)
 }
 
 /// Records that only the summary section holds: reaching one ends the data section.

@@ -158,6 +158,7 @@ pub fn subscriptions(keys: &proto::Keys, opts: &RecordOptions) -> Vec<(String, u
         keys.all_maps(),
         keys.all_status(),
         keys.all_commands(),
+        keys.all_nav(),
         keys.truth(),
     ]
     .into_iter()
@@ -556,6 +557,10 @@ impl Converter {
                     Err(_) => undecodable = true,
                 }
             }
+            Some(MessageKind::NavState) => match codec::decode::<proto::NavState>(bytes) {
+                Ok(n) => publish_time = n.stamp_ns,
+                Err(_) => undecodable = true,
+            },
             None => undecodable = true,
         }
         if matches!(key_kind, Some(KeyKind::Frame { .. })) && !self.opts.frames {

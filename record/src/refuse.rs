@@ -77,6 +77,9 @@ pub struct FuseSummary {
     pub output: PathBuf,
     pub observations: u64,
     pub rejected_at_ingest: u64,
+    /// The vehicles' nav states read, and those fusion refused.
+    pub nav_states: u64,
+    pub nav_refused: u64,
     pub maps_written: u64,
     pub original_maps: u64,
     /// Envelopes of the log that did not decode (observations, truth, maps, unknown kinds): counted, not re-fused.
@@ -84,6 +87,8 @@ pub struct FuseSummary {
     /// What was wrong with the input log (None: intact).
     pub input_damage: Option<String>,
     pub comparison: MapComparison,
+    /// The re-fused maps against the log's ground truth (`None`: the log has none).
+    pub truth: Option<crate::truth_score::TruthScore>,
 }
 
 /// The fleet a log was recorded with (its attachment), unless overridden.
@@ -106,7 +111,7 @@ pub fn fleet_of(src: impl LogSource, input: &Path) -> Result<Fleet, RecordError>
 }
 
 /// Re-fuse `input` into `output`. The output carries the input's
-/// observations, truth, status and commands (raw and Foxglove), and the new
+/// observations, nav states, truth, status and commands (raw and Foxglove), and the new
 /// map track in place of the old one.
 pub fn refuse(input: &Path, output: &Path, opts: &FuseOptions) -> Result<FuseSummary, RecordError> {
     let solve_period_ns = opts.solve_at.period_ns()?;
@@ -135,6 +140,7 @@ pub fn refuse(input: &Path, output: &Path, opts: &FuseOptions) -> Result<FuseSum
     let mut now: u64 = 0;
     let mut next_solve: Option<u64> = None;
     let mut cmp = CompareAcc::default();
+    let mut truth = crate::truth_score::TruthAcc::default();
     let map_key = keys.map();
     let res = scan_wire(
         input,
@@ -144,22 +150,17 @@ pub fn refuse(input: &Path, output: &Path, opts: &FuseOptions) -> Result<FuseSum
             match (kind, keys.parse(key)) {
                 (Some(MessageKind::SimTruth), _) => {
                     match proto::decode::<SimTruth>(data) {
-                        Ok(t) => now = now.max(t.stamp_ns),
+                        Ok(t) => {
+                            now = now.max(t.stamp_ns);
+                            truth.add_truth(t);
+                        }
                         Err(_) => summary.undecodable += 1,
                     }
                     conv.write(&mut writer, key, data, log_time, &stats)?;
                 }
-                (Some(MessageKind::Observation), Ok(KeyKind::Observations { vehicle })) => {
-                    match proto::decode::<Observation>(data) {
-                        Ok(o) => {
-                            now = now.max(o.stamp_ns);
-                            summary.observations += 1;
-                            if fusion.ingest(o, vehicle, now).is_err() {
-                                summary.rejected_at_ingest += 1;
-                            }
-                        }
-                        Err(_) => summary.undecodable += 1,
-                    }
+                (Some(MessageKind::Observation), Ok(KeyKind::Observations { vehicle }))
+                | (Some(MessageKind::NavState), Ok(KeyKind::Nav { vehicle })) => {
+                    ingest(&mut fusion, &mut now, &mut summary, vehicle, data);
                     conv.write(&mut writer, key, data, log_time, &stats)?;
                 }
                 (Some(MessageKind::FleetMap), _) => {
@@ -173,6 +174,7 @@ pub fn refuse(input: &Path, output: &Path, opts: &FuseOptions) -> Result<FuseSum
                             if opts.solve_at == SolveAt::OriginalMaps {
                                 let map = fusion.solve(original.stamp_ns);
                                 cmp.add(&map, &original);
+                                truth.add_map(&map);
                                 write_map(
                                     &mut writer,
                                     &mut conv,
@@ -198,6 +200,7 @@ pub fn refuse(input: &Path, output: &Path, opts: &FuseOptions) -> Result<FuseSum
                 let due = *next_solve.get_or_insert(now + period);
                 if now >= due {
                     let map = fusion.solve(now);
+                    truth.add_map(&map);
                     write_map(&mut writer, &mut conv, &map_key, &map, log_time, &stats)?;
                     summary.maps_written += 1;
                     next_solve = Some(due + period * ((now - due) / period + 1));
@@ -216,7 +219,42 @@ pub fn refuse(input: &Path, output: &Path, opts: &FuseOptions) -> Result<FuseSum
     writer.finish()?;
     out.commit()?;
     summary.comparison = cmp.finish();
+    summary.truth = truth.finish();
     Ok(summary)
+}
+
+/// Feed one observation or nav state envelope (arrived on `vehicle`'s key)
+/// to `fusion`, advancing `now` to its capture stamp and counting it.
+fn ingest(
+    fusion: &mut Fusion,
+    now: &mut u64,
+    summary: &mut FuseSummary,
+    vehicle: VehicleId,
+    data: &[u8],
+) {
+    match crate::recorder::envelope_kind(data) {
+        Some(MessageKind::Observation) => match proto::decode::<Observation>(data) {
+            Ok(o) => {
+                *now = (*now).max(o.stamp_ns);
+                summary.observations += 1;
+                if fusion.ingest(o, vehicle, *now).is_err() {
+                    summary.rejected_at_ingest += 1;
+                }
+            }
+            Err(_) => summary.undecodable += 1,
+        },
+        Some(MessageKind::NavState) => match proto::decode::<proto::NavState>(data) {
+            Ok(n) => {
+                *now = (*now).max(n.stamp_ns);
+                summary.nav_states += 1;
+                if fusion.ingest_nav(n, vehicle, *now).is_err() {
+                    summary.nav_refused += 1;
+                }
+            }
+            Err(_) => summary.undecodable += 1,
+        },
+        _ => summary.undecodable += 1,
+    }
 }
 
 /// The re-fused log's writer: the input's metadata and fleet, and where it came from.

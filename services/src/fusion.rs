@@ -1,5 +1,5 @@
 //! The fusion service (`shoal fusion`): subscribes to every vehicle's
-//! observations and liveliness, solves at a fixed rate, publishes the fleet
+//! observations, navigation states and liveliness, solves at a fixed rate, publishes the fleet
 //! map and serves the newest one to late joiners (a Zenoh queryable).
 //! Also [`MapClient`], the subscription half of the controller API. The
 //! fusion itself is `shoal_fusion::Fusion`.
@@ -9,7 +9,7 @@ use shoal_fusion::{Fusion, FusionParams, FusionStats, LatestMap, MapView};
 use shoal_proto::clock::Clock;
 use shoal_proto::config::Fleet;
 use shoal_proto::queue::DropOldestQueue;
-use shoal_proto::{FleetMap, KeyKind, Observation, VehicleId};
+use shoal_proto::{FleetMap, KeyKind, NavState, Observation, VehicleId};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -89,6 +89,7 @@ pub fn spawn(
     };
     let observations: Subscription<Observation> =
         bus.subscribe(&keys.all_observations(), cfg.queue_capacity)?;
+    let nav: Subscription<NavState> = bus.subscribe(&keys.all_nav(), cfg.queue_capacity)?;
     let liveliness: DropOldestQueue<(String, bool)> = DropOldestQueue::new(1024);
     let l = liveliness.clone();
     let watch = bus.watch_liveliness(&keys.all_alive(), move |k, alive| {
@@ -120,6 +121,16 @@ pub fn spawn(
             }
             dropped2.store(observations.dropped(), Ordering::Relaxed);
             rejected2.store(observations.stats().rejected(), Ordering::Relaxed);
+            for r in nav.drain() {
+                match keys.parse(&r.key) {
+                    Ok(KeyKind::Nav { vehicle }) => {
+                        if let Err(e) = fusion.ingest_nav(r.msg, vehicle, now) {
+                            tracing::debug!("nav state on {} refused: {e}", r.key);
+                        }
+                    }
+                    _ => tracing::warn!("nav state on unexpected key {}", r.key),
+                }
+            }
             for r in observations.drain() {
                 match keys.parse(&r.key) {
                     Ok(KeyKind::Observations { vehicle }) => {

@@ -20,6 +20,7 @@ enum AnyPublisher {
     SimTruth(Publisher<shoal_proto::SimTruth>),
     NodeStatus(Publisher<shoal_proto::NodeStatus>),
     VehicleCommand(Publisher<shoal_proto::VehicleCommand>),
+    NavState(Publisher<shoal_proto::NavState>),
 }
 
 impl AnyPublisher {
@@ -32,6 +33,7 @@ impl AnyPublisher {
             MessageKind::SimTruth => AnyPublisher::SimTruth(bus.publisher(k)?),
             MessageKind::NodeStatus => AnyPublisher::NodeStatus(bus.publisher(k)?),
             MessageKind::VehicleCommand => AnyPublisher::VehicleCommand(bus.publisher(k)?),
+            MessageKind::NavState => AnyPublisher::NavState(bus.publisher(k)?),
         })
     }
     fn put_bytes(&self, bytes: Vec<u8>) -> Result<(), BusError> {
@@ -42,6 +44,7 @@ impl AnyPublisher {
             AnyPublisher::SimTruth(p) => p.put_bytes(bytes),
             AnyPublisher::NodeStatus(p) => p.put_bytes(bytes),
             AnyPublisher::VehicleCommand(p) => p.put_bytes(bytes),
+            AnyPublisher::NavState(p) => p.put_bytes(bytes),
         }
     }
 }

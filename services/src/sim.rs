@@ -8,6 +8,9 @@
 //! - `CameraFrame` (Mono8) on `shoal/<fleet>/<vehicle>/cam/<k>/frame` for every
 //!   camera `k` of the fleet file, stamped with the simulation time;
 //! - optionally `SimTruth` on `shoal/<fleet>/sim/truth` (for error figures);
+//! - optionally each vehicle's `NavState` on `shoal/<fleet>/<vehicle>/nav`
+//!   (depth, roll/pitch, velocity: what its own sensors say), which fusion
+//!   uses to settle planar flips by gravity;
 //!
 //! and subscribe to `VehicleCommand` on `shoal/<fleet>/*/cmd`. Nothing else in
 //! shoal knows which simulator is running. The world and the renderer are
@@ -19,7 +22,9 @@ use shoal_proto::config::Fleet;
 use shoal_proto::messages::{
     CameraFrame, CameraInfo, PixelFormat, SimTruth, VehicleCommand, VehicleId,
 };
+use shoal_proto::NavState;
 use shoal_proto::{KeyKind, Keys};
+use shoal_sim_bridge::nav::{NavSensorParams, NavSensors};
 use shoal_sim_bridge::render::{render_fleet_view, Renderer};
 use shoal_sim_bridge::water::WaterParams;
 use shoal_sim_bridge::world::{Formation, Mode, SwarmWorld};
@@ -45,6 +50,9 @@ pub struct SimConfig {
     pub duration_s: Option<f64>,
     /// Vehicles driven by commands from the start (closed loop).
     pub commanded: Vec<VehicleId>,
+    /// Each vehicle's navigation sensors, published every tick on its nav
+    /// key (`None`: no nav data, as from vehicles without it).
+    pub nav: Option<NavSensorParams>,
 }
 
 /// Counters of a running simulator.
@@ -52,6 +60,7 @@ pub struct SimConfig {
 pub struct SimStats {
     pub ticks: AtomicU64,
     pub frames_published: AtomicU64,
+    pub nav_published: AtomicU64,
     /// Ticks whose frames were not rendered because rendering fell behind the wall clock.
     pub ticks_skipped: AtomicU64,
     pub commands_applied: AtomicU64,
@@ -162,6 +171,18 @@ pub fn spawn(bus: &Bus, cfg: SimConfig, clock: Arc<ManualClock>) -> Result<SimHa
     }
     let cams = selected_cameras(bus, &cfg, &keys)?;
     let truth_pub: Publisher<SimTruth> = bus.publisher(keys.truth())?;
+    let mut nav = match cfg.nav {
+        Some(p) => {
+            let sensors = NavSensors::new(p, cfg.seed)
+                .map_err(|e| BusError::ConfigValue(format!("simulator nav sensors: {e}")))?;
+            let mut pubs: Vec<(VehicleId, Publisher<NavState>)> = Vec::new();
+            for v in &cfg.fleet.vehicles {
+                pubs.push((v.id, bus.publisher(keys.nav(v.id))?));
+            }
+            Some((sensors, pubs))
+        }
+        None => None,
+    };
     let commands: Subscription<VehicleCommand> = bus.subscribe(&keys.all_commands(), 64)?;
     let stop = Arc::new(AtomicBool::new(false));
     let finished = Arc::new(AtomicBool::new(false));
@@ -194,6 +215,18 @@ pub fn spawn(bus: &Bus, cfg: SimConfig, clock: Arc<ManualClock>) -> Result<SimHa
                 let behind = pace(&cfg, started, t_s, dt);
                 // The frames of this tick are captured now: time has reached their stamp.
                 clock.advance_to(stamp_ns);
+                // The vehicles' own sensors first, so fusion has them when the frames' observations arrive.
+                if let Some((sensors, pubs)) = nav.as_mut() {
+                    for (v, publisher) in pubs.iter() {
+                        let Some(t) = truth.iter().find(|t| t.vehicle == *v) else { continue };
+                        match publisher.put(&sensors.measure(t, stamp_ns)) {
+                            Ok(()) => {
+                                stats2.nav_published.fetch_add(1, Ordering::Relaxed);
+                            }
+                            Err(e) => tracing::warn!("simulator: {e}"),
+                        }
+                    }
+                }
                 let mut visible = Vec::new();
                 if behind {
                     stats2.ticks_skipped.fetch_add(1, Ordering::Relaxed);

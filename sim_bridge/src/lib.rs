@@ -7,6 +7,7 @@
 #![warn(clippy::unwrap_used)]
 
 pub mod error;
+pub mod nav;
 pub mod obs_synth;
 pub mod render;
 pub mod water;

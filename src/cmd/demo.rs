@@ -54,6 +54,10 @@ pub struct DemoArgs {
     /// Start no ground station.
     #[arg(long)]
     no_station: bool,
+    /// The vehicles publish no navigation data (depth, IMU, DVL): fusion
+    /// settles planar flips by votes and the previous map alone.
+    #[arg(long)]
+    no_nav: bool,
 }
 
 pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
@@ -75,6 +79,7 @@ pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
             foxglove_port: Some(a.foxglove_port),
             ..Default::default()
         }),
+        nav: !a.no_nav,
     };
     let bar = ProgressBar::new((cfg.duration_s * 10.0) as u64);
     bar.set_style(
@@ -117,16 +122,20 @@ pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
     shoal::outln!(
         "fused relative pose error against ground truth (mean over the second half of the run):"
     );
-    shoal::outln!("  pair      position error   angle error   localized in");
+    shoal::outln!(
+        "  pair      position error   angle error   localized in   on a flip twin   mean NEES (6 honest)"
+    );
     for p in &summary.pairs {
         shoal::outln!(
-            "  {:>3}-{:<3}  {:>10.1} mm   {:>9.2}°   {}/{} maps",
+            "  {:>3}-{:<3}  {:>10.1} mm   {:>9.2}°   {:>5}/{:<3} maps  {:>5} maps       {:>8.1}",
             p.a,
             p.b,
             p.position_error_m * 1e3,
             p.angle_error_deg,
             p.maps_localized,
-            p.maps_evaluated
+            p.maps_evaluated,
+            p.maps_flipped,
+            p.mean_nees
         );
     }
     shoal::outln!(
@@ -142,10 +151,15 @@ pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
         summary.wall_time_s
     );
     shoal::outln!(
-        "last map: {} hypotheses accepted, {} observations rejected, {} planar-flip twins rejected",
+        "last map: {} hypotheses accepted, {} observations rejected, {} planar-flip twins rejected (by vote or by the vehicles' nav)",
         summary.edges_accepted,
         summary.edges_rejected,
         summary.flip_twins_rejected
+    );
+    shoal::outln!(
+        "vehicles' nav (depth, IMU, compass): {} observations refused outright, {} with one hypothesis (a planar-flip twin) refused, over the run",
+        summary.observations_refused_by_nav,
+        summary.twins_refused_by_nav
     );
     if let Some(log) = &summary.log {
         shoal::outln!(

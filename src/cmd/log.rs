@@ -186,11 +186,17 @@ pub struct FuseArgs {
     /// Also write the summary as JSON.
     #[arg(long)]
     summary_json: Option<PathBuf>,
+    /// Leave the vehicles' nav states out of fusion (they are still copied):
+    /// the same observations settled by votes alone, for comparison.
+    #[arg(long)]
+    no_nav: bool,
 }
 
 pub fn run_fuse(a: FuseArgs) -> anyhow::Result<()> {
+    let mut params = FusionParams::default();
+    params.nav.enabled = !a.no_nav;
     let opts = FuseOptions {
-        params: FusionParams::default(),
+        params,
         solve_at: a.rate.map_or(SolveAt::OriginalMaps, SolveAt::RateHz),
         fleet: a.fleet.as_deref().map(Fleet::load).transpose()?,
     };
@@ -204,6 +210,24 @@ pub fn run_fuse(a: FuseArgs) -> anyhow::Result<()> {
         started.elapsed().as_secs_f64(),
         s.output.display()
     );
+    if s.nav_states > 0 {
+        shoal::outln!(
+            "with {} nav states of the vehicles ({} refused)",
+            s.nav_states,
+            s.nav_refused
+        );
+    }
+    if let Some(t) = &s.truth {
+        shoal::outln!(
+            "against the log's ground truth: {} maps, {} with a vehicle on a planar-flip twin (> {}°), position error mean {:.1} mm (max {:.1} mm), mean NEES {:.1} (6 honest)",
+            t.maps_scored,
+            t.maps_flipped,
+            shoal_record::truth_score::FLIP_ERROR_DEG,
+            t.mean_position_error_m * 1e3,
+            t.max_position_error_m * 1e3,
+            t.mean_nees
+        );
+    }
     if s.undecodable > 0 {
         shoal::outln!(
             "{} envelopes of the log did not decode and were left out",

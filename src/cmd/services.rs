@@ -241,6 +241,9 @@ pub struct SimRunArgs {
     duration: Option<f64>,
     #[arg(long, default_value_t = 7)]
     seed: u64,
+    /// Publish no navigation data (each vehicle's simulated depth, IMU and DVL).
+    #[arg(long)]
+    no_nav: bool,
     #[command(flatten)]
     net: NetArgs,
 }
@@ -363,6 +366,7 @@ pub fn run_sim(a: SimArgs) -> anyhow::Result<()> {
             time_scale: 1.0,
             duration_s: a.duration,
             commanded: vec![],
+            nav: (!a.no_nav).then(shoal_sim_bridge::nav::NavSensorParams::default),
         },
         clock,
     )?;

@@ -18,6 +18,7 @@
 //! | `fusion`          | (shoal's own)          | [`fusion`]      |
 //! | `swarm`           | §6.3                   | [`swarm`]       |
 //! | `links`           | (acoustic-rate links)  | [`links`]       |
+//! | `nav`             | (vehicles' own nav)    | [`nav`]         |
 //! | `real`            | (real recordings)      | [`real`]        |
 //!
 //! `quick` runs a reduced version of each (seconds in a debug build) for CI.
@@ -29,6 +30,7 @@ pub mod detection;
 pub mod features;
 pub mod fusion;
 pub mod links;
+pub mod nav;
 pub mod noise;
 pub mod plot;
 pub mod probe;
@@ -58,11 +60,12 @@ pub enum Experiment {
     Fusion,
     Swarm,
     Links,
+    Nav,
     Real,
 }
 
 impl Experiment {
-    pub const ALL: [Experiment; 12] = [
+    pub const ALL: [Experiment; 13] = [
         Experiment::Features,
         Experiment::Accuracy,
         Experiment::AccuracyYaw,
@@ -74,6 +77,7 @@ impl Experiment {
         Experiment::Fusion,
         Experiment::Swarm,
         Experiment::Links,
+        Experiment::Nav,
         Experiment::Real,
     ];
 
@@ -90,6 +94,7 @@ impl Experiment {
             Experiment::Fusion => "fusion",
             Experiment::Swarm => "swarm",
             Experiment::Links => "links",
+            Experiment::Nav => "nav",
             Experiment::Real => "real",
         }
     }
@@ -250,6 +255,7 @@ pub fn run(experiment: Experiment, opts: &EvalOptions) -> Result<serde_json::Val
         Experiment::Fusion => fusion::run(opts)?,
         Experiment::Swarm => swarm::run(opts)?,
         Experiment::Links => links::run(opts)?,
+        Experiment::Nav => nav::run(opts)?,
         Experiment::Real => real::run(opts)?,
     };
     if let Some(obj) = summary.as_object_mut() {

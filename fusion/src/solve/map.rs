@@ -23,7 +23,8 @@ pub(crate) struct Verdicts {
     pub accepted: usize,
 }
 
-/// Each hypothesis' verdict: gated → `ChiSquare`; accepted → `None`; of a
+/// Each hypothesis' verdict: failed a nav check → `Gravity` / `Depth`
+/// (`nav`); gated → `ChiSquare`; accepted → `None`; of a
 /// superseded group → `Superseded`; the other hypothesis of an accepted one →
 /// `FlippedHypothesis`; otherwise `Inconsistent`. `chi2` against the solution.
 pub(crate) fn verdicts(
@@ -32,6 +33,7 @@ pub(crate) fn verdicts(
     accepted: &BTreeMap<(usize, u8), usize>,
     gate: &GatedSolution,
     superseded: &[bool],
+    nav: &[[Option<RejectReason>; 2]],
 ) -> Verdicts {
     let mut out = Verdicts {
         edges: Vec::new(),
@@ -45,7 +47,9 @@ pub(crate) fn verdicts(
         let any_accepted =
             (0..n_hyp).any(|h| accepted.contains_key(&(i, h)) && !gated.contains(&(i, h)));
         for h in 0..n_hyp {
-            let verdict = if gated.contains(&(i, h)) {
+            let verdict = if let Some(r) = &nav[i][usize::from(h)] {
+                Some(r.clone())
+            } else if gated.contains(&(i, h)) {
                 Some(RejectReason::ChiSquare)
             } else if accepted.contains_key(&(i, h)) {
                 None
@@ -226,6 +230,7 @@ mod tests {
             &accepted,
             &gate,
             &[false, false, true, false],
+            &[[None, None], [None, None], [None, None], [None, None]],
         );
         let reasons: Vec<Option<RejectReason>> =
             v.edges.iter().map(|e| e.rejected.clone()).collect();

@@ -1,0 +1,290 @@
+//! The vehicles' own navigation in fusion: each vehicle's [`NavState`]s
+//! (depth, roll/pitch, velocity) kept over the window, and the test that
+//! settles the planar flip by gravity.
+//!
+//! A marker seen by one camera has two poses that explain its corners almost
+//! equally well (IPPE's twins); they differ by a tilt of the marker about the
+//! line of sight. Without navigation, fusion settles the choice by votes in
+//! triangles and by the previous map's attitude ([`crate::consistency`]). With
+//! both vehicles' roll and pitch, it does not have to guess: hypothesis
+//! `observer_from_target` predicts gravity in the target's body as
+//! `Rᵀ·g_observer`, and the target's IMU measures it. The angle between the
+//! two, over the combined standard deviation (both IMUs, the hypothesis'
+//! own rotation, the time between the frame and the nav samples), is gated
+//! with χ²₂; a hypothesis that fails is rejected as
+//! [`RejectReason::Gravity`](proto::RejectReason::Gravity). Likewise the
+//! target's depth below the observer, `g_observerᵀ·t`, against the pressure
+//! sensors' difference (χ²₁): [`RejectReason::Depth`](proto::RejectReason::Depth)
+//! (a misread ID puts the target where another vehicle is, rarely at its
+//! depth). Gravity cannot see a twin turned about the vertical (a marker seen
+//! obliquely in azimuth from a level vehicle); when both vehicles also send a
+//! heading, the target's heading through the observer's attitude is gated
+//! against its own compass (χ²₁): [`RejectReason::Heading`](proto::RejectReason::Heading).
+//! Vehicles without nav data are settled as before.
+
+use crate::window::Admission;
+use proto::config::Fleet;
+use proto::nav::NavState;
+use proto::{VehicleId, WireMessage};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+
+/// Settings of the nav checks.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct NavParams {
+    /// Use nav data at all (default true; false: the votes and the attitude prior alone).
+    pub enabled: bool,
+    /// A nav sample is used for a frame captured at most this far from it, s (default 0.5).
+    pub max_gap_s: f64,
+    /// Tilt change allowed per second between a frame and its nav sample, rad/s (default 10°/s).
+    pub tilt_rate_rad_per_s: f64,
+    /// Depth change allowed per second between a frame and its nav sample, m/s (default 0.5).
+    pub depth_rate_mps: f64,
+    /// Floor on the combined tilt standard deviation, rad (default 1°): an
+    /// optimistic PnP covariance must not turn a true hypothesis away.
+    pub min_tilt_std_rad: f64,
+    /// Floor on the combined depth standard deviation, m (default 2 cm).
+    pub min_depth_std_m: f64,
+    /// Gate on the squared tilt residual over its variance (default 18.42 = χ²₂ at 99.99 %).
+    pub tilt_gate_chi2: f64,
+    /// Gate on the squared depth residual over its variance (default 15.14 = χ²₁ at 99.99 %).
+    pub depth_gate_chi2: f64,
+    /// Gate on the squared heading residual over its variance (default 15.14 = χ²₁ at 99.99 %).
+    pub heading_gate_chi2: f64,
+    /// Samples kept per vehicle at most (default 512; the oldest go first).
+    pub max_samples_per_vehicle: usize,
+}
+
+impl Default for NavParams {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            max_gap_s: 0.5,
+            tilt_rate_rad_per_s: 10f64.to_radians(),
+            depth_rate_mps: 0.5,
+            min_tilt_std_rad: 1f64.to_radians(),
+            min_depth_std_m: 0.02,
+            tilt_gate_chi2: 18.42,
+            depth_gate_chi2: 15.14,
+            heading_gate_chi2: 15.14,
+            max_samples_per_vehicle: 512,
+        }
+    }
+}
+
+/// Why a [`NavState`] was not admitted.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum NavRejected {
+    #[error("vehicle {0} is not in the fleet")]
+    UnknownVehicle(VehicleId),
+    #[error("nav state of vehicle {claimed} arrived on vehicle {arrived_on}'s key")]
+    SenderMismatch {
+        claimed: VehicleId,
+        arrived_on: VehicleId,
+    },
+    #[error("nav state stamped {stamp_ns} ns is older than the window")]
+    Stale { stamp_ns: u64 },
+    #[error("nav state stamped {stamp_ns} ns is from the future beyond the clock-skew bound")]
+    ClockSkew { stamp_ns: u64 },
+    #[error("nav state field {field}: {why}")]
+    Invalid { field: &'static str, why: String },
+}
+
+/// Each vehicle's nav samples over the window, by stamp.
+#[derive(Debug, Clone, Default)]
+pub(crate) struct NavWindow {
+    samples: BTreeMap<VehicleId, BTreeMap<u64, NavState>>,
+}
+
+/// A vehicle's nav at a frame's capture: the nearest sample and how far it is.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct NavAt<'a> {
+    pub state: &'a NavState,
+    pub gap_s: f64,
+}
+
+impl NavWindow {
+    /// Admit `nav` (arrived on `arrived_on`'s key) at `now_ns`.
+    pub fn admit(
+        &mut self,
+        fleet: &Fleet,
+        nav: NavState,
+        arrived_on: VehicleId,
+        now_ns: u64,
+        limits: &Admission,
+        max_samples: usize,
+    ) -> Result<(), NavRejected> {
+        if nav.vehicle != arrived_on {
+            return Err(NavRejected::SenderMismatch {
+                claimed: nav.vehicle,
+                arrived_on,
+            });
+        }
+        if fleet.vehicle(nav.vehicle).is_none() {
+            return Err(NavRejected::UnknownVehicle(nav.vehicle));
+        }
+        nav.validate()
+            .map_err(|(field, why)| NavRejected::Invalid { field, why })?;
+        if nav.stamp_ns > now_ns.saturating_add(limits.max_clock_skew_ns) {
+            return Err(NavRejected::ClockSkew {
+                stamp_ns: nav.stamp_ns,
+            });
+        }
+        if nav.stamp_ns.saturating_add(limits.window_ns) < now_ns {
+            return Err(NavRejected::Stale {
+                stamp_ns: nav.stamp_ns,
+            });
+        }
+        let list = self.samples.entry(nav.vehicle).or_default();
+        list.insert(nav.stamp_ns, nav);
+        while list.len() > max_samples.max(1) {
+            list.pop_first();
+        }
+        Ok(())
+    }
+
+    /// Forget samples older than `keep_ns` before `now_ns`.
+    pub fn evict(&mut self, now_ns: u64, keep_ns: u64) {
+        let oldest = now_ns.saturating_sub(keep_ns);
+        for list in self.samples.values_mut() {
+            *list = list.split_off(&oldest);
+        }
+        self.samples.retain(|_, l| !l.is_empty());
+    }
+
+    /// `vehicle`'s sample nearest to `stamp_ns`, if one is within `max_gap_ns`.
+    pub fn at(&self, vehicle: VehicleId, stamp_ns: u64, max_gap_ns: u64) -> Option<NavAt<'_>> {
+        let list = self.samples.get(&vehicle)?;
+        let before = list.range(..=stamp_ns).next_back();
+        let after = list.range(stamp_ns..).next();
+        let gap = |s: u64| s.abs_diff(stamp_ns);
+        let nearest = match (before, after) {
+            (Some(b), Some(a)) => {
+                if gap(*a.0) < gap(*b.0) {
+                    a
+                } else {
+                    b
+                }
+            }
+            (Some(x), None) | (None, Some(x)) => x,
+            (None, None) => return None,
+        };
+        (gap(*nearest.0) <= max_gap_ns).then(|| NavAt {
+            state: nearest.1,
+            gap_s: gap(*nearest.0) as f64 * 1e-9,
+        })
+    }
+
+    /// Samples held (all vehicles).
+    pub fn len(&self) -> usize {
+        self.samples.values().map(BTreeMap::len).sum()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proto::nav::{Depth, Tilt};
+    use std::path::Path;
+
+    const S: u64 = 1_000_000_000;
+    const LIMITS: Admission = Admission {
+        window_ns: 2 * S,
+        max_clock_skew_ns: S / 4,
+        max_std: 5.0,
+    };
+
+    fn paper_fleet() -> Fleet {
+        Fleet::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/fleets/paper.toml"))
+            .expect("paper fleet loads")
+    }
+
+    fn nav(vehicle: VehicleId, stamp_ns: u64) -> NavState {
+        NavState {
+            vehicle,
+            stamp_ns,
+            depth: Some(Depth {
+                depth_m: 5.0,
+                std_m: 0.02,
+            }),
+            tilt: Some(Tilt {
+                roll_rad: 0.0,
+                pitch_rad: 0.0,
+                covariance: [[1e-5, 0.0], [0.0, 1e-5]],
+            }),
+            heading: None,
+            velocity: None,
+        }
+    }
+
+    #[test]
+    fn admission_names_what_is_wrong_and_keeps_the_newest_samples() {
+        let fleet = paper_fleet();
+        let mut w = NavWindow::default();
+        let now = 100 * S;
+        let admit =
+            |w: &mut NavWindow, n: NavState, on: VehicleId| w.admit(&fleet, n, on, now, &LIMITS, 3);
+        assert_eq!(admit(&mut w, nav(10, now), 10), Ok(()));
+        assert_eq!(
+            admit(&mut w, nav(10, now), 15),
+            Err(NavRejected::SenderMismatch {
+                claimed: 10,
+                arrived_on: 15
+            })
+        );
+        assert_eq!(
+            admit(&mut w, nav(99, now), 99),
+            Err(NavRejected::UnknownVehicle(99))
+        );
+        assert_eq!(
+            admit(&mut w, nav(10, now - 3 * S), 10),
+            Err(NavRejected::Stale {
+                stamp_ns: now - 3 * S
+            })
+        );
+        assert_eq!(
+            admit(&mut w, nav(10, now + S), 10),
+            Err(NavRejected::ClockSkew { stamp_ns: now + S })
+        );
+        let mut bad = nav(10, now);
+        bad.tilt.as_mut().expect("tilt").roll_rad = f64::NAN;
+        assert!(matches!(
+            admit(&mut w, bad, 10),
+            Err(NavRejected::Invalid {
+                field: "tilt.roll_rad",
+                ..
+            })
+        ));
+        for k in 1..=4 {
+            admit(&mut w, nav(10, now - k * S / 10), 10).expect("admitted");
+        }
+        assert_eq!(w.len(), 3, "at most three samples per vehicle here");
+        assert!(
+            w.at(10, now - 4 * S / 10, 0).is_none(),
+            "the oldest went first"
+        );
+    }
+
+    #[test]
+    fn the_nearest_sample_within_the_gap_is_used() {
+        let fleet = paper_fleet();
+        let mut w = NavWindow::default();
+        let now = 100 * S;
+        for t in [now - S, now - S / 2] {
+            w.admit(&fleet, nav(15, t), 15, now, &LIMITS, 512)
+                .expect("admitted");
+        }
+        let at = w.at(15, now - 6 * S / 10, S / 5).expect("a sample");
+        assert_eq!(at.state.stamp_ns, now - S / 2);
+        assert!((at.gap_s - 0.1).abs() < 1e-12);
+        let at = w.at(15, now - 9 * S / 10, S / 5).expect("a sample");
+        assert_eq!(at.state.stamp_ns, now - S);
+        assert!(
+            w.at(15, now, S / 5).is_none(),
+            "0.5 s away is beyond the gap"
+        );
+        assert!(w.at(17, now, S).is_none(), "no samples of 17");
+        w.evict(now, S * 3 / 4);
+        assert_eq!(w.len(), 1);
+    }
+}
