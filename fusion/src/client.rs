@@ -26,6 +26,9 @@ pub struct RelativePose {
     pub age_ns: u64,
     /// Both vehicles `Live` in the map.
     pub live: bool,
+    /// Both vehicles `Live` or `Predicted` (carried forward by odometry),
+    /// at least one `Predicted`: a current estimate, not a last-known one.
+    pub predicted: bool,
 }
 
 /// A fleet map indexed for queries.
@@ -66,6 +69,10 @@ impl MapView {
             a_from_b: ref_from_a.inverse().compose(&ref_from_b),
             age_ns: self.map.stamp_ns.saturating_sub(oldest),
             live: ea.state == VehicleState::Live && eb.state == VehicleState::Live,
+            predicted: [ea.state, eb.state].contains(&VehicleState::Predicted)
+                && [ea.state, eb.state]
+                    .iter()
+                    .all(|s| matches!(s, VehicleState::Live | VehicleState::Predicted)),
         })
     }
 }

@@ -67,10 +67,13 @@ impl FormationController {
             let Some(rel) = view.relative(self.reference, v) else {
                 continue;
             };
-            let fresh = rel.age_ns as f64 * 1e-9 <= self.max_age_s;
-            let live = view
-                .vehicle(v)
-                .is_some_and(|e| e.state == VehicleState::Live);
+            // A vehicle carried forward by odometry is current, however long unseen.
+            let predicted = rel.predicted;
+            let fresh = predicted || rel.age_ns as f64 * 1e-9 <= self.max_age_s;
+            let live = predicted
+                || view
+                    .vehicle(v)
+                    .is_some_and(|e| e.state == VehicleState::Live);
             if !fresh || !live {
                 continue;
             }
@@ -166,6 +169,20 @@ mod tests {
     fn stale_follower_gets_no_command() {
         let mut map = map_with(pose_from_xyz_rpy([0.0, 2.0, 0.0], [0.0; 3]));
         map.vehicles[1].state = VehicleState::Stale;
+        assert!(controller().commands(&MapView::new(map)).is_empty());
+    }
+
+    #[test]
+    fn a_follower_carried_by_odometry_is_steered_however_long_unseen() {
+        // Last seen 5 s before the map (beyond max_age_s), but Predicted.
+        let mut map = map_with(pose_from_xyz_rpy([0.0, 1.5, 0.0], [0.0; 3]));
+        map.stamp_ns += 5_000_000_000;
+        map.vehicles[1].state = VehicleState::Predicted;
+        let cmds = controller().commands(&MapView::new(map.clone()));
+        assert_eq!(cmds.len(), 1);
+        assert!(cmds[0].velocity_body[1] > 0.0, "{:?}", cmds[0]);
+        // The same age without a prediction is too old to steer by.
+        map.vehicles[1].state = VehicleState::Live;
         assert!(controller().commands(&MapView::new(map)).is_empty());
     }
 }

@@ -241,6 +241,7 @@ pub struct Fusion {
     params: FusionParams,
     window: Window,
     nav: nav::NavWindow,
+    odometry: nav::Odometry,
     pending: Vec<EdgeReport>,
     alive: BTreeMap<VehicleId, bool>,
     last_seen: BTreeMap<VehicleId, u64>,
@@ -269,6 +270,7 @@ impl Fusion {
             params,
             window: Window::default(),
             nav: nav::NavWindow::default(),
+            odometry: nav::Odometry::default(),
             pending: Vec::new(),
             alive: fleet.vehicles.iter().map(|v| (v.id, true)).collect(),
             last_seen: BTreeMap::new(),
@@ -342,16 +344,25 @@ impl Fusion {
         now_ns: u64,
     ) -> Result<(), NavRejected> {
         let limits = self.admission();
+        let p = self.params.nav;
         let r = self.nav.admit(
             &self.fleet,
             nav,
             arrived_on,
             now_ns,
             &limits,
-            self.params.nav.max_samples_per_vehicle,
+            p.max_samples_per_vehicle,
         );
         match r {
-            Ok(()) => self.stats.nav_ingested += 1,
+            Ok(()) => {
+                self.stats.nav_ingested += 1;
+                if p.enabled && p.max_predict_s > 0.0 {
+                    let keep_ns = seconds_to_ns(p.max_predict_s + self.params.window_s + 1.0);
+                    // Enough samples for the whole prediction span at 100 Hz.
+                    let max = ((p.max_predict_s + self.params.window_s + 1.0) * 100.0) as usize;
+                    self.odometry.add(&nav, keep_ns, max);
+                }
+            }
             Err(_) => self.stats.nav_rejected += 1,
         }
         r

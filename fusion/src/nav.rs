@@ -53,6 +53,15 @@ pub struct NavParams {
     pub heading_gate_chi2: f64,
     /// Samples kept per vehicle at most (default 512; the oldest go first).
     pub max_samples_per_vehicle: usize,
+    /// A vehicle no camera sees is carried forward by odometry (both its own
+    /// and the reference's nav with velocity and heading) for at most this
+    /// long after it was last localized, s (default 10; 0: never), state `Predicted`.
+    #[serde(default = "default_max_predict_s")]
+    pub max_predict_s: f64,
+}
+
+fn default_max_predict_s() -> f64 {
+    10.0
 }
 
 impl Default for NavParams {
@@ -68,6 +77,7 @@ impl Default for NavParams {
             depth_gate_chi2: 15.14,
             heading_gate_chi2: 15.14,
             max_samples_per_vehicle: 512,
+            max_predict_s: default_max_predict_s(),
         }
     }
 }
@@ -286,5 +296,131 @@ mod tests {
         assert!(w.at(17, now, S).is_none(), "no samples of 17");
         w.evict(now, S * 3 / 4);
         assert_eq!(w.len(), 1);
+    }
+}
+
+/// One vehicle's dead-reckoned pose at a nav sample: its odometry frame's
+/// origin is arbitrary (where integration began, axes of the compass), only
+/// differences between two points are used.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct OdoPoint {
+    pub odo_from_body: proto::Pose,
+    /// Position variance per axis accumulated since the origin, m².
+    pub position_var: f64,
+    /// Attitude variance of this sample's own roll/pitch/heading, rad².
+    pub attitude_var: f64,
+}
+
+/// Each vehicle's track integrated from its nav samples that carry a tilt
+/// and a heading: position advances by the attitude-rotated body velocity
+/// (the last one known through a DVL dropout, with its variance grown).
+#[derive(Debug, Clone, Default)]
+pub(crate) struct Odometry {
+    tracks: BTreeMap<VehicleId, BTreeMap<u64, OdoPoint>>,
+    /// Per vehicle: the last velocity known (m/s, body) and its variance per axis.
+    velocity: BTreeMap<VehicleId, (nalgebra::Vector3<f64>, f64)>,
+}
+
+/// Variance added per second of DVL dropout to the velocity carried over, (m/s)²/s.
+const DROPOUT_VELOCITY_VAR_PER_S: f64 = 0.05 * 0.05;
+/// A gap between nav samples longer than this breaks the track, s.
+const MAX_ODOMETRY_GAP_S: f64 = 2.0;
+
+impl Odometry {
+    /// Integrate `nav` (already admitted) into its vehicle's track; samples
+    /// older than the track's newest, or without tilt or heading, are left out.
+    pub fn add(&mut self, nav: &NavState, keep_ns: u64, max_samples: usize) {
+        let (Some(tilt), Some(heading)) = (nav.tilt, nav.heading) else {
+            return;
+        };
+        let rotation = nalgebra::UnitQuaternion::from_euler_angles(
+            tilt.roll_rad,
+            tilt.pitch_rad,
+            heading.yaw_rad,
+        );
+        let attitude_var = tilt.max_std_rad().powi(2) + heading.std_rad.powi(2);
+        let track = self.tracks.entry(nav.vehicle).or_default();
+        let last = track.last_key_value().map(|(t, p)| (*t, *p));
+        let known = self.velocity.get(&nav.vehicle).copied();
+        let point = match (last, known) {
+            (Some((t, _)), _) if nav.stamp_ns <= t => return,
+            (Some((t, prev)), Some((v, v_var)))
+                if (nav.stamp_ns - t) as f64 * 1e-9 <= MAX_ODOMETRY_GAP_S =>
+            {
+                let dt = (nav.stamp_ns - t) as f64 * 1e-9;
+                let step = prev.odo_from_body.rotation * v * dt;
+                let mut pose = prev.odo_from_body;
+                pose.translation.vector += step;
+                pose.rotation = rotation;
+                // Velocity noise, and the step turned by the attitude's own noise.
+                let step_var = v_var * dt * dt + step.norm_squared() * prev.attitude_var;
+                OdoPoint {
+                    odo_from_body: pose,
+                    position_var: prev.position_var + step_var,
+                    attitude_var,
+                }
+            }
+            _ => {
+                // A new track (first sample, a gap, or no velocity yet).
+                track.clear();
+                OdoPoint {
+                    odo_from_body: proto::Pose::from_parts(
+                        nalgebra::Translation3::identity(),
+                        rotation,
+                    ),
+                    position_var: 0.0,
+                    attitude_var,
+                }
+            }
+        };
+        track.insert(nav.stamp_ns, point);
+        let oldest = nav.stamp_ns.saturating_sub(keep_ns);
+        *track = track.split_off(&oldest);
+        while track.len() > max_samples.max(2) {
+            track.pop_first();
+        }
+        match nav.velocity {
+            Some(v) => {
+                let c = v.covariance;
+                let var = c[0][0].max(c[1][1]).max(c[2][2]);
+                self.velocity
+                    .insert(nav.vehicle, (nalgebra::Vector3::from(v.velocity_mps), var));
+            }
+            None => {
+                if let Some((_, var)) = self.velocity.get_mut(&nav.vehicle) {
+                    *var += DROPOUT_VELOCITY_VAR_PER_S;
+                }
+            }
+        }
+    }
+
+    /// `vehicle`'s motion from `from_ns` to its newest sample, in its body
+    /// frame at `from_ns` (`body_then_from_body_now`), with the position
+    /// variance integrated over it and the two samples' attitude variances;
+    /// `None` without samples within `max_gap_ns` of `from_ns` and of `now_ns`.
+    pub fn motion(
+        &self,
+        vehicle: VehicleId,
+        from_ns: u64,
+        now_ns: u64,
+        max_gap_ns: u64,
+    ) -> Option<(proto::Pose, f64, f64)> {
+        let track = self.tracks.get(&vehicle)?;
+        let near = |t: u64| {
+            let before = track.range(..=t).next_back();
+            let after = track.range(t..).next();
+            [before, after]
+                .into_iter()
+                .flatten()
+                .min_by_key(|(s, _)| s.abs_diff(t))
+                .filter(|(s, _)| s.abs_diff(t) <= max_gap_ns)
+                .map(|(_, p)| *p)
+        };
+        let (a, b) = (near(from_ns)?, near(now_ns)?);
+        Some((
+            a.odo_from_body.inverse() * b.odo_from_body,
+            (b.position_var - a.position_var).max(0.0),
+            a.attitude_var + b.attitude_var,
+        ))
     }
 }

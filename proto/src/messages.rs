@@ -163,6 +163,10 @@ pub enum VehicleState {
     Stale,
     /// In the fleet but not connected to the reference by any accepted edge.
     Unobserved,
+    /// Unseen by any camera for a while but carried forward from its last
+    /// fused pose by its own and the reference's odometry (nav velocity and
+    /// attitude); the covariance grows with the distance dead-reckoned.
+    Predicted,
 }
 
 /// One vehicle in the fused map.

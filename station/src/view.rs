@@ -160,6 +160,7 @@ fn state_name(s: VehicleState) -> &'static str {
         VehicleState::Live => "live",
         VehicleState::Stale => "stale",
         VehicleState::Unobserved => "unobserved",
+        VehicleState::Predicted => "predicted",
     }
 }
 

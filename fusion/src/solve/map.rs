@@ -128,6 +128,50 @@ pub(crate) struct Evidence<'a> {
     pub in_window: &'a BTreeSet<VehicleId>,
     pub inflation: &'a AgeInflation,
     pub now_ns: u64,
+    /// Dead reckoning of vehicles no camera sees (`None`: off).
+    pub odometry: Option<Predictor<'a>>,
+}
+
+/// What carries an unseen vehicle forward.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Predictor<'a> {
+    pub odometry: &'a crate::nav::Odometry,
+    pub max_predict_ns: u64,
+    pub max_gap_ns: u64,
+}
+
+impl Predictor<'_> {
+    /// `reference_from_vehicle` now, from its value `last` at `seen_ns`:
+    /// both vehicles' own motion since (`D_ref⁻¹ · last · D_v`), the
+    /// covariance grown by their odometry's position variance, the
+    /// reference's attitude error swinging the vehicle's position, and both
+    /// attitudes' own errors. `None` when either track does not cover it.
+    fn predict(
+        &self,
+        reference: VehicleId,
+        vehicle: VehicleId,
+        last: (&Pose, &Cov6, u64),
+        now_ns: u64,
+    ) -> Option<(Pose, Cov6)> {
+        let (pose, cov, seen_ns) = last;
+        if now_ns.saturating_sub(seen_ns) > self.max_predict_ns {
+            return None;
+        }
+        let (d_v, pos_v, att_v) =
+            self.odometry
+                .motion(vehicle, seen_ns, now_ns, self.max_gap_ns)?;
+        let (d_r, pos_r, att_r) =
+            self.odometry
+                .motion(reference, seen_ns, now_ns, self.max_gap_ns)?;
+        let predicted = d_r.inverse() * pose * d_v;
+        let swing = predicted.translation.vector.norm_squared() * att_r;
+        let mut c = *cov;
+        for i in 0..3 {
+            c[(i, i)] += pos_v + pos_r + swing;
+            c[(i + 3, i + 3)] += att_v + att_r;
+        }
+        Some((predicted, c))
+    }
 }
 
 /// The estimate of every vehicle in `ids` (ascending): `Live` when localized
@@ -168,13 +212,22 @@ pub(crate) fn vehicle_estimates(
             } else {
                 VehicleState::Unobserved
             };
-            match last_estimate.get(&v) {
+            let predicted = evidence
+                .odometry
+                .filter(|_| alive)
+                .zip(last_estimate.get(&v))
+                .and_then(|(p, (pose, cov, seen))| {
+                    p.predict(evidence.reference, v, (pose, cov, *seen), evidence.now_ns)
+                });
+            match (predicted, last_estimate.get(&v)) {
+                // Carried forward by the vehicles' odometry.
+                (Some((pose, cov)), _) => (VehicleState::Predicted, pose, cov),
                 // The last fused pose, its covariance grown with the time since.
-                Some((pose, cov, seen)) => {
+                (None, Some((pose, cov, seen))) => {
                     let age_s = evidence.now_ns.saturating_sub(*seen) as f64 * 1e-9;
                     (state, *pose, evidence.inflation.inflate(cov, age_s))
                 }
-                None => (
+                (None, None) => (
                     state,
                     Pose::identity(),
                     Cov6::identity() * NO_INFORMATION_VARIANCE,
@@ -279,6 +332,7 @@ mod tests {
             in_window: &in_window,
             inflation: &inflation,
             now_ns: now,
+            odometry: None,
         };
         let cov = Cov6::identity() * 1e-4;
         let solution = Poses::from([
