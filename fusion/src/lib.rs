@@ -47,7 +47,11 @@
 //! the last fused pose is reported, its covariance grown by [`AgeInflation`]
 //! since); `Unobserved` (never seen, or data in the window but no accepted
 //! path to the reference: identity pose, covariance
-//! [`NO_INFORMATION_VARIANCE`]·I unless a last pose exists).
+//! [`NO_INFORMATION_VARIANCE`]·I unless a last pose exists); `Predicted`
+//! (alive but not localized in this solve, last localized at most
+//! [`NavParams::max_predict_s`] ago, and both it and the reference send nav
+//! with velocity and heading: its last fused pose carried forward by both
+//! vehicles' odometry, the covariance grown by the dead reckoning).
 //!
 //! Same inputs give a bit-identical map, whatever the order they arrived in
 //! (everything is kept in ordered maps keyed by capture time and identity), so
