@@ -49,6 +49,11 @@ pub fn rpy_of(pose: &Pose) -> [f64; 3] {
     [r, p, y]
 }
 
+/// An angle brought into `[-π, π)`, rad.
+pub fn wrap_angle(a: f64) -> f64 {
+    (a + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU) - std::f64::consts::PI
+}
+
 /// Apply a perturbation in the module's convention: `t + δt`, `Exp(δθ)·R`.
 pub fn perturb(pose: &Pose, xi: &Vector6<f64>) -> Pose {
     let dt = Vector3::new(xi[0], xi[1], xi[2]);

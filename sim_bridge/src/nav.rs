@@ -11,6 +11,7 @@ use crate::SimError;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
+use shoal_proto::geometry::wrap_angle;
 use shoal_proto::nav::{BodyVelocity, Depth, Heading, NavState, Tilt};
 use shoal_proto::{VehicleId, VehicleTruth};
 use std::collections::BTreeMap;
@@ -148,7 +149,7 @@ impl NavSensors {
         let pitch = pitch + pitch_bias + p.tilt_noise_rad * self.normal();
         let heading_noise = p.heading_noise_rad * self.normal();
         let heading = p.heading.then(|| Heading {
-            yaw_rad: wrap(yaw + heading_bias + heading_noise),
+            yaw_rad: wrap_angle(yaw + heading_bias + heading_noise),
             std_rad: p.heading_noise_rad.hypot(p.heading_bias_rad).max(MIN_STD),
         });
         let lost = self.rng.gen_bool(p.velocity_dropout);
@@ -173,7 +174,7 @@ impl NavSensors {
                 std_m: depth_std,
             }),
             tilt: Some(Tilt {
-                roll_rad: wrap(roll),
+                roll_rad: wrap_angle(roll),
                 pitch_rad: pitch.clamp(-std::f64::consts::FRAC_PI_2, std::f64::consts::FRAC_PI_2),
                 covariance: [[tilt_var, 0.0], [0.0, tilt_var]],
             }),
@@ -181,10 +182,6 @@ impl NavSensors {
             velocity,
         }
     }
-}
-
-fn wrap(a: f64) -> f64 {
-    (a + std::f64::consts::PI).rem_euclid(2.0 * std::f64::consts::PI) - std::f64::consts::PI
 }
 
 #[cfg(test)]

@@ -23,6 +23,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 use shoal_proto::config::Fleet;
+use shoal_proto::geometry::wrap_angle;
 use shoal_proto::{Pose, VehicleCommand, VehicleId, VehicleTruth};
 
 /// Scripted formations. All vehicles head along the formation heading
@@ -162,10 +163,6 @@ fn slots(fleet: &Fleet, formation: Formation, spacing_m: f64) -> Vec<Vector3<f64
                 .collect()
         }
     }
-}
-
-fn wrap_angle(a: f64) -> f64 {
-    (a + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU) - std::f64::consts::PI
 }
 
 impl SwarmWorld {

@@ -9,6 +9,7 @@ use crate::consistency::Candidate;
 use crate::nav::{NavAt, NavParams, NavWindow};
 use crate::seconds_to_ns;
 use nalgebra::{Matrix3, SymmetricEigen, UnitQuaternion};
+use proto::geometry::wrap_angle;
 use proto::RejectReason;
 
 /// Per frame and hypothesis, the nav verdict (`None`: passed or not checked).
@@ -92,7 +93,7 @@ fn check_one(
         let world_from_observer =
             UnitQuaternion::from_euler_angles(ot.roll_rad, ot.pitch_rad, oh.yaw_rad);
         let (_, _, yaw) = (world_from_observer * c.a_from_b.rotation).euler_angles();
-        let residual = wrap(yaw - th.yaw_rad);
+        let residual = wrap_angle(yaw - th.yaw_rad);
         let heading_var =
             |n: &NavAt<'_>, std: f64| std * std + (n.gap_s * p.tilt_rate_rad_per_s).powi(2);
         let var = (heading_var(observer, oh.std_rad)
@@ -105,10 +106,6 @@ fn check_one(
         }
     }
     None
-}
-
-fn wrap(a: f64) -> f64 {
-    (a + std::f64::consts::PI).rem_euclid(2.0 * std::f64::consts::PI) - std::f64::consts::PI
 }
 
 /// Check every frame hypothesis against the nav of its two vehicles at the
