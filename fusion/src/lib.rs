@@ -77,6 +77,7 @@ extern crate shoal_proto as proto;
 
 pub mod client;
 pub mod consistency;
+pub mod export;
 pub mod formation;
 pub mod link;
 pub mod nav;
@@ -246,6 +247,7 @@ pub struct Fusion {
     window: Window,
     nav: nav::NavWindow,
     odometry: nav::Odometry,
+    last_graph: Option<export::PoseGraph>,
     pending: Vec<EdgeReport>,
     alive: BTreeMap<VehicleId, bool>,
     last_seen: BTreeMap<VehicleId, u64>,
@@ -275,6 +277,7 @@ impl Fusion {
             window: Window::default(),
             nav: nav::NavWindow::default(),
             odometry: nav::Odometry::default(),
+            last_graph: None,
             pending: Vec::new(),
             alive: fleet.vehicles.iter().map(|v| (v.id, true)).collect(),
             last_seen: BTreeMap::new(),
@@ -370,6 +373,13 @@ impl Fusion {
             Err(_) => self.stats.nav_rejected += 1,
         }
         r
+    }
+
+    /// The pose graph of the last solve's final round (the constraints LM
+    /// minimised and its spanning-tree start), for export ([`export`]);
+    /// `None` before the first solve or when nothing was connected.
+    pub fn last_graph(&self) -> Option<&export::PoseGraph> {
+        self.last_graph.as_ref()
     }
 
     /// Nav samples currently held (all vehicles).

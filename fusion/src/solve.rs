@@ -69,9 +69,15 @@ impl Fusion {
                 ..solver::SolverParams::default()
             },
         };
-        let gated = gate::solve_and_gate(&frames, &groups, &hyps, reference, &gate_params);
+        let mut gated = gate::solve_and_gate(&frames, &groups, &hyps, reference, &gate_params);
         let lm_us = elapsed_us(lm_started);
 
+        let graph = std::mem::take(&mut gated.graph);
+        self.last_graph = (!graph.constraints.is_empty()).then_some(crate::export::PoseGraph {
+            reference,
+            initial: graph.initial,
+            constraints: graph.constraints,
+        });
         let verdicts = map::verdicts(
             &entries,
             &frames,

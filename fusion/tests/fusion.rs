@@ -815,3 +815,113 @@ fn an_occluded_vehicle_is_carried_by_odometry_within_its_covariance() {
     let e = difference(&v3.reference_from_vehicle, &truth[&3]);
     assert!(e.fixed_rows::<3>(0).norm() > 0.8, "{e:?}");
 }
+
+fn python_has_gtsam() -> bool {
+    use std::process::Command;
+    let ok = |c: &mut Command| c.output().map(|o| o.status.success()).unwrap_or(false);
+    if ok(Command::new("python3").args(["-c", "import gtsam"])) {
+        return true;
+    }
+    eprintln!("installing gtsam: python3 -m pip install --quiet gtsam");
+    ok(Command::new("python3").args(["-m", "pip", "install", "--quiet", "gtsam"]))
+        && ok(Command::new("python3").args(["-c", "import gtsam"]))
+}
+
+/// Issue #21: a solve's graph exported as g2o and solved by gtsam (an
+/// independent solver, from the spanning-tree start) reaches shoal's own
+/// optimum: cost within 0.1 %, every pose within 1 mm and 0.01°.
+#[test]
+fn an_exported_graph_solved_by_gtsam_reaches_the_same_optimum() {
+    use shoal_fusion::solver::{self, RobustKernel, SolverParams};
+    use std::process::Command;
+    let fleet = synthetic_fleet(10, CodeSet::Aruco4x4_1000).unwrap();
+    let ids: Vec<u32> = (1..=10).collect();
+    let truth = grid_formation(&ids, 4, 1.5, FormationJitter::default(), 8);
+    let (mut fusion, _, now) = run_frames(
+        &fleet,
+        &truth,
+        ObsSynthParams::default(),
+        FusionParams::default(),
+        8,
+        10,
+    );
+    fusion.solve(now);
+    let graph = fusion.last_graph().expect("a graph").clone();
+    assert!(
+        graph.constraints.len() >= 9,
+        "{} constraints",
+        graph.constraints.len()
+    );
+    let plain = SolverParams {
+        robust: RobustKernel::None,
+        max_iterations: 100,
+        relative_tolerance: 1e-14,
+        ..SolverParams::default()
+    };
+    let ours = solver::solve(graph.reference, &graph.initial, &graph.constraints, &plain).unwrap();
+    if !python_has_gtsam() {
+        eprintln!("SKIPPED: pip could not install gtsam");
+        return;
+    }
+    let dir = std::env::temp_dir().join(format!("shoal-g2o-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("window.g2o");
+    let mut file = std::fs::File::create(&path).unwrap();
+    graph.write_g2o(&mut file).unwrap();
+    drop(file);
+    let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/solve_g2o.py");
+    let out = Command::new("python3")
+        .arg(&script)
+        .arg(&path)
+        .arg(graph.reference.to_string())
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let text = String::from_utf8(out.stdout).unwrap();
+    let mut theirs = BTreeMap::new();
+    for line in text.lines().filter(|l| l.starts_with("VERTEX_SE3:QUAT")) {
+        let v: Vec<f64> = line
+            .split_whitespace()
+            .skip(2)
+            .map(|x| x.parse().unwrap())
+            .collect();
+        let id: u32 = line.split_whitespace().nth(1).unwrap().parse().unwrap();
+        let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+            v[6], v[3], v[4], v[5],
+        ));
+        theirs.insert(
+            id,
+            shoal_proto::Pose::from_parts(nalgebra::Translation3::new(v[0], v[1], v[2]), q),
+        );
+    }
+    assert_eq!(theirs.len(), graph.initial.len(), "{text}");
+    let cost_ours = graph.cost(&ours.poses, RobustKernel::None).unwrap();
+    let cost_theirs = graph.cost(&theirs, RobustKernel::None).unwrap();
+    let start = graph.cost(&graph.initial, RobustKernel::None).unwrap();
+    let (mut dt, mut dr) = (0.0f64, 0.0f64);
+    for (v, p) in &ours.poses {
+        let e = difference(p, &theirs[v]);
+        dt = dt.max(e.fixed_rows::<3>(0).norm());
+        dr = dr.max(e.fixed_rows::<3>(3).norm().to_degrees());
+    }
+    eprintln!(
+        "g2o/gtsam: {} vertices, {} edges; cost from {start:.3}: shoal {cost_ours:.6}, gtsam's poses {cost_theirs:.6}; poses differ ≤ {:.4} mm / {dr:.6}°",
+        theirs.len(),
+        graph.constraints.len(),
+        dt * 1e3
+    );
+    assert!(
+        start > cost_ours * 1.01,
+        "the start must not already be the optimum"
+    );
+    assert!(
+        (cost_theirs - cost_ours).abs() <= 1e-3 * cost_ours,
+        "{cost_theirs} vs {cost_ours}"
+    );
+    assert!(dt <= 1e-3 && dr <= 0.01, "{dt} m, {dr}°");
+    let _ = std::fs::remove_dir_all(&dir);
+}

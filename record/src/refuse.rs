@@ -89,6 +89,9 @@ pub struct FuseSummary {
     pub comparison: MapComparison,
     /// The re-fused maps against the log's ground truth (`None`: the log has none).
     pub truth: Option<crate::truth_score::TruthScore>,
+    /// The pose graph of the last re-fused map (`shoal fuse --g2o` writes it).
+    #[serde(skip)]
+    pub last_graph: Option<shoal_fusion::export::PoseGraph>,
 }
 
 /// The fleet a log was recorded with (its attachment), unless overridden.
@@ -220,6 +223,7 @@ pub fn refuse(input: &Path, output: &Path, opts: &FuseOptions) -> Result<FuseSum
     out.commit()?;
     summary.comparison = cmp.finish();
     summary.truth = truth.finish();
+    summary.last_graph = fusion.last_graph().cloned();
     Ok(summary)
 }
 

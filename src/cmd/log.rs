@@ -190,6 +190,10 @@ pub struct FuseArgs {
     /// the same observations settled by votes alone, for comparison.
     #[arg(long)]
     no_nav: bool,
+    /// Also write the last map's pose graph as g2o (for g2o, gtsam, Ceres;
+    /// format in `shoal_fusion::export`).
+    #[arg(long, value_name = "FILE.g2o")]
+    g2o: Option<PathBuf>,
 }
 
 pub fn run_fuse(a: FuseArgs) -> anyhow::Result<()> {
@@ -215,6 +219,20 @@ pub fn run_fuse(a: FuseArgs) -> anyhow::Result<()> {
             "with {} nav states of the vehicles ({} refused)",
             s.nav_states,
             s.nav_refused
+        );
+    }
+    if let Some(path) = &a.g2o {
+        let graph = s.last_graph.as_ref().ok_or_else(|| {
+            anyhow::anyhow!("the last map has no pose graph to export (nothing connected)")
+        })?;
+        let mut text = Vec::new();
+        graph.write_g2o(&mut text)?;
+        std::fs::write(path, text).with_context(|| format!("cannot write {}", path.display()))?;
+        shoal::outln!(
+            "pose graph of the last map: {} vehicles, {} constraints → {}",
+            graph.initial.len(),
+            graph.constraints.len(),
+            path.display()
         );
     }
     if let Some(t) = &s.truth {

@@ -40,6 +40,8 @@ pub(crate) struct GatedSolution {
     pub lm_iterations: usize,
     /// The last round's solver failed and reported the spanning-tree poses.
     pub solver_failed: bool,
+    /// The last round's graph.
+    pub graph: Graph,
 }
 
 /// Solve, gate, and re-solve without the rejects.
@@ -57,6 +59,7 @@ pub(crate) fn solve_and_gate(
         rounds: 0,
         lm_iterations: 0,
         solver_failed: false,
+        graph: Graph::default(),
     };
     for round in 0..params.max_rounds.max(1) {
         out.rounds = round + 1;
@@ -66,6 +69,7 @@ pub(crate) fn solve_and_gate(
         out.solution = solution;
         out.solver_failed = iterations.is_none();
         out.lm_iterations += iterations.unwrap_or(0);
+        out.graph = g;
         let newly = gate_round(
             frames,
             &hyps.accepted,

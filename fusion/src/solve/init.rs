@@ -14,7 +14,7 @@ use proto::VehicleId;
 use std::collections::{BTreeMap, BTreeSet};
 
 /// The input of the Levenberg–Marquardt solve.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, Default, PartialEq)]
 pub(crate) struct Graph {
     /// Constraints among vehicles connected to the reference.
     pub constraints: Vec<Constraint>,

@@ -276,6 +276,7 @@ mod tests {
             rounds: 1,
             lm_iterations: 3,
             solver_failed: false,
+            graph: crate::solve::init::Graph::default(),
         };
         let v = verdicts(
             &entries,
