@@ -68,6 +68,39 @@ fn bench_fusion(c: &mut Criterion) {
     }
     group.finish();
 
+    // Nav on (every vehicle's depth, tilt, heading and velocity at every
+    // frame) against off, 100 vehicles: criterion, then the two timed on
+    // alternate calls so that the machine's load hits both alike.
+    let (fleet, truth) = scenario(100);
+    let (plain, _, now) = run_frames(&fleet, &truth, synth, FusionParams::default(), 1, 20);
+    let mut with_nav = plain.clone();
+    ingest_nav_frames(&mut with_nav, &truth, 20, 1, now);
+    let mut group = c.benchmark_group("fusion_solve_2s_window_nav");
+    group.sample_size(10);
+    group.bench_function("100", |b| {
+        b.iter_batched(
+            || with_nav.clone(),
+            |mut f| f.solve(now),
+            criterion::BatchSize::LargeInput,
+        )
+    });
+    group.finish();
+    let (mut off, mut on) = (0.0, 0.0);
+    for _ in 0..10 {
+        for (fusion, sum) in [(&plain, &mut off), (&with_nav, &mut on)] {
+            let mut f = fusion.clone();
+            let t0 = std::time::Instant::now();
+            f.solve(now);
+            *sum += t0.elapsed().as_secs_f64() * 1e3;
+        }
+    }
+    eprintln!(
+        "100 vehicles, alternate calls: nav off {:.1} ms, nav on {:.1} ms per solve, ratio on/off {:.3}",
+        off / 10.0,
+        on / 10.0,
+        on / off
+    );
+
     // The LM solve alone: 100 vehicles, one fused constraint per neighbouring pair, noisy start.
     let (_, truth) = scenario(100);
     let poses: BTreeMap<u32, shoal_proto::Pose> = truth

@@ -150,3 +150,27 @@ pub fn score(map: &FleetMap, obs: &[SyntheticObservation]) -> Scores {
     }
     s
 }
+
+/// Every vehicle's nav (default simulated sensors) at each of `frames` 10 Hz
+/// frames from [`T0_NS`], fed to `fusion` at `now` (the truth held still).
+pub fn ingest_nav_frames(
+    fusion: &mut Fusion,
+    truth: &[VehicleTruth],
+    frames: usize,
+    seed: u64,
+    now: u64,
+) {
+    let mut sensors = shoal_sim_bridge::nav::NavSensors::new(
+        shoal_sim_bridge::nav::NavSensorParams::default(),
+        seed,
+    )
+    .expect("default sensors are valid");
+    for k in 0..frames {
+        let stamp = T0_NS + k as u64 * FRAME_NS;
+        for t in truth {
+            fusion
+                .ingest_nav(sensors.measure(t, stamp), t.vehicle, now)
+                .expect("simulated nav is admitted");
+        }
+    }
+}
