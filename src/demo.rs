@@ -4,6 +4,8 @@
 //! through an in-process router. Prints, per vehicle pair, the fused relative
 //! position and angle error against ground truth.
 
+mod occlusion;
+
 use anyhow::{anyhow, Context};
 use serde::Serialize;
 use shoal_bus::{client_of, free_port, Bus, Connect, Publisher, Received, Subscription};
@@ -60,6 +62,9 @@ pub struct DemoConfig {
     /// The vehicles publish their own navigation (simulated depth, IMU, DVL)
     /// and fusion settles planar flips with it.
     pub nav: bool,
+    /// A vehicle hidden from every camera for a span of the run (its own
+    /// cameras blind too); the summary then reports how the map kept it.
+    pub occlude: Option<shoal_services::sim::Occlusion>,
 }
 
 impl Default for DemoConfig {
@@ -79,6 +84,7 @@ impl Default for DemoConfig {
             log_frames: false,
             station: None,
             nav: true,
+            occlude: None,
         }
     }
 }
@@ -123,6 +129,8 @@ pub struct DemoSummary {
     /// only some hypotheses refused by nav (a planar-flip twin, mostly).
     pub observations_refused_by_nav: usize,
     pub twins_refused_by_nav: usize,
+    /// With [`DemoConfig::occlude`]: the hidden vehicle in the maps of its span.
+    pub occlusion: Option<occlusion::OcclusionReport>,
     pub sim_ticks: u64,
     pub sim_ticks_skipped: u64,
     pub wall_time_s: f64,
@@ -240,6 +248,7 @@ impl SimulatedSwarm {
                 nav: cfg
                     .nav
                     .then(shoal_sim_bridge::nav::NavSensorParams::default),
+                hidden: cfg.occlude.into_iter().collect(),
             },
             clock,
         )?);
@@ -402,6 +411,15 @@ fn verdict_counts(map: Option<&FleetMap>) -> (usize, usize, usize) {
         )
     })
     .unwrap_or((0, 0, 0))
+}
+
+/// `sum / n`, NaN when there is nothing to average.
+fn mean_or_nan(sum: f64, n: usize) -> f64 {
+    if n > 0 {
+        sum / n as f64
+    } else {
+        f64::NAN
+    }
 }
 
 /// Distinct observations over `maps` whose every hypothesis the nav checks
@@ -622,22 +640,17 @@ pub fn run_until(
         pairs,
         frames_processed,
         frames_dropped,
-        mean_latency_ms: if latencies.is_empty() {
-            f64::NAN
-        } else {
-            latencies.iter().sum::<f64>() / latencies.len() as f64
-        },
-        mean_end_to_end_latency_ms: if e2e.1 > 0 {
-            e2e.0 / e2e.1 as f64
-        } else {
-            f64::NAN
-        },
+        mean_latency_ms: mean_or_nan(latencies.iter().sum(), latencies.len()),
+        mean_end_to_end_latency_ms: mean_or_nan(e2e.0, e2e.1),
         maps_received: maps.len(),
         observations_sent,
         edges_accepted: acc,
         edges_rejected: rej,
         flip_twins_rejected: twins,
         observations_refused_by_nav: nav_refused,
+        occlusion: cfg
+            .occlude
+            .map(|o| occlusion::report(&fleet, &maps, &truths, &o)),
         twins_refused_by_nav: nav_twins,
         sim_ticks,
         sim_ticks_skipped,

@@ -115,3 +115,38 @@ fn killed_node_is_marked_stale_then_rejoins() {
     );
     swarm.shutdown().unwrap();
 }
+
+/// Issue #21: vehicle 17 hidden from every camera for 10 s of the closed-loop
+/// demo. With the vehicles' nav it stays in the map as `Predicted`, inside
+/// its reported 3σ, and the controller keeps it near its slot; without nav
+/// it is marked `Stale` (lost) for the same span.
+#[test]
+fn a_vehicle_hidden_for_10_s_is_carried_by_odometry_and_lost_without() {
+    let run = |nav: bool| {
+        let cfg = DemoConfig {
+            duration_s: 18.0,
+            cameras: side_cameras(),
+            time_scale: 1.0,
+            progress: false,
+            log: None,
+            nav,
+            occlude: Some("17:5:15".parse().unwrap()),
+            ..DemoConfig::default()
+        };
+        let s = shoal::demo::run(&cfg, |_, _, _| {}).unwrap();
+        let o = s.occlusion.expect("an occlusion report");
+        eprintln!("nav {nav}: {o:?}");
+        o
+    };
+    let with = run(true);
+    // Live while the window still holds its last frames (~2 s), then predicted.
+    assert!(with.maps >= 30, "{with:?}");
+    assert!(with.predicted * 2 >= with.maps, "{with:?}");
+    assert_eq!((with.stale, with.unobserved), (0, 0), "{with:?}");
+    assert_eq!(with.within_3_sigma, with.maps, "{with:?}");
+    assert!(with.max_position_error_m < 0.3, "{with:?}");
+    assert!(with.max_slot_error_m < 0.6, "the formation holds: {with:?}");
+    let without = run(false);
+    assert_eq!(without.predicted, 0, "{without:?}");
+    assert!(without.stale * 2 >= without.maps, "{without:?}");
+}

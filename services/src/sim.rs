@@ -53,6 +53,50 @@ pub struct SimConfig {
     /// Each vehicle's navigation sensors, published every tick on its nav
     /// key (`None`: no nav data, as from vehicles without it).
     pub nav: Option<NavSensorParams>,
+    /// Vehicles hidden for a while: no other camera sees them and their own
+    /// cameras publish nothing (murk, a rock, a blinded rig); their nav goes on.
+    pub hidden: Vec<Occlusion>,
+}
+
+/// One vehicle out of every camera's sight from `from_s` to `to_s` of simulated time.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Occlusion {
+    pub vehicle: VehicleId,
+    pub from_s: f64,
+    pub to_s: f64,
+}
+
+impl Occlusion {
+    pub fn covers(&self, vehicle: VehicleId, t_s: f64) -> bool {
+        vehicle == self.vehicle && (self.from_s..self.to_s).contains(&t_s)
+    }
+}
+
+impl std::str::FromStr for Occlusion {
+    type Err = String;
+    /// `VEHICLE:FROM:TO` (seconds of simulated time), e.g. `17:5:15`.
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let bad = || format!("{s:?}: expected VEHICLE:FROM_S:TO_S, e.g. 17:5:15");
+        let parts: Vec<&str> = s.split(':').collect();
+        let [v, from, to] = parts.as_slice() else {
+            return Err(bad());
+        };
+        let vehicle = v.trim().parse().map_err(|_| bad())?;
+        let (from_s, to_s): (f64, f64) = (
+            from.trim().parse().map_err(|_| bad())?,
+            to.trim().parse().map_err(|_| bad())?,
+        );
+        if !(from_s.is_finite() && to_s.is_finite() && from_s >= 0.0 && to_s > from_s) {
+            return Err(format!(
+                "{s:?}: the span must be finite, from ≥ 0 and to > from"
+            ));
+        }
+        Ok(Occlusion {
+            vehicle,
+            from_s,
+            to_s,
+        })
+    }
 }
 
 /// Counters of a running simulator.
@@ -141,6 +185,46 @@ fn selected_cameras(bus: &Bus, cfg: &SimConfig, keys: &Keys) -> Result<Vec<SimCa
     Ok(cams)
 }
 
+/// Every vehicle's simulated nav sensors and the publisher of its nav key.
+struct NavPublishers {
+    sensors: NavSensors,
+    publishers: Vec<(VehicleId, Publisher<NavState>)>,
+}
+
+impl NavPublishers {
+    /// What each vehicle's sensors say of `truth` at `stamp_ns`, published.
+    fn publish(&mut self, truth: &[shoal_proto::VehicleTruth], stamp_ns: u64, stats: &SimStats) {
+        for (v, publisher) in &self.publishers {
+            let Some(t) = truth.iter().find(|t| t.vehicle == *v) else {
+                continue;
+            };
+            match publisher.put(&self.sensors.measure(t, stamp_ns)) {
+                Ok(()) => {
+                    stats.nav_published.fetch_add(1, Ordering::Relaxed);
+                }
+                Err(e) => tracing::warn!("simulator: {e}"),
+            }
+        }
+    }
+}
+
+/// The nav sensors of `cfg` (`None` when it has none).
+fn nav_sensors(bus: &Bus, cfg: &SimConfig, keys: &Keys) -> Result<Option<NavPublishers>, BusError> {
+    let Some(p) = cfg.nav else {
+        return Ok(None);
+    };
+    let sensors = NavSensors::new(p, cfg.seed)
+        .map_err(|e| BusError::ConfigValue(format!("simulator nav sensors: {e}")))?;
+    let mut publishers = Vec::new();
+    for v in &cfg.fleet.vehicles {
+        publishers.push((v.id, bus.publisher(keys.nav(v.id))?));
+    }
+    Ok(Some(NavPublishers {
+        sensors,
+        publishers,
+    }))
+}
+
 /// Sleep until simulated time `t_s` is due on the wall clock (scaled by
 /// `cfg.time_scale`; 0 runs unpaced); true when already more than one tick
 /// (`dt`) behind, so the tick's rendering is skipped.
@@ -171,18 +255,7 @@ pub fn spawn(bus: &Bus, cfg: SimConfig, clock: Arc<ManualClock>) -> Result<SimHa
     }
     let cams = selected_cameras(bus, &cfg, &keys)?;
     let truth_pub: Publisher<SimTruth> = bus.publisher(keys.truth())?;
-    let mut nav = match cfg.nav {
-        Some(p) => {
-            let sensors = NavSensors::new(p, cfg.seed)
-                .map_err(|e| BusError::ConfigValue(format!("simulator nav sensors: {e}")))?;
-            let mut pubs: Vec<(VehicleId, Publisher<NavState>)> = Vec::new();
-            for v in &cfg.fleet.vehicles {
-                pubs.push((v.id, bus.publisher(keys.nav(v.id))?));
-            }
-            Some((sensors, pubs))
-        }
-        None => None,
-    };
+    let mut nav = nav_sensors(bus, &cfg, &keys)?;
     let commands: Subscription<VehicleCommand> = bus.subscribe(&keys.all_commands(), 64)?;
     let stop = Arc::new(AtomicBool::new(false));
     let finished = Arc::new(AtomicBool::new(false));
@@ -216,25 +289,22 @@ pub fn spawn(bus: &Bus, cfg: SimConfig, clock: Arc<ManualClock>) -> Result<SimHa
                 // The frames of this tick are captured now: time has reached their stamp.
                 clock.advance_to(stamp_ns);
                 // The vehicles' own sensors first, so fusion has them when the frames' observations arrive.
-                if let Some((sensors, pubs)) = nav.as_mut() {
-                    for (v, publisher) in pubs.iter() {
-                        let Some(t) = truth.iter().find(|t| t.vehicle == *v) else { continue };
-                        match publisher.put(&sensors.measure(t, stamp_ns)) {
-                            Ok(()) => {
-                                stats2.nav_published.fetch_add(1, Ordering::Relaxed);
-                            }
-                            Err(e) => tracing::warn!("simulator: {e}"),
-                        }
-                    }
+                if let Some(nav) = nav.as_mut() {
+                    nav.publish(&truth, stamp_ns, &stats2);
                 }
                 let mut visible = Vec::new();
                 if behind {
                     stats2.ticks_skipped.fetch_add(1, Ordering::Relaxed);
                 } else {
+                    let hidden = |v: VehicleId| cfg.hidden.iter().any(|o| o.covers(v, t_s));
+                    let seen: Vec<_> = truth.iter().filter(|t| !hidden(t.vehicle)).cloned().collect();
                     for (v, k, info, publisher) in &cams {
+                        if hidden(*v) {
+                            continue;
+                        }
                         let seed = cfg.seed ^ (tick << 20) ^ ((*v as u64) << 8) ^ *k as u64;
                         let t0 = Instant::now();
-                        let out = render_fleet_view(&mut renderer, &cfg.fleet, &truth, *v, *k, &cfg.water, t_s, tick, seed)
+                        let out = render_fleet_view(&mut renderer, &cfg.fleet, &seen, *v, *k, &cfg.water, t_s, tick, seed)
                             .map_err(|e| format!("rendering vehicle {v} camera {k}: {e}"))?;
                         stats2.render_us.fetch_add(t0.elapsed().as_micros() as u64, Ordering::Relaxed);
                         let frame = CameraFrame {

@@ -58,6 +58,10 @@ pub struct DemoArgs {
     /// settles planar flips by votes and the previous map alone.
     #[arg(long)]
     no_nav: bool,
+    /// Hide a vehicle from every camera for a span, `VEHICLE:FROM_S:TO_S`
+    /// (e.g. `17:5:15`); the figures then say how the map kept it.
+    #[arg(long, value_name = "V:FROM:TO")]
+    occlude: Option<shoal_services::sim::Occlusion>,
 }
 
 pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
@@ -80,6 +84,7 @@ pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
             ..Default::default()
         }),
         nav: !a.no_nav,
+        occlude: a.occlude,
     };
     let bar = ProgressBar::new((cfg.duration_s * 10.0) as u64);
     bar.set_style(
@@ -119,6 +124,26 @@ pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
             cfg.duration_s
         );
     }
+    print_figures(&summary);
+    if let Some(log) = &summary.log {
+        shoal::outln!(
+            "log: {} ({} messages, {} dropped, {:.1} MB) — try `shoal log info {}`",
+            log.path.display(),
+            log.messages,
+            log.dropped,
+            log.file_bytes as f64 / 1e6,
+            log.path.display()
+        );
+    }
+    if let Some(path) = a.summary_json {
+        std::fs::write(&path, serde_json::to_string_pretty(&summary)?)?;
+        shoal::outln!("summary written to {}", path.display());
+    }
+    Ok(())
+}
+
+/// The run's figures: per pair, the pipeline, the last map's verdicts, the vehicles' nav, the occlusion.
+fn print_figures(summary: &shoal::demo::DemoSummary) {
     shoal::outln!(
         "fused relative pose error against ground truth (mean over the second half of the run):"
     );
@@ -161,19 +186,18 @@ pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
         summary.observations_refused_by_nav,
         summary.twins_refused_by_nav
     );
-    if let Some(log) = &summary.log {
+    if let Some(o) = &summary.occlusion {
         shoal::outln!(
-            "log: {} ({} messages, {} dropped, {:.1} MB) — try `shoal log info {}`",
-            log.path.display(),
-            log.messages,
-            log.dropped,
-            log.file_bytes as f64 / 1e6,
-            log.path.display()
+            "vehicle {} hidden: over {} maps live {}, predicted {}, stale {}, unobserved {}; position error ≤ {:.0} mm, within 3σ in {}; ≤ {:.0} mm from its formation slot",
+            o.vehicle,
+            o.maps,
+            o.live,
+            o.predicted,
+            o.stale,
+            o.unobserved,
+            o.max_position_error_m * 1e3,
+            o.within_3_sigma,
+            o.max_slot_error_m * 1e3
         );
     }
-    if let Some(path) = a.summary_json {
-        std::fs::write(&path, serde_json::to_string_pretty(&summary)?)?;
-        shoal::outln!("summary written to {}", path.display());
-    }
-    Ok(())
 }

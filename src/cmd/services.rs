@@ -244,6 +244,9 @@ pub struct SimRunArgs {
     /// Publish no navigation data (each vehicle's simulated depth, IMU and DVL).
     #[arg(long)]
     no_nav: bool,
+    /// Hide a vehicle from every camera for a span, `VEHICLE:FROM_S:TO_S`.
+    #[arg(long, value_name = "V:FROM:TO")]
+    occlude: Option<shoal_services::sim::Occlusion>,
     #[command(flatten)]
     net: NetArgs,
 }
@@ -367,6 +370,7 @@ pub fn run_sim(a: SimArgs) -> anyhow::Result<()> {
             duration_s: a.duration,
             commanded: vec![],
             nav: (!a.no_nav).then(shoal_sim_bridge::nav::NavSensorParams::default),
+            hidden: a.occlude.into_iter().collect(),
         },
         clock,
     )?;
