@@ -425,7 +425,7 @@ fn mean_or_nan(sum: f64, n: usize) -> f64 {
 /// Distinct observations over `maps` whose every hypothesis the nav checks
 /// refused (in some map), and those with one refused by nav (and not all).
 fn nav_verdicts(maps: &[FleetMap]) -> (usize, usize) {
-    type Key = (u64, VehicleId, u8, u64, u32);
+    type Key = shoal_proto::DetectionKey;
     let is_nav = |r: &Option<RejectReason>| {
         matches!(
             r,
@@ -438,14 +438,7 @@ fn nav_verdicts(maps: &[FleetMap]) -> (usize, usize) {
         // Per observation in this map: hypotheses reported, refused by nav.
         let mut per: BTreeMap<Key, (usize, usize)> = BTreeMap::new();
         for e in &m.edges {
-            let k = (
-                e.stamp_ns,
-                e.observer,
-                e.camera,
-                e.frame_seq,
-                e.target_marker,
-            );
-            let v = per.entry(k).or_default();
+            let v = per.entry(e.detection_key()).or_default();
             v.0 += 1;
             v.1 += usize::from(is_nav(&e.rejected));
         }
@@ -704,13 +697,7 @@ pub fn pair_errors(
             let (mut flipped, mut nees, mut n_nees) = (0usize, 0.0, 0usize);
             for view in &views {
                 let map = view.map();
-                let valid_at = map
-                    .edges
-                    .iter()
-                    .filter(|e| e.rejected.is_none())
-                    .map(|e| e.stamp_ns)
-                    .max()
-                    .unwrap_or(map.stamp_ns);
+                let valid_at = map.valid_at_ns();
                 let Some(truth) = truths.iter().min_by_key(|t| t.stamp_ns.abs_diff(valid_at))
                 else {
                     continue;

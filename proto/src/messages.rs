@@ -118,6 +118,23 @@ pub struct Observation {
     pub predicted: bool,
 }
 
+/// What identifies one detection across observations and edge reports:
+/// capture stamp, observer, camera, frame number, marker ID.
+pub type DetectionKey = (u64, VehicleId, u8, u64, MarkerId);
+
+impl Observation {
+    /// This detection's [`DetectionKey`] (its edge reports carry the same).
+    pub fn detection_key(&self) -> DetectionKey {
+        (
+            self.stamp_ns,
+            self.observer,
+            self.camera,
+            self.frame_seq,
+            self.target_marker,
+        )
+    }
+}
+
 impl WireMessage for Observation {
     const KIND: MessageKind = MessageKind::Observation;
     fn validate(&self) -> Result<(), (&'static str, String)> {
@@ -237,6 +254,19 @@ pub struct EdgeReport {
     pub chi2: f64,
 }
 
+impl EdgeReport {
+    /// The [`DetectionKey`] of the observation this verdict is about.
+    pub fn detection_key(&self) -> DetectionKey {
+        (
+            self.stamp_ns,
+            self.observer,
+            self.camera,
+            self.frame_seq,
+            self.target_marker,
+        )
+    }
+}
+
 /// The fused, fleet-wide relative map.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FleetMap {
@@ -250,6 +280,19 @@ pub struct FleetMap {
     pub edges: Vec<EdgeReport>,
     /// Wall time the solve took.
     pub solve_time_us: u64,
+}
+
+impl FleetMap {
+    /// Capture time of the newest accepted observation: the instant the map's
+    /// freshest information describes (its own stamp when nothing was accepted).
+    pub fn valid_at_ns(&self) -> u64 {
+        self.edges
+            .iter()
+            .filter(|e| e.rejected.is_none())
+            .map(|e| e.stamp_ns)
+            .max()
+            .unwrap_or(self.stamp_ns)
+    }
 }
 
 impl WireMessage for FleetMap {

@@ -58,13 +58,7 @@ impl TruthAcc {
     }
 
     pub fn add_map(&mut self, map: &FleetMap) {
-        let valid_at = map
-            .edges
-            .iter()
-            .filter(|e| e.rejected.is_none())
-            .map(|e| e.stamp_ns)
-            .max()
-            .unwrap_or(map.stamp_ns);
+        let valid_at = map.valid_at_ns();
         let known = self.truths.back().is_some_and(|t| t.stamp_ns >= valid_at);
         if known {
             self.score(valid_at, map);

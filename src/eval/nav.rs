@@ -111,27 +111,18 @@ fn score_map(map: &FleetMap, world: &BTreeMap<VehicleId, shoal_proto::Pose>, run
 
 /// Count the nav verdicts of the last map against the labels.
 fn score_nav_verdicts(map: &FleetMap, obs: &[SyntheticObservation], run: &mut Run) {
-    type Key = (u64, VehicleId, u8, u64, u32);
-    let mut reports: BTreeMap<Key, Vec<&Option<RejectReason>>> = BTreeMap::new();
+    let mut reports: BTreeMap<shoal_proto::DetectionKey, Vec<&Option<RejectReason>>> =
+        BTreeMap::new();
     for e in &map.edges {
-        let k = (
-            e.stamp_ns,
-            e.observer,
-            e.camera,
-            e.frame_seq,
-            e.target_marker,
-        );
-        reports.entry(k).or_default().push(&e.rejected);
+        reports
+            .entry(e.detection_key())
+            .or_default()
+            .push(&e.rejected);
     }
     for o in obs {
-        let k = (
-            o.obs.stamp_ns,
-            o.obs.observer,
-            o.obs.camera,
-            o.obs.frame_seq,
-            o.obs.target_marker,
-        );
-        let Some(r) = reports.get(&k) else { continue };
+        let Some(r) = reports.get(&o.obs.detection_key()) else {
+            continue;
+        };
         for (h, verdict) in r.iter().enumerate().take(2) {
             if matches!(
                 verdict,
