@@ -117,13 +117,13 @@ impl Fusion {
             in_window: &in_window,
             inflation: &self.params.age_inflation,
             now_ns,
-            odometry: (self.params.nav.enabled && self.params.nav.max_predict_s > 0.0).then(|| {
-                map::Predictor {
+            predictor: (self.params.nav.enabled && self.params.nav.max_predict_s > 0.0).then(
+                || map::Predictor {
                     odometry: &self.odometry,
                     max_predict_ns: seconds_to_ns(self.params.nav.max_predict_s),
                     max_gap_ns: seconds_to_ns(self.params.nav.max_gap_s),
-                }
-            }),
+                },
+            ),
         };
         let vehicles =
             map::vehicle_estimates(&ids, &evidence, &gated.solution, &mut self.last_estimate);

@@ -23,8 +23,8 @@ pub(crate) struct Verdicts {
     pub accepted: usize,
 }
 
-/// Each hypothesis' verdict: failed a nav check → `Gravity` / `Depth`
-/// (`nav`); gated → `ChiSquare`; accepted → `None`; of a
+/// Each hypothesis' verdict: failed a nav check → `Gravity` / `Depth` /
+/// `Heading` (`nav`); gated → `ChiSquare`; accepted → `None`; of a
 /// superseded group → `Superseded`; the other hypothesis of an accepted one →
 /// `FlippedHypothesis`; otherwise `Inconsistent`. `chi2` against the solution.
 pub(crate) fn verdicts(
@@ -129,7 +129,7 @@ pub(crate) struct Evidence<'a> {
     pub inflation: &'a AgeInflation,
     pub now_ns: u64,
     /// Dead reckoning of vehicles no camera sees (`None`: off).
-    pub odometry: Option<Predictor<'a>>,
+    pub predictor: Option<Predictor<'a>>,
 }
 
 /// What carries an unseen vehicle forward.
@@ -213,7 +213,7 @@ pub(crate) fn vehicle_estimates(
                 VehicleState::Unobserved
             };
             let predicted = evidence
-                .odometry
+                .predictor
                 .filter(|_| alive)
                 .zip(last_estimate.get(&v))
                 .and_then(|(p, (pose, cov, seen))| {
@@ -333,7 +333,7 @@ mod tests {
             in_window: &in_window,
             inflation: &inflation,
             now_ns: now,
-            odometry: None,
+            predictor: None,
         };
         let cov = Cov6::identity() * 1e-4;
         let solution = Poses::from([
