@@ -194,20 +194,8 @@ impl NavWindow {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::solve::testing::{paper_fleet, LIMITS, S};
     use proto::nav::{Depth, Tilt};
-    use std::path::Path;
-
-    const S: u64 = 1_000_000_000;
-    const LIMITS: Admission = Admission {
-        window_ns: 2 * S,
-        max_clock_skew_ns: S / 4,
-        max_std: 5.0,
-    };
-
-    fn paper_fleet() -> Fleet {
-        Fleet::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/fleets/paper.toml"))
-            .expect("paper fleet loads")
-    }
 
     fn nav(vehicle: VehicleId, stamp_ns: u64) -> NavState {
         NavState {
@@ -375,8 +363,10 @@ impl Odometry {
         };
         track.insert(nav.stamp_ns, point);
         let oldest = nav.stamp_ns.saturating_sub(keep_ns);
-        *track = track.split_off(&oldest);
-        while track.len() > max_samples.max(2) {
+        while track
+            .first_key_value()
+            .is_some_and(|(t, _)| *t < oldest || track.len() > max_samples.max(2))
+        {
             track.pop_first();
         }
         match nav.velocity {

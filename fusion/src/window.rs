@@ -214,20 +214,8 @@ pub(crate) fn early_report(
 mod tests {
     use super::*;
     use crate::solve::testing::observation;
+    use crate::solve::testing::{paper_fleet, LIMITS, S};
     use proto::geometry::pose_from_xyz_rpy;
-    use std::path::Path;
-
-    const S: u64 = 1_000_000_000;
-    const LIMITS: Admission = Admission {
-        window_ns: 2 * S,
-        max_clock_skew_ns: S / 4,
-        max_std: 5.0,
-    };
-
-    fn paper_fleet() -> Fleet {
-        Fleet::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/fleets/paper.toml"))
-            .expect("paper fleet loads")
-    }
 
     /// Vehicle 10 seeing 15's marker 15 at `stamp_ns`.
     fn seen(stamp_ns: u64) -> Observation {

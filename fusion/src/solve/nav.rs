@@ -143,20 +143,10 @@ pub(crate) fn check(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::solve::testing::frame;
-    use crate::window::Admission;
-    use proto::config::Fleet;
+    use crate::solve::testing::{frame, paper_fleet, LIMITS, S};
     use proto::geometry::{pose_from_xyz_rpy, Pose};
     use proto::nav::{Depth, Heading, NavState, Tilt};
     use proto::VehicleId;
-    use std::path::Path;
-
-    const S: u64 = 1_000_000_000;
-
-    fn paper_fleet() -> Fleet {
-        Fleet::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/fleets/paper.toml"))
-            .expect("paper fleet loads")
-    }
 
     /// Nav of a vehicle whose `world_from_body` is `pose`, 0.2° IMUs, 2 cm
     /// depth, no compass.
@@ -191,14 +181,9 @@ mod tests {
 
     fn window(navs: &[NavState]) -> NavWindow {
         let fleet = paper_fleet();
-        let limits = Admission {
-            window_ns: 2 * S,
-            max_clock_skew_ns: S / 4,
-            max_std: 5.0,
-        };
         let mut w = NavWindow::default();
         for n in navs {
-            w.admit(&fleet, *n, n.vehicle, 10 * S, &limits, 512)
+            w.admit(&fleet, *n, n.vehicle, 10 * S, &LIMITS, 512)
                 .expect("admitted");
         }
         w

@@ -2,9 +2,28 @@
 
 use super::frames::{Frame, TrackKey};
 use crate::consistency::Candidate;
-use crate::window::Stored;
+use crate::window::{Admission, Stored};
+use proto::config::Fleet;
 use proto::geometry::{Cov6, Pose};
 use proto::{CodeSet, ImageQuality, Observation, PoseHypothesis, VehicleId};
+
+/// One second, ns.
+pub const S: u64 = 1_000_000_000;
+
+/// Admission limits of the tests: a 2 s window, 0.25 s of clock skew, σ ≤ 5.
+pub const LIMITS: Admission = Admission {
+    window_ns: 2 * S,
+    max_clock_skew_ns: S / 4,
+    max_std: 5.0,
+};
+
+/// `configs/fleets/paper.toml`: vehicles 10, 15 and 17.
+pub fn paper_fleet() -> Fleet {
+    Fleet::load(
+        &std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/fleets/paper.toml"),
+    )
+    .expect("paper fleet loads")
+}
 
 /// Covariance of every hand-made observation: σ = 1 cm and 0.57° per axis.
 pub const COV: f64 = 1e-4;
