@@ -218,6 +218,7 @@ impl SimulatedSwarm {
                 placement: Placement::Central,
                 rate_hz: 5.0,
                 queue_capacity: 4096,
+                link: false,
             },
             clock.clone(),
         )?);

@@ -36,6 +36,8 @@ enum Command {
     Node(cmd::services::NodeArgs),
     /// Run swarm fusion: observations of all vehicles → one fleet map on Zenoh.
     Fusion(cmd::services::FusionArgs),
+    /// Send one vehicle's observations at an acoustic modem's rate: compact packets on shoal/<fleet>/<vehicle>/link.
+    Link(cmd::services::LinkArgs),
     /// Run the simulator on Zenoh (frames, ground truth, commands), or render one frame (`sim render`).
     Sim(cmd::services::SimArgs),
     /// Printable markers.
@@ -82,6 +84,7 @@ fn main() -> std::process::ExitCode {
         Command::Demo(a) => cmd::demo::run_demo(a),
         Command::Node(a) => cmd::services::run_node(a),
         Command::Fusion(a) => cmd::services::run_fusion(a),
+        Command::Link(a) => cmd::services::run_link(a),
         Command::Sim(a) => cmd::services::run_sim(a),
         Command::Marker(c) => cmd::tools::run_marker(c),
         Command::Detect(a) => cmd::tools::run_detect(a),

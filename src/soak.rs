@@ -217,6 +217,7 @@ fn spawn_fusion(
             placement: Placement::Central,
             rate_hz: 10.0,
             queue_capacity: 10_000,
+            link: false,
         },
         clock.clone(),
     )?;

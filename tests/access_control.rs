@@ -205,6 +205,7 @@ fn mutual_tls_and_access_control_confine_each_vehicle_to_its_own_keys() {
             placement: Placement::Central,
             rate_hz: 20.0,
             queue_capacity: 1000,
+            link: false,
         },
         clock.clone(),
     )

@@ -25,6 +25,14 @@ fn bad_numbers_are_refused_with_the_flag_named() {
     let out = out.to_str().unwrap();
     let cases: &[(&[&str], &str)] = &[
         (
+            &["link", "--vehicle", "10", "--rate-bps", "0"],
+            "--rate-bps",
+        ),
+        (
+            &["link", "--vehicle", "10", "--rate-bps", "NaN"],
+            "--rate-bps",
+        ),
+        (
             &["fuse", "in.mcap", "--out", "o.mcap", "--rate", "inf"],
             "--rate",
         ),

@@ -83,6 +83,7 @@ fn spawn_fusion(
             placement,
             rate_hz: 10.0,
             queue_capacity: 10_000,
+            link: false,
         },
         clock.clone(),
     )

@@ -30,13 +30,16 @@ use std::time::{Duration, Instant};
 /// fault: the last pose of a Stale vehicle must stay right too.
 const MAX_POSITION_ERROR_M: f64 = 0.15;
 const MAX_ANGLE_ERROR_DEG: f64 = 5.0;
-/// Known defect (docs/results.md, "Faults survived"): a vehicle localized
-/// through one flip-ambiguous track can be put on the planar-flip twin
-/// (≈ 1.7 m / 56° off) for a few maps. Tolerated as rare and short: at most
-/// this share of maps over the bound ...
-const MAX_SHARE_OVER_BOUND: f64 = 0.10;
-/// ... and no excursion longer than this (map time).
-const MAX_EXCURSION_NS: u64 = 2_000_000_000;
+/// A vehicle localized through one flip-ambiguous track could be put on the
+/// planar-flip twin (≈ 1.7 m / 56° off, turned about the vertical) for up to
+/// 2.2 s: 1 run in ~15 before fusion checked the vehicles' compass headings
+/// (issue #21). Since: 11 runs, 10 with no map over the bound and one with 4
+/// of 176 on-vehicle maps in a single 0.2 s run (a misread that passed every
+/// gate). So at most this share of maps over the bound (was 10 %) ...
+const MAX_SHARE_OVER_BOUND: f64 = 0.05;
+/// ... and no excursion longer than this (map time; was 2 s): a twin held
+/// for seconds fails, a lone bad solve does not.
+const MAX_EXCURSION_NS: u64 = 600_000_000;
 /// Maps per second of `shoal fusion` (its default).
 const MAP_PERIOD_NS: u64 = 200_000_000;
 

@@ -192,6 +192,7 @@ impl FusionRig {
                 placement: Placement::Central,
                 rate_hz: 20.0,
                 queue_capacity: 10_000,
+                link: false,
             },
             clock.clone(),
         )

@@ -101,13 +101,7 @@ fn recording() -> &'static Recorded {
         let clock = Arc::new(ManualClock::new(0));
         let fusion = shoal_services::fusion::spawn(
             &Bus::open(&client_of(port)).unwrap(),
-            FusionConfig {
-                fleet: fleet.clone(),
-                params: FusionParams::default(),
-                placement: Placement::Central,
-                rate_hz: 10.0,
-                queue_capacity: 4096,
-            },
+            FusionConfig::central(fleet.clone(), 10.0),
             clock.clone(),
         )
         .unwrap();
@@ -436,6 +430,7 @@ fn replay_into_a_fresh_fusion_reproduces_the_live_map() {
             placement: Placement::Central,
             rate_hz: 20.0,
             queue_capacity: 4096,
+            link: false,
         },
         clock.clone(),
     )

@@ -131,6 +131,17 @@ pub struct FusionParams {
     /// Gravity and depth checks with the vehicles' own navigation.
     #[serde(default)]
     pub nav: NavParams,
+    /// Window of observations that arrived over a slow link
+    /// ([`Fusion::ingest_linked`]), seconds (default
+    /// [`link::LINK_WINDOW_S`], 8 s: what crosses an acoustic link is 1 s
+    /// old or more). A vehicle's own observations keep `window_s`, so a
+    /// manoeuvring neighbour it sees itself is not outvoted by seconds-old news.
+    #[serde(default = "default_link_window_s")]
+    pub link_window_s: f64,
+}
+
+fn default_link_window_s() -> f64 {
+    link::LINK_WINDOW_S
 }
 
 impl Default for FusionParams {
@@ -150,6 +161,7 @@ impl Default for FusionParams {
             record_solve_time: true,
             motion: MotionModel::default(),
             nav: NavParams::default(),
+            link_window_s: link::LINK_WINDOW_S,
         }
     }
 }
@@ -294,6 +306,7 @@ impl Fusion {
     fn admission(&self) -> Admission {
         Admission {
             window_ns: seconds_to_ns(self.params.window_s),
+            link_window_ns: seconds_to_ns(self.params.link_window_s),
             max_clock_skew_ns: seconds_to_ns(self.params.max_clock_skew_s),
             max_std: self.params.max_std,
         }
@@ -307,6 +320,26 @@ impl Fusion {
         arrived_on: VehicleId,
         now_ns: u64,
     ) -> Result<(), RejectReason> {
+        self.ingest_from(obs, (arrived_on, false), now_ns)
+    }
+
+    /// [`Fusion::ingest`] for an observation that crossed a slow link (a
+    /// compact packet from `shoal link`): kept for `link_window_s`.
+    pub fn ingest_linked(
+        &mut self,
+        obs: Observation,
+        arrived_on: VehicleId,
+        now_ns: u64,
+    ) -> Result<(), RejectReason> {
+        self.ingest_from(obs, (arrived_on, true), now_ns)
+    }
+
+    fn ingest_from(
+        &mut self,
+        obs: Observation,
+        source: (VehicleId, bool),
+        now_ns: u64,
+    ) -> Result<(), RejectReason> {
         self.stats.received += 1;
         let limits = self.admission();
         let target = match self.fleet.marker_owner(obs.codes, obs.target_marker) {
@@ -317,7 +350,7 @@ impl Fusion {
         let (observer, stamp) = (obs.observer, obs.stamp_ns);
         match self
             .window
-            .admit(&self.fleet, obs, arrived_on, now_ns, &limits)
+            .admit_from(&self.fleet, obs, source, now_ns, &limits)
         {
             Ok(target) => {
                 self.stats.ingested += 1;

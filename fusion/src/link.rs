@@ -25,6 +25,19 @@ use proto::geometry::{difference, perturb, Cov6};
 use proto::Observation;
 use std::collections::{BTreeMap, VecDeque};
 
+/// One-way latency of an acoustic modem link (the evaluation's and the
+/// link sender's assumption).
+pub const MODEM_LATENCY_NS: u64 = 1_000_000_000;
+/// Bytes a modem adds to every packet (sync, address, CRC).
+pub const MODEM_OVERHEAD_BYTES: usize = 8;
+/// A fusion fed over such a link keeps this much time in its window: what
+/// crosses the link arrives 1 s old or more, so the default 2 s window would
+/// keep little of it. Chosen from the link's latency and the modem's packet
+/// time before any run; 3 s and 4 s were tried after (seeds 1–2, 4 s also
+/// 11–15): better when manoeuvring, worse when holding station
+/// (`docs/results.md`, "links").
+pub const LINK_WINDOW_S: f64 = 8.0;
+
 /// A token bucket of bits: `rate_bps` tokens a second, at most `burst_bits` saved.
 #[derive(Debug, Clone)]
 pub struct TokenBucket {

@@ -35,8 +35,11 @@ impl Fusion {
     pub fn solve(&mut self, now_ns: u64) -> FleetMap {
         let started = self.params.record_solve_time.then(Instant::now);
         let window_ns = seconds_to_ns(self.params.window_s);
-        self.stats.expired += self.window.evict(now_ns, window_ns) as u64;
-        let nav_keep_ns = window_ns.saturating_add(seconds_to_ns(self.params.nav.max_gap_s));
+        let link_window_ns = seconds_to_ns(self.params.link_window_s);
+        self.stats.expired += self.window.evict(now_ns, window_ns, link_window_ns) as u64;
+        let nav_keep_ns = window_ns
+            .max(link_window_ns)
+            .saturating_add(seconds_to_ns(self.params.nav.max_gap_s));
         self.nav.evict(now_ns, nav_keep_ns);
         let reference = self.fleet.reference_vehicle;
         let consistency = &self.params.consistency;
@@ -44,9 +47,19 @@ impl Fusion {
 
         let mut frames = frames::measured(&entries, now_ns, &self.params.age_inflation);
         let (nav_verdicts, nav_stats) = nav::check(&mut frames, &self.nav, &self.params.nav);
-        let groups = groups::group_tracks(&frames, consistency.gate_chi2, consistency.fuse_tracks);
+        let mut groups =
+            groups::group_tracks(&frames, consistency.gate_chi2, consistency.fuse_tracks);
+        // Once pairs are seen to move, older frames describe the past to within
+        // how far a pair moves in that time: grouped again with that known.
+        let mut fits = motion::fit_groups(&frames, &groups, &self.params.motion);
+        let moving = motion::pair_motion(&frames, &groups, &fits);
+        if !moving.is_empty() {
+            frames::inflate_moving(&mut frames, &moving, now_ns);
+            groups = groups::group_tracks(&frames, consistency.gate_chi2, consistency.fuse_tracks);
+            fits = motion::fit_groups(&frames, &groups, &self.params.motion);
+        }
         let superseded = groups.superseded_frames(frames.len());
-        let moving_groups = motion::compensate(&mut frames, &groups, &self.params.motion);
+        let moving_groups = motion::compensate(&mut frames, &groups, &fits);
         let pairs = hypotheses::pair_candidates(&frames, &groups, consistency);
         let prior = hypotheses::attitude_prior(&self.last_estimate, &pairs, now_ns, window_ns);
         let hyps = hypotheses::choose(

@@ -108,12 +108,17 @@ pub(crate) struct Stored {
     pub obs: Observation,
     /// The vehicle carrying the marker, per the fleet file.
     pub target: VehicleId,
+    /// Arrived over a slow link ([`crate::Fusion::ingest_linked`]): kept for
+    /// the link window instead of the window.
+    pub linked: bool,
 }
 
 /// Limits the admission checks use.
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct Admission {
     pub window_ns: u64,
+    /// The window of observations that arrived over a slow link.
+    pub link_window_ns: u64,
     pub max_clock_skew_ns: u64,
     pub max_std: f64,
 }
@@ -127,6 +132,7 @@ pub(crate) struct Window {
 
 impl Window {
     /// Admit `obs` or say why not (never double-counts a detection).
+    #[cfg(test)]
     pub fn admit(
         &mut self,
         fleet: &Fleet,
@@ -135,6 +141,20 @@ impl Window {
         now_ns: u64,
         limits: &Admission,
     ) -> Result<VehicleId, RejectReason> {
+        self.admit_from(fleet, obs, (arrived_on, false), now_ns, limits)
+    }
+
+    /// Admit `obs`, which arrived on `source.0`'s key (over a slow link when
+    /// `source.1`), or say why not (never double-counts a detection).
+    pub fn admit_from(
+        &mut self,
+        fleet: &Fleet,
+        obs: Observation,
+        source: (VehicleId, bool),
+        now_ns: u64,
+        limits: &Admission,
+    ) -> Result<VehicleId, RejectReason> {
+        let (arrived_on, linked) = source;
         if obs.observer != arrived_on {
             return Err(RejectReason::ObserverMismatch);
         }
@@ -165,24 +185,42 @@ impl Window {
         if obs.stamp_ns > now_ns.saturating_add(limits.max_clock_skew_ns) {
             return Err(RejectReason::ClockSkew);
         }
-        if obs.stamp_ns.saturating_add(limits.window_ns) < now_ns {
+        let window_ns = if linked {
+            limits.link_window_ns
+        } else {
+            limits.window_ns
+        };
+        if obs.stamp_ns.saturating_add(window_ns) < now_ns {
             return Err(RejectReason::Stale);
         }
         let key = ObservationKey::of(&obs);
         if !self.duplicates.insert(key.duplicate_key()) {
             return Err(RejectReason::Duplicate);
         }
-        self.entries.insert(key, Stored { obs, target });
+        self.entries.insert(
+            key,
+            Stored {
+                obs,
+                target,
+                linked,
+            },
+        );
         Ok(target)
     }
 
-    /// Drop what fell out of the window; returns how many.
-    pub fn evict(&mut self, now_ns: u64, window_ns: u64) -> usize {
+    /// Drop what fell out of its window (`window_ns`, or `link_window_ns` for
+    /// what arrived over a link); returns how many.
+    pub fn evict(&mut self, now_ns: u64, window_ns: u64, link_window_ns: u64) -> usize {
+        let shorter = window_ns.min(link_window_ns);
         let expired: Vec<ObservationKey> = self
             .entries
-            .keys()
-            .take_while(|k| k.stamp_ns.saturating_add(window_ns) < now_ns)
-            .copied()
+            .iter()
+            .take_while(|(k, _)| k.stamp_ns.saturating_add(shorter) < now_ns)
+            .filter(|(k, s)| {
+                let w = if s.linked { link_window_ns } else { window_ns };
+                k.stamp_ns.saturating_add(w) < now_ns
+            })
+            .map(|(k, _)| *k)
             .collect();
         for k in &expired {
             self.entries.remove(k);
@@ -270,8 +308,47 @@ mod tests {
             Err(RejectReason::Duplicate)
         );
         // At t0 + 3 s the frames at t0 and t0 + 0.5 s are beyond 2 s.
-        assert_eq!(w.evict(t0 + 3 * S, LIMITS.window_ns), 2);
+        assert_eq!(
+            w.evict(t0 + 3 * S, LIMITS.window_ns, LIMITS.link_window_ns),
+            2
+        );
         assert_eq!(w.entries.len(), 3);
         assert_eq!(w.duplicates.len(), 3);
+    }
+
+    #[test]
+    fn what_crossed_a_link_is_kept_for_the_link_window_and_the_rest_for_the_window() {
+        let fleet = paper_fleet();
+        let mut w = Window::default();
+        let now = 100 * S;
+        // 5 s old: too old for the 2 s window, within the 8 s link window.
+        assert_eq!(
+            w.admit_from(&fleet, seen(now - 5 * S), (10, false), now, &LIMITS),
+            Err(RejectReason::Stale)
+        );
+        assert_eq!(
+            w.admit_from(&fleet, seen(now - 5 * S), (10, true), now, &LIMITS),
+            Ok(15)
+        );
+        assert_eq!(
+            w.admit_from(&fleet, seen(now - 8 * S - 1), (10, true), now, &LIMITS),
+            Err(RejectReason::Stale)
+        );
+        w.admit_from(&fleet, seen(now - S), (10, false), now, &LIMITS)
+            .unwrap();
+        w.admit_from(&fleet, seen(now - S / 2), (10, true), now, &LIMITS)
+            .unwrap();
+        // 2.5 s later: the local frame (3.5 s old) is gone, both linked ones stay.
+        assert_eq!(
+            w.evict(now + 5 * S / 2, LIMITS.window_ns, LIMITS.link_window_ns),
+            1
+        );
+        assert!(w.entries.values().all(|s| s.linked));
+        // 3 s after that the older linked frame (10.5 s) goes, the newer (6 s) stays.
+        assert_eq!(
+            w.evict(now + 11 * S / 2, LIMITS.window_ns, LIMITS.link_window_ns),
+            1
+        );
+        assert_eq!(w.entries.len(), 1);
     }
 }

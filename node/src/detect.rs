@@ -259,8 +259,8 @@ impl ShoalDetector {
         let raw = images.raw.as_ref();
         Ok(found
             .into_iter()
-            .map(|code| {
-                let marker = assemble::assemble(p, self.codes, images, code, &quads);
+            .filter_map(|code| assemble::assemble(p, self.codes, images, code, &quads))
+            .map(|marker| {
                 let fitted = corners::fit_marker(p, self.codes, raw, &marker);
                 Detection {
                     codes: self.codes,

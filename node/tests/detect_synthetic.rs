@@ -190,3 +190,45 @@ fn rejects_a_malformed_image() {
     let mut det = ShoalDetector::new(CodeSet::Shoal, DetectParams::default());
     assert!(det.detect_gray(&bad).is_err());
 }
+
+#[test]
+fn another_fiducials_black_square_is_not_read_as_an_enhanced_marker() {
+    // A plain ArUco 4x4 marker carries the enhanced marker's code square
+    // (the same code table) but no frame around it: with the frame required
+    // (the default) it is not a shoal marker; without, it reads as one.
+    let pose = facing(0.0, 0.0, 0.61, 0.0, 20.0);
+    let img = render(CodeSet::Aruco4x4_50, 17, pose, &WaterParams::clear());
+    let found = ShoalDetector::new(CodeSet::Shoal, DetectParams::default())
+        .detect_gray(&img)
+        .unwrap();
+    assert!(found.is_empty(), "{found:?}");
+    let loose = DetectParams {
+        require_frame: false,
+        ..DetectParams::default()
+    };
+    let found = ShoalDetector::new(CodeSet::Shoal, loose)
+        .detect_gray(&img)
+        .unwrap();
+    assert_eq!(found.iter().map(|d| d.id).collect::<Vec<_>>(), vec![17]);
+    // Its black square, and the edge of the white around it as the frame's
+    // inner edge: never the outer frame edge.
+    assert!(!found[0].corner_ids.contains(&0), "{found:?}");
+    // The enhanced marker itself in turbid water, its outer edge too faint
+    // to fit, is still read: the frame shows in the pixels.
+    for water in [1.38, 3.92] {
+        let img = render(
+            CodeSet::Shoal,
+            17,
+            facing(0.0, 0.0, 0.61, 0.0, 20.0),
+            &WaterParams::preset(water),
+        );
+        let found = ShoalDetector::new(CodeSet::Shoal, DetectParams::default())
+            .detect_gray(&img)
+            .unwrap();
+        assert_eq!(
+            found.iter().map(|d| d.id).collect::<Vec<_>>(),
+            vec![17],
+            "{water} /m"
+        );
+    }
+}

@@ -17,7 +17,7 @@ use bincode::config::{Configuration, Fixint, Limit, LittleEndian};
 
 pub const MAGIC: [u8; 4] = *b"SHOL";
 /// Bumped on any incompatible change of a message layout.
-pub const SCHEMA_VERSION: u16 = 3;
+pub const SCHEMA_VERSION: u16 = 4;
 pub const HEADER_LEN: usize = 12;
 /// Largest payload accepted: a 4096x4096 RGB frame plus slack.
 pub const MAX_PAYLOAD: usize = 64 << 20;

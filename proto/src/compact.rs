@@ -33,7 +33,9 @@
 
 use crate::geometry::{Cov6, Pose};
 use crate::marker::CodeSet;
-use crate::messages::{ImageQuality, Observation, PoseHypothesis};
+use crate::messages::{
+    ImageQuality, MessageKind, Observation, PoseHypothesis, VehicleId, WireMessage,
+};
 use nalgebra::{Quaternion, Translation3, UnitQuaternion};
 
 /// The version this module writes and reads.
@@ -368,6 +370,47 @@ fn read_covariance(b: &[u8]) -> Result<Cov6, CompactError> {
         field: "covariance",
         reason: "the correlations are not a correlation matrix".into(),
     })
+}
+
+/// What a vehicle's link sender (`shoal link`) publishes on
+/// `shoal/<fleet>/<vehicle>/link`: one compact observation, `payload` being
+/// exactly the bytes the modem carries. The envelope around it is for the
+/// local bus and the log; a modem driver sends `payload` and, on the far
+/// side, publishes it again under the sender's key.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct LinkPacket {
+    /// The vehicle whose modem sent it (the observation's observer).
+    pub sender: VehicleId,
+    /// Per sender, counting up from 0 when its link sender starts (gaps are packets lost).
+    pub seq: u32,
+    /// One observation in this module's encoding.
+    pub payload: Vec<u8>,
+}
+
+impl LinkPacket {
+    /// The observation it carries, checked against its sender.
+    pub fn observation(&self) -> Result<Observation, CompactError> {
+        let obs = decode(&self.payload)?;
+        if obs.observer != self.sender {
+            return Err(CompactError::Invalid {
+                field: "observer",
+                reason: format!(
+                    "observation of vehicle {} in a packet sent by vehicle {}",
+                    obs.observer, self.sender
+                ),
+            });
+        }
+        Ok(obs)
+    }
+}
+
+impl WireMessage for LinkPacket {
+    const KIND: MessageKind = MessageKind::LinkPacket;
+    fn validate(&self) -> Result<(), (&'static str, String)> {
+        self.observation()
+            .map(|_| ())
+            .map_err(|e| ("payload", e.to_string()))
+    }
 }
 
 #[cfg(test)]

@@ -7,6 +7,7 @@
 //! shoal/<fleet>/<vehicle>/alive            liveliness token of a node
 //! shoal/<fleet>/<vehicle>/cmd              velocity commands to a vehicle
 //! shoal/<fleet>/<vehicle>/nav              the vehicle's own navigation (depth, roll/pitch, velocity)
+//! shoal/<fleet>/<vehicle>/link             compact observations for an acoustic-rate link (`LinkPacket`)
 //! shoal/<fleet>/map                        fused fleet map (put) and its queryable
 //! shoal/<fleet>/map/<producer>             a decentralized fusion instance's map
 //! shoal/<fleet>/sim/truth                  simulator ground truth
@@ -25,6 +26,7 @@ pub enum KeyKind {
     Alive { vehicle: VehicleId },
     Command { vehicle: VehicleId },
     Nav { vehicle: VehicleId },
+    Link { vehicle: VehicleId },
     Map { producer: Option<String> },
     Truth,
 }
@@ -85,6 +87,9 @@ impl Keys {
     pub fn nav(&self, v: VehicleId) -> String {
         self.vehicle(v, "nav")
     }
+    pub fn link(&self, v: VehicleId) -> String {
+        self.vehicle(v, "link")
+    }
     pub fn map(&self) -> String {
         format!("shoal/{}/map", self.fleet)
     }
@@ -121,6 +126,9 @@ impl Keys {
     }
     pub fn all_nav(&self) -> String {
         self.vehicle_wild("nav")
+    }
+    pub fn all_links(&self) -> String {
+        self.vehicle_wild("link")
     }
     pub fn all_maps(&self) -> String {
         format!("shoal/{}/map/**", self.fleet)
@@ -159,6 +167,7 @@ impl Keys {
                     ["alive"] => Ok(KeyKind::Alive { vehicle }),
                     ["cmd"] => Ok(KeyKind::Command { vehicle }),
                     ["nav"] => Ok(KeyKind::Nav { vehicle }),
+                    ["link"] => Ok(KeyKind::Link { vehicle }),
                     ["cam", k, "frame"] => Ok(KeyKind::Frame {
                         vehicle,
                         camera: k.parse().map_err(|_| bad())?,
@@ -194,6 +203,7 @@ mod tests {
             KeyKind::Alive { vehicle: 17 }
         );
         assert_eq!(k.parse(&k.nav(10)).unwrap(), KeyKind::Nav { vehicle: 10 });
+        assert_eq!(k.parse(&k.link(17)).unwrap(), KeyKind::Link { vehicle: 17 });
         assert_eq!(k.parse(&k.map()).unwrap(), KeyKind::Map { producer: None });
         assert_eq!(k.parse(&k.truth()).unwrap(), KeyKind::Truth);
         assert!(k.parse("shoal/other/15/obs").is_err());

@@ -24,10 +24,11 @@ pub enum MessageKind {
     NodeStatus = 5,
     VehicleCommand = 6,
     NavState = 7,
+    LinkPacket = 8,
 }
 
 impl MessageKind {
-    pub const ALL: [MessageKind; 7] = [
+    pub const ALL: [MessageKind; 8] = [
         MessageKind::Observation,
         MessageKind::FleetMap,
         MessageKind::CameraFrame,
@@ -35,6 +36,7 @@ impl MessageKind {
         MessageKind::NodeStatus,
         MessageKind::VehicleCommand,
         MessageKind::NavState,
+        MessageKind::LinkPacket,
     ];
 
     pub fn from_u16(v: u16) -> Option<MessageKind> {
@@ -51,6 +53,7 @@ impl MessageKind {
             MessageKind::NodeStatus => "shoal.NodeStatus",
             MessageKind::VehicleCommand => "shoal.VehicleCommand",
             MessageKind::NavState => "shoal.NavState",
+            MessageKind::LinkPacket => "shoal.LinkPacket",
         }
     }
 }

@@ -143,6 +143,42 @@ pub fn vehicle_command() -> VehicleCommand {
     }
 }
 
+pub fn nav_state() -> crate::nav::NavState {
+    use crate::nav::{BodyVelocity, Depth, Heading, Tilt};
+    crate::nav::NavState {
+        vehicle: 15,
+        stamp_ns: 1_000_000_000,
+        depth: Some(Depth {
+            depth_m: 5.0,
+            std_m: 0.02,
+        }),
+        tilt: Some(Tilt {
+            roll_rad: 0.01,
+            pitch_rad: -0.02,
+            covariance: [[1e-5, 0.0], [0.0, 1e-5]],
+        }),
+        heading: Some(Heading {
+            yaw_rad: 0.5,
+            std_rad: 0.03,
+        }),
+        velocity: Some(BodyVelocity {
+            velocity_mps: [0.3, 0.0, 0.01],
+            covariance: [[1e-4, 0.0, 0.0], [0.0, 1e-4, 0.0], [0.0, 0.0, 1e-4]],
+        }),
+    }
+}
+
+/// [`observation`] as a vehicle's link sender puts it on the bus.
+pub fn link_packet() -> crate::compact::LinkPacket {
+    let obs = observation();
+    crate::compact::LinkPacket {
+        sender: obs.observer,
+        seq: 3,
+        payload: crate::compact::encode(&obs)
+            .expect("the sample observation fits the compact form"),
+    }
+}
+
 /// A valid envelope of each kind, in `MessageKind::ALL` order.
 pub fn samples() -> Vec<Vec<u8>> {
     // Every sample above is a few hundred bytes of plain serde data: bincode
@@ -155,5 +191,7 @@ pub fn samples() -> Vec<Vec<u8>> {
         encode(&sim_truth()).expect(SMALL_AND_VALID),
         encode(&node_status()).expect(SMALL_AND_VALID),
         encode(&vehicle_command()).expect(SMALL_AND_VALID),
+        encode(&nav_state()).expect(SMALL_AND_VALID),
+        encode(&link_packet()).expect(SMALL_AND_VALID),
     ]
 }

@@ -14,7 +14,9 @@ use proptest::test_runner::Config as ProptestConfig;
 use shoal_proto::codec::{
     decode, encode, peek_header, DecodeError, HEADER_LEN, MAX_PAYLOAD, SCHEMA_VERSION,
 };
+use shoal_proto::compact::LinkPacket;
 use shoal_proto::messages::*;
+use shoal_proto::nav::NavState;
 use shoal_proto::samples::*;
 
 /// Failures print the minimal input; no regression files in the source tree.
@@ -55,6 +57,8 @@ fn decode_as_every_kind(bytes: &[u8]) -> usize {
         accepted_means_canonical::<SimTruth>(bytes).is_ok(),
         accepted_means_canonical::<NodeStatus>(bytes).is_ok(),
         accepted_means_canonical::<VehicleCommand>(bytes).is_ok(),
+        accepted_means_canonical::<NavState>(bytes).is_ok(),
+        accepted_means_canonical::<LinkPacket>(bytes).is_ok(),
     ]
     .iter()
     .filter(|ok| **ok)
@@ -117,7 +121,7 @@ proptest! {
     /// A correct header of any kind over random payload bytes.
     #[test]
     fn random_payload_under_a_valid_header_never_panics(
-        kind in 1u16..=6,
+        kind in 1u16..=8,
         payload in proptest::collection::vec(any::<u8>(), 0..2048),
     ) {
         let b = with_header(SCHEMA_VERSION, kind, payload.len() as u32, &payload);
@@ -127,7 +131,7 @@ proptest! {
     /// Every kind's valid message with bytes flipped, cut, or extended.
     #[test]
     fn corrupted_messages_of_every_kind_are_rejected_or_read_exactly(
-        which in 0usize..6,
+        which in 0usize..8,
         flips in proptest::collection::vec((any::<usize>(), any::<u8>()), 0..6),
         cut in proptest::option::of(any::<usize>()),
         extra in proptest::collection::vec(any::<u8>(), 0..8),
@@ -152,7 +156,7 @@ proptest! {
     /// Headers that lie: any version, kind or length in front of a valid payload.
     #[test]
     fn lying_headers_are_rejected_with_the_matching_error(
-        which in 0usize..6,
+        which in 0usize..8,
         version in any::<u16>(),
         kind in any::<u16>(),
         declared in any::<u32>(),

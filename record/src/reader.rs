@@ -263,6 +263,7 @@ pub fn scan<E>(
             Some((opcode, len)) => {
                 plausible(opcode, len, at, limit)
                     && !SUMMARY_OPCODES.contains(&opcode)
+                    && (opcode != op::DATA_END || data_end_here(len, at, index.as_ref()))
                     && f.framed(opcode, len, at)?
             }
             None => false,
@@ -341,6 +342,18 @@ pub fn scan<E>(
     out.decompressed_bytes = decompression_budget(f.len) - budget;
     finish(&mut out, index.as_ref(), data_end, data_crc);
     Ok(out)
+}
+
+/// Whether a data-end record at byte `at`, `len` bytes long, is the data
+/// section's end: where an intact summary says it is, else the 4 bytes of
+/// its one field (shoal's writer appends none). One damaged opcode can turn
+/// any record into a data end (a message index's 0x07 with bit 3 flipped is
+/// 0x0F), which would end the scan and lose every chunk after it.
+fn data_end_here(len: u64, at: u64, index: Option<&SummaryIndex>) -> bool {
+    match index.and_then(|ix| ix.data_end) {
+        Some(d) => d == at,
+        None => len == 4,
+    }
 }
 
 /// The length a chunk record's own fields give its body (start, end,

@@ -561,6 +561,15 @@ impl Converter {
                 Ok(n) => publish_time = n.stamp_ns,
                 Err(_) => undecodable = true,
             },
+            Some(MessageKind::LinkPacket) => {
+                match codec::decode::<proto::compact::LinkPacket>(bytes)
+                    .ok()
+                    .and_then(|p| p.observation().ok())
+                {
+                    Some(o) => publish_time = o.stamp_ns,
+                    None => undecodable = true,
+                }
+            }
             None => undecodable = true,
         }
         if matches!(key_kind, Some(KeyKind::Frame { .. })) && !self.opts.frames {

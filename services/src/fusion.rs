@@ -1,15 +1,19 @@
 //! The fusion service (`shoal fusion`): subscribes to every vehicle's
 //! observations, navigation states and liveliness, solves at a fixed rate, publishes the fleet
 //! map and serves the newest one to late joiners (a Zenoh queryable).
+//! With [`FusionConfig::link`] it hears the other vehicles over an
+//! acoustic-rate link instead: their compact packets (`shoal link`) and, on a
+//! vehicle, its own observations and navigation in full.
 //! Also [`MapClient`], the subscription half of the controller API. The
 //! fusion itself is `shoal_fusion::Fusion`.
 
 use shoal_bus::{Bus, BusError, Publisher, Subscription, Worker};
 use shoal_fusion::{Fusion, FusionParams, FusionStats, LatestMap, MapView};
 use shoal_proto::clock::Clock;
+use shoal_proto::compact::LinkPacket;
 use shoal_proto::config::Fleet;
 use shoal_proto::queue::DropOldestQueue;
-use shoal_proto::{FleetMap, KeyKind, NavState, Observation, VehicleId};
+use shoal_proto::{FleetMap, KeyKind, Keys, NavState, Observation, VehicleId};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -32,6 +36,130 @@ pub struct FusionConfig {
     pub rate_hz: f64,
     /// Observations buffered between solves before the oldest are dropped.
     pub queue_capacity: usize,
+    /// Fed over an acoustic-rate link: the vehicles' [`LinkPacket`]s (not
+    /// their full observations; kept for `params.link_window_s`), plus, on a
+    /// vehicle, its own observations and navigation (kept for `params.window_s`).
+    pub link: bool,
+}
+
+impl FusionConfig {
+    /// Central fusion of every vehicle's full observations, default
+    /// parameters, `rate_hz` maps a second, 4096 observations buffered.
+    pub fn central(fleet: Arc<Fleet>, rate_hz: f64) -> Self {
+        Self {
+            fleet,
+            params: FusionParams::default(),
+            placement: Placement::Central,
+            rate_hz,
+            queue_capacity: 4096,
+            link: false,
+        }
+    }
+}
+
+/// What fusion subscribes to: every vehicle's observations and navigation,
+/// or (link mode) the link packets and, on a vehicle, its own.
+struct Inputs {
+    observations: Option<Subscription<Observation>>,
+    nav: Option<Subscription<NavState>>,
+    links: Option<Subscription<LinkPacket>>,
+    /// Link packets from this vehicle are its own observations again: skipped.
+    own: Option<VehicleId>,
+}
+
+impl Inputs {
+    fn subscribe(bus: &Bus, cfg: &FusionConfig) -> Result<Inputs, BusError> {
+        let keys = cfg.fleet.keys();
+        let cap = cfg.queue_capacity;
+        let own = match cfg.placement {
+            Placement::OnVehicle(v) => Some(v),
+            Placement::Central => None,
+        };
+        Ok(if !cfg.link {
+            Inputs {
+                observations: Some(bus.subscribe(&keys.all_observations(), cap)?),
+                nav: Some(bus.subscribe(&keys.all_nav(), cap)?),
+                links: None,
+                own,
+            }
+        } else {
+            Inputs {
+                observations: own
+                    .map(|v| bus.subscribe(&keys.observations(v), cap))
+                    .transpose()?,
+                nav: own.map(|v| bus.subscribe(&keys.nav(v), cap)).transpose()?,
+                links: Some(bus.subscribe(&keys.all_links(), cap)?),
+                own,
+            }
+        })
+    }
+
+    fn dropped(&self) -> u64 {
+        self.observations.as_ref().map_or(0, |s| s.dropped())
+            + self.links.as_ref().map_or(0, |s| s.dropped())
+    }
+
+    fn rejected(&self) -> u64 {
+        self.observations
+            .as_ref()
+            .map_or(0, |s| s.stats().rejected())
+            + self.links.as_ref().map_or(0, |s| s.stats().rejected())
+    }
+
+    /// Hand everything received to `fusion`; returns the link packets refused.
+    fn feed(&self, fusion: &mut Fusion, keys: &Keys, now: u64) -> u64 {
+        for r in self.nav.iter().flat_map(|s| s.drain()) {
+            match keys.parse(&r.key) {
+                Ok(KeyKind::Nav { vehicle }) => {
+                    if let Err(e) = fusion.ingest_nav(r.msg, vehicle, now) {
+                        tracing::debug!("nav state on {} refused: {e}", r.key);
+                    }
+                }
+                _ => tracing::warn!("nav state on unexpected key {}", r.key),
+            }
+        }
+        for r in self.observations.iter().flat_map(|s| s.drain()) {
+            match keys.parse(&r.key) {
+                Ok(KeyKind::Observations { vehicle }) => {
+                    if let Err(reason) = fusion.ingest(r.msg, vehicle, now) {
+                        tracing::debug!("observation on {} rejected: {reason:?}", r.key);
+                    }
+                }
+                _ => tracing::warn!("observation on unexpected key {}", r.key),
+            }
+        }
+        let mut refused = 0;
+        for r in self.links.iter().flat_map(|s| s.drain()) {
+            let vehicle = match keys.parse(&r.key) {
+                Ok(KeyKind::Link { vehicle }) if vehicle == r.msg.sender => vehicle,
+                _ => {
+                    tracing::debug!(
+                        "link packet of vehicle {} on key {}: refused",
+                        r.msg.sender,
+                        r.key
+                    );
+                    refused += 1;
+                    continue;
+                }
+            };
+            if Some(vehicle) == self.own {
+                continue;
+            }
+            // Validated on receipt (`LinkPacket::validate`), so this decodes.
+            match r.msg.observation() {
+                Ok(obs) => {
+                    if let Err(reason) = fusion.ingest_linked(obs, vehicle, now) {
+                        tracing::debug!("link observation on {} rejected: {reason:?}", r.key);
+                    }
+                }
+                Err(e) => {
+                    tracing::debug!("link packet on {}: {e}", r.key);
+                    refused += 1;
+                }
+            }
+        }
+        refused
+    }
 }
 
 /// A running fusion service.
@@ -87,9 +215,7 @@ pub fn spawn(
         Placement::Central => ("central".to_string(), keys.map()),
         Placement::OnVehicle(v) => (v.to_string(), keys.map_of(&v.to_string())),
     };
-    let observations: Subscription<Observation> =
-        bus.subscribe(&keys.all_observations(), cfg.queue_capacity)?;
-    let nav: Subscription<NavState> = bus.subscribe(&keys.all_nav(), cfg.queue_capacity)?;
+    let inputs = Inputs::subscribe(bus, &cfg)?;
     let liveliness: DropOldestQueue<(String, bool)> = DropOldestQueue::new(1024);
     let l = liveliness.clone();
     let watch = bus.watch_liveliness(&keys.all_alive(), move |k, alive| {
@@ -112,6 +238,7 @@ pub fn spawn(
     let worker = Worker::spawn(format!("fusion-{producer}"), move |stop2| {
         let _keep = (watch, queryable, bus);
         let mut next = Instant::now();
+        let mut refused_total = 0u64;
         while !stop2.load(Ordering::Relaxed) {
             let now = clock.now_ns();
             for (key, alive) in liveliness.drain() {
@@ -119,28 +246,9 @@ pub fn spawn(
                     fusion.set_alive(vehicle, alive, now);
                 }
             }
-            dropped2.store(observations.dropped(), Ordering::Relaxed);
-            rejected2.store(observations.stats().rejected(), Ordering::Relaxed);
-            for r in nav.drain() {
-                match keys.parse(&r.key) {
-                    Ok(KeyKind::Nav { vehicle }) => {
-                        if let Err(e) = fusion.ingest_nav(r.msg, vehicle, now) {
-                            tracing::debug!("nav state on {} refused: {e}", r.key);
-                        }
-                    }
-                    _ => tracing::warn!("nav state on unexpected key {}", r.key),
-                }
-            }
-            for r in observations.drain() {
-                match keys.parse(&r.key) {
-                    Ok(KeyKind::Observations { vehicle }) => {
-                        if let Err(reason) = fusion.ingest(r.msg, vehicle, now) {
-                            tracing::debug!("observation on {} rejected: {reason:?}", r.key);
-                        }
-                    }
-                    _ => tracing::warn!("observation on unexpected key {}", r.key),
-                }
-            }
+            refused_total += inputs.feed(&mut fusion, &keys, now);
+            dropped2.store(inputs.dropped(), Ordering::Relaxed);
+            rejected2.store(inputs.rejected() + refused_total, Ordering::Relaxed);
             if Instant::now() >= next {
                 next += period;
                 let map = fusion.solve(now);

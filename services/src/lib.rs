@@ -9,6 +9,9 @@
 //! - [`fusion`]: the fusion service (`shoal fusion`): every vehicle's
 //!   observations and liveliness → `shoal_fusion::Fusion` → the fleet map,
 //!   published and served to late joiners; [`fusion::MapClient`] for controllers;
+//! - [`link`]: the link sender (`shoal link`): a vehicle's observations →
+//!   compact packets at an acoustic modem's rate; `fusion` reads them with
+//!   `FusionConfig::link`;
 //! - [`sim`]: the simulator's bridge (`shoal sim`): `shoal_sim_bridge`'s world
 //!   and renderer → frames, ground truth; vehicle commands back;
 //! - [`recorder`]: the recorder (`shoal record`): the fleet's keys →
@@ -23,6 +26,7 @@
 #![warn(clippy::unwrap_used)]
 
 pub mod fusion;
+pub mod link;
 pub mod node;
 pub mod recorder;
 pub mod relay;

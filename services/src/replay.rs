@@ -21,6 +21,7 @@ enum AnyPublisher {
     NodeStatus(Publisher<shoal_proto::NodeStatus>),
     VehicleCommand(Publisher<shoal_proto::VehicleCommand>),
     NavState(Publisher<shoal_proto::NavState>),
+    LinkPacket(Publisher<shoal_proto::compact::LinkPacket>),
 }
 
 impl AnyPublisher {
@@ -34,6 +35,7 @@ impl AnyPublisher {
             MessageKind::NodeStatus => AnyPublisher::NodeStatus(bus.publisher(k)?),
             MessageKind::VehicleCommand => AnyPublisher::VehicleCommand(bus.publisher(k)?),
             MessageKind::NavState => AnyPublisher::NavState(bus.publisher(k)?),
+            MessageKind::LinkPacket => AnyPublisher::LinkPacket(bus.publisher(k)?),
         })
     }
     fn put_bytes(&self, bytes: Vec<u8>) -> Result<(), BusError> {
@@ -45,6 +47,7 @@ impl AnyPublisher {
             AnyPublisher::NodeStatus(p) => p.put_bytes(bytes),
             AnyPublisher::VehicleCommand(p) => p.put_bytes(bytes),
             AnyPublisher::NavState(p) => p.put_bytes(bytes),
+            AnyPublisher::LinkPacket(p) => p.put_bytes(bytes),
         }
     }
 }

@@ -566,6 +566,33 @@ pub fn line_abreast(ids: &[VehicleId], spacing_m: f64) -> Vec<VehicleTruth> {
         .collect()
 }
 
+/// [`line_abreast`] manoeuvring at `t_s`: each vehicle drifting `a` metres
+/// around its slot (and `a / 3` in depth, `a / 0.3 × 5°` of yaw) on a 60 s
+/// cycle, each a third of a turn out of phase with the one before, so that
+/// every pair's relative pose keeps changing (up to ~5 cm/s at `a` = 0.3 m).
+pub fn drifting_line_abreast(
+    ids: &[VehicleId],
+    spacing_m: f64,
+    a: f64,
+    t_s: f64,
+) -> Vec<VehicleTruth> {
+    let w = std::f64::consts::TAU / 60.0;
+    ids.iter()
+        .enumerate()
+        .map(|(i, &vehicle)| {
+            let phase = i as f64 * 2.1;
+            let (s, c) = ((w * t_s + phase).sin(), (w * t_s + phase).cos());
+            let xyz = [a * s, spacing_m * i as f64 + a * c, 5.0 + a / 3.0 * s];
+            let yaw = (a / 0.3) * 5f64.to_radians() * c;
+            VehicleTruth {
+                vehicle,
+                world_from_body: pose_from_xyz_rpy(xyz, [0.0, 0.0, yaw]),
+                velocity_body: [a * w * c, -a * w * s, 0.0],
+            }
+        })
+        .collect()
+}
+
 /// Random perturbation of a formation.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FormationJitter {

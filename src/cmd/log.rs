@@ -101,7 +101,7 @@ pub struct ReplayArgs {
     /// Stop this many seconds into the log.
     #[arg(long, value_parser = super::args::non_negative)]
     to: Option<f64>,
-    /// Only these message kinds (comma-separated: observation, map, frame, truth, status, command).
+    /// Only these message kinds (comma-separated: observation, map, frame, truth, status, command, nav, link).
     #[arg(long, value_delimiter = ',')]
     only: Option<Vec<String>>,
     #[command(flatten)]
@@ -116,8 +116,10 @@ fn kind_of(name: &str) -> anyhow::Result<MessageKind> {
         "truth" => MessageKind::SimTruth,
         "status" => MessageKind::NodeStatus,
         "command" | "cmd" => MessageKind::VehicleCommand,
+        "nav" => MessageKind::NavState,
+        "link" => MessageKind::LinkPacket,
         other => bail!(
-            "message kind {other:?}: expected observation, map, frame, truth, status or command"
+            "message kind {other:?}: expected observation, map, frame, truth, status, command, nav or link"
         ),
     })
 }

@@ -155,15 +155,84 @@ pub struct FusionArgs {
     /// Time line: `wall` (live vehicles) or `sim` (follow the simulator's ground-truth clock).
     #[arg(long, default_value = "wall")]
     clock: String,
+    /// Hear the other vehicles over an acoustic-rate link: their compact
+    /// packets (`shoal link`) instead of their full observations, kept 8 s
+    /// (what crosses the link is old). On a vehicle, its own observations
+    /// and navigation are still used in full.
+    #[arg(long)]
+    link: bool,
     #[command(flatten)]
     net: NetArgs,
 }
 
-pub fn run_fusion(a: FusionArgs) -> anyhow::Result<()> {
+#[derive(Debug, Args)]
+pub struct LinkArgs {
+    #[arg(long, default_value = "configs/fleets/paper.toml")]
+    fleet: PathBuf,
+    /// The vehicle whose observations are sent.
+    #[arg(long)]
+    vehicle: u32,
+    /// The modem's rate for this vehicle, bit/s.
+    #[arg(long, value_parser = super::args::positive)]
+    rate_bps: f64,
+    /// Bytes the modem adds to every packet (sync, address, CRC).
+    #[arg(long, default_value_t = shoal_fusion::link::MODEM_OVERHEAD_BYTES)]
+    overhead_bytes: usize,
+    /// Time line of the observations' stamps: `wall` or `sim`.
+    #[arg(long, default_value = "wall")]
+    clock: String,
+    #[command(flatten)]
+    net: NetArgs,
+}
+
+pub fn run_link(a: LinkArgs) -> anyhow::Result<()> {
     let fleet = fleet(&a.fleet)?;
     let bus = a.net.open()?;
-    let (clock, _follow): (Arc<dyn Clock>, _) = match a.clock.as_str() {
-        "wall" => (Arc::new(WallClock), None),
+    let clock = service_clock(&a.clock, &bus, &fleet)?;
+    let handle = shoal_services::link::spawn(
+        &bus,
+        shoal_services::link::LinkConfig {
+            fleet,
+            vehicle: a.vehicle,
+            rate_bps: a.rate_bps,
+            overhead_bytes: a.overhead_bytes,
+            queue_capacity: 1024,
+        },
+        clock,
+    )?;
+    tracing::info!(
+        "link sender of vehicle {} at {} bit/s; Ctrl-C to stop",
+        a.vehicle,
+        a.rate_bps
+    );
+    wait_for_ctrl_c(|| false);
+    let s = handle.stats();
+    handle.stop();
+    shoal::outln!(
+        "vehicle {}: {} observations offered, {} packets sent ({} modem bytes, {:.1} per packet), {} folded into summaries, {} expired, {} not encodable, {} on the wrong key, {} dropped",
+        a.vehicle,
+        s.queue.offered,
+        s.packets,
+        s.modem_bytes,
+        s.modem_bytes as f64 / s.packets.max(1) as f64,
+        s.queue.superseded,
+        s.queue.expired,
+        s.unencodable,
+        s.wrong_observer,
+        s.dropped
+    );
+    Ok(())
+}
+
+/// The time line a service follows: `wall`, or `sim` (the simulator's
+/// ground-truth clock, followed by a thread that lives as long as the process).
+fn service_clock(
+    which: &str,
+    bus: &shoal_bus::Bus,
+    fleet: &Fleet,
+) -> anyhow::Result<Arc<dyn Clock>> {
+    match which {
+        "wall" => Ok(Arc::new(WallClock)),
         "sim" => {
             let clock = Arc::new(ManualClock::new(0));
             let sub = bus.subscribe::<SimTruth>(&fleet.keys().truth(), 16)?;
@@ -172,7 +241,7 @@ pub fn run_fusion(a: FusionArgs) -> anyhow::Result<()> {
             // frames, so observations of tick k+1 can arrive while the last
             // truth is tick k's: the clock is the latest truth plus one tick
             // period (the sim has reached at least that), never less.
-            let t = std::thread::Builder::new()
+            std::thread::Builder::new()
                 .name("sim-clock".into())
                 .spawn(move || {
                     let mut previous: Option<u64> = None;
@@ -187,10 +256,21 @@ pub fn run_fusion(a: FusionArgs) -> anyhow::Result<()> {
                         }
                     }
                 })?;
-            (clock, Some(t))
+            Ok(clock)
         }
         other => bail!("--clock {other:?}: expected wall or sim"),
-    };
+    }
+}
+
+pub fn run_fusion(a: FusionArgs) -> anyhow::Result<()> {
+    let fleet = fleet(&a.fleet)?;
+    if let Some(v) = a.on_vehicle {
+        if fleet.vehicle(v).is_none() {
+            bail!("--on-vehicle {v}: no such vehicle in {}", a.fleet.display());
+        }
+    }
+    let bus = a.net.open()?;
+    let clock = service_clock(&a.clock, &bus, &fleet)?;
     let handle = shoal_services::fusion::spawn(
         &bus,
         FusionConfig {
@@ -201,6 +281,7 @@ pub fn run_fusion(a: FusionArgs) -> anyhow::Result<()> {
                 .map_or(Placement::Central, Placement::OnVehicle),
             rate_hz: a.rate,
             queue_capacity: 4096,
+            link: a.link,
         },
         clock,
     )?;

@@ -27,12 +27,11 @@ use super::{EvalError, EvalOptions};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde_json::{json, Map, Value};
-use shoal_fusion::link::LinkQueue;
+use shoal_fusion::link::{LinkQueue, LINK_WINDOW_S, MODEM_LATENCY_NS, MODEM_OVERHEAD_BYTES};
 use shoal_fusion::{Fusion, FusionParams};
 use shoal_proto::config::Fleet;
-use shoal_proto::geometry::pose_from_xyz_rpy;
 use shoal_proto::{FleetMap, Observation, Pose, VehicleId, VehicleState, VehicleTruth};
-use shoal_sim_bridge::obs_synth::{ObsSynth, ObsSynthParams};
+use shoal_sim_bridge::obs_synth::{drifting_line_abreast, ObsSynth, ObsSynthParams};
 use std::collections::{BTreeMap, VecDeque};
 use std::path::Path;
 
@@ -42,11 +41,9 @@ pub const FORMATIONS: [(&str, f64); 2] = [("holding", 0.0), ("manoeuvring", 0.3)
 /// Link rates of the full run, bit/s per vehicle.
 pub const RATES_BPS: [f64; 3] = [300.0, 1000.0, 5000.0];
 /// One-way latency of the modem link.
-pub const LATENCY_NS: u64 = 1_000_000_000;
+pub const LATENCY_NS: u64 = MODEM_LATENCY_NS;
 /// Probability that a packet is lost on the way to one receiver.
 pub const LOSS: f64 = 0.1;
-/// Framing per packet, bytes.
-pub const MODEM_OVERHEAD_BYTES: usize = 8;
 const FRAME_NS: u64 = 500_000_000;
 const STEP_NS: u64 = 50_000_000;
 const SPACING_M: f64 = 1.75;
@@ -54,12 +51,6 @@ const SPACING_M: f64 = 1.75;
 const WARMUP_S: u64 = 15;
 /// The full encoding's queue.
 const FULL_QUEUE: usize = 16;
-/// A decentralized vehicle's fusion window: what crosses the link arrives
-/// 1 s old or more, so the default 2 s window would keep little of it.
-/// Chosen from the link's latency and the modem's packet time before any
-/// run; 3 s and 4 s were tried after (seeds 1–2, 4 s also 11–15): better when manoeuvring,
-/// worse when holding station (`docs/results.md`, "links").
-pub const LINK_WINDOW_S: f64 = 8.0;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Encoding {
@@ -79,21 +70,7 @@ impl Encoding {
 /// The formation at `t_s`: line abreast, each vehicle drifting `a` metres
 /// (and `a` / 0.3 x 5° of yaw) around its slot on a 60 s cycle.
 fn truth_at(ids: &[VehicleId], a: f64, t_s: f64) -> Vec<VehicleTruth> {
-    let w = std::f64::consts::TAU / 60.0;
-    ids.iter()
-        .enumerate()
-        .map(|(i, &vehicle)| {
-            let phase = i as f64 * 2.1;
-            let (s, c) = ((w * t_s + phase).sin(), (w * t_s + phase).cos());
-            let xyz = [a * s, SPACING_M * i as f64 + a * c, 5.0 + a / 3.0 * s];
-            let yaw = (a / 0.3) * 5f64.to_radians() * c;
-            VehicleTruth {
-                vehicle,
-                world_from_body: pose_from_xyz_rpy(xyz, [0.0, 0.0, yaw]),
-                velocity_body: [a * w * c, -a * w * s, 0.0],
-            }
-        })
-        .collect()
+    drifting_line_abreast(ids, SPACING_M, a, t_s)
 }
 
 /// What one vehicle's modem holds and has on the way.
@@ -253,8 +230,10 @@ fn run_trial(
         record_solve_time: false,
         ..FusionParams::default()
     };
+    // What a vehicle sees itself is kept for the usual window, what crossed
+    // the link for the link window (what `shoal fusion --link` does).
     let link_params = FusionParams {
-        window_s: LINK_WINDOW_S,
+        link_window_s: LINK_WINDOW_S,
         ..exact
     };
     let mut full_rate = Fusion::new(fleet, exact, "full-rate");
@@ -312,7 +291,7 @@ fn run_trial(
         }
         in_flight.retain(|(arrive, r, obs)| {
             if *arrive <= now {
-                let _ = local[*r].ingest(obs.clone(), obs.observer, now);
+                let _ = local[*r].ingest_linked(obs.clone(), obs.observer, now);
                 false
             } else {
                 true
@@ -507,7 +486,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     Ok(json!({
         "plots": plots,
         "setup": format!(
-            "paper fleet, line abreast {SPACING_M} m, holding station or drifting ±0.3 m / ±5° on a 60 s cycle; obs_synth at 2 Hz per camera; per-vehicle link at each rate, {} s latency, {} % loss per receiver, {MODEM_OVERHEAD_BYTES} bytes framing per packet; decentralized window {LINK_WINDOW_S} s; maps compared every second after {WARMUP_S} s with the full-rate map (default fusion fed every observation at once); {} s per trial",
+            "paper fleet, line abreast {SPACING_M} m, holding station or drifting ±0.3 m / ±5° on a 60 s cycle; obs_synth at 2 Hz per camera; per-vehicle link at each rate, {} s latency, {} % loss per receiver, {MODEM_OVERHEAD_BYTES} bytes framing per packet; decentralized fusion keeps its own observations 2 s and what crossed the link {LINK_WINDOW_S} s; maps compared every second after {WARMUP_S} s with the full-rate map (default fusion fed every observation at once); {} s per trial",
             LATENCY_NS as f64 * 1e-9,
             LOSS * 100.0,
             duration_s

@@ -53,6 +53,7 @@ impl Rig {
                 placement,
                 rate_hz: 10.0,
                 queue_capacity,
+                link: false,
             },
             self.clock.clone(),
         )

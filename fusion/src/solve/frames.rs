@@ -95,6 +95,38 @@ pub(crate) fn measured(
         .collect()
 }
 
+/// Frames made as uncertain as their age makes them once the swarm is seen
+/// to move ([`super::motion::PairMotion`] not empty): a frame `age` seconds
+/// old of a pair moving at `v` m/s and `ω` rad/s says where it was, not
+/// where it is, to within `v·age` and `ω·age` in every direction (added to
+/// each axis' variance). A pair with no motion of its own in the window (its
+/// frames too few or too old to show it) gets the fastest seen: vehicles of
+/// one formation manoeuvre together. Nothing changes while nothing moves.
+pub(crate) fn inflate_moving(
+    frames: &mut [Frame],
+    moving: &super::motion::PairMotion,
+    now_ns: u64,
+) {
+    let fastest = moving
+        .values()
+        .fold((0.0f64, 0.0f64), |a, b| (a.0.max(b.0), a.1.max(b.1)));
+    for f in frames.iter_mut() {
+        let (speed, turn) = moving.get(&f.pair()).copied().unwrap_or(fastest);
+        let age_s = now_ns.saturating_sub(f.stamp_ns) as f64 * 1e-9;
+        let (dt2, dr2) = ((speed * age_s).powi(2), (turn * age_s).powi(2));
+        for h in f.hyps.iter_mut() {
+            if let Some(c) = h.as_ref() {
+                let mut cov = c.covariance;
+                for i in 0..3 {
+                    cov[(i, i)] += dt2;
+                    cov[(i + 3, i + 3)] += dr2;
+                }
+                *h = Candidate::new(c.observation, c.hypothesis, c.a_from_b, cov);
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

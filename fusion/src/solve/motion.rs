@@ -7,7 +7,9 @@ use super::groups::TrackGroups;
 use crate::consistency::Candidate;
 use nalgebra::{SMatrix, SVector};
 use proto::geometry::Cov6;
+use proto::VehicleId;
 use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
 
 /// How a track's frames taken at different times are brought to one instant.
 ///
@@ -42,45 +44,104 @@ impl Default for MotionModel {
     }
 }
 
-/// [`MotionModel`] on every group that is not superseded (nothing when the
-/// model is off); returns how many groups were moved.
-pub(crate) fn compensate(frames: &mut [Frame], groups: &TrackGroups, model: &MotionModel) -> usize {
-    if !model.enabled {
-        return 0;
-    }
+/// A group's significant relative velocity per hypothesis (tangent space
+/// at its newest frame) and its covariance; `None` where the group has too
+/// few frames, is superseded, or the velocity is not significant.
+pub(crate) type GroupFits = Vec<[Option<(SVector<f64, 6>, Cov6)>; 2]>;
+
+/// [`GroupFits`] of every group (all `None` when the model is off): the one
+/// velocity fit per group and hypothesis that both [`pair_motion`] and
+/// [`compensate`] use.
+pub(crate) fn fit_groups(frames: &[Frame], groups: &TrackGroups, model: &MotionModel) -> GroupFits {
     groups
         .members
         .iter()
         .zip(&groups.superseded)
-        .filter(|(_, &gone)| !gone)
-        .map(|(members, _)| usize::from(compensate_group(frames, members, model)))
+        .map(|(members, &gone)| {
+            let mut fits = [None, None];
+            let newest = match members.last() {
+                Some(&n) if model.enabled && !gone && members.len() >= 2 => n,
+                _ => return fits,
+            };
+            let t_n = frames[newest].stamp_ns;
+            for (h, fit) in fits.iter_mut().enumerate() {
+                let Some(anchor) = frames[newest].hyps[h].map(|c| c.a_from_b) else {
+                    continue;
+                };
+                let Some((v, cov_v)) = fit_velocity(frames, members, h, t_n, &anchor, model) else {
+                    continue;
+                };
+                let significance = cov_v.cholesky().map_or(0.0, |c| v.dot(&c.solve(&v)));
+                if !significance.is_nan() && significance > model.significance_chi2 {
+                    *fit = Some((v, cov_v));
+                }
+            }
+            fits
+        })
+        .collect()
+}
+
+/// [`MotionModel`] on every group with a significant velocity (`fits`, from
+/// [`fit_groups`] on these groups); returns how many groups were moved.
+pub(crate) fn compensate(frames: &mut [Frame], groups: &TrackGroups, fits: &GroupFits) -> usize {
+    groups
+        .members
+        .iter()
+        .zip(fits)
+        .map(|(members, fit)| usize::from(compensate_group(frames, members, fit)))
         .sum()
 }
 
-/// [`MotionModel`] on one group (`members` ascending in time): fits the
-/// relative velocity of each hypothesis and, when it is significant, moves
-/// every member to the newest member's time. Returns whether any hypothesis
-/// was moved.
-fn compensate_group(frames: &mut [Frame], members: &[usize], model: &MotionModel) -> bool {
+/// Per vehicle pair (lower ID first), the fastest relative motion fitted on
+/// any of its groups where the motion is significant: translation speed
+/// (m/s) and turn rate (rad/s) of the relative pose. Pairs that hold still
+/// are absent.
+pub(crate) type PairMotion = BTreeMap<(VehicleId, VehicleId), (f64, f64)>;
+
+/// Relative motion slower than this (and [`MIN_TURN_RAD_S`]) is left out
+/// of [`PairMotion`]: 2 cm of drift over a 2 s window.
+const MIN_SPEED_M_S: f64 = 0.01;
+/// 0.3° a second.
+const MIN_TURN_RAD_S: f64 = 0.005;
+
+/// [`PairMotion`] of the window's groups, from their fits' primary hypotheses.
+pub(crate) fn pair_motion(frames: &[Frame], groups: &TrackGroups, fits: &GroupFits) -> PairMotion {
+    let mut out = PairMotion::new();
+    for (members, fit) in groups.members.iter().zip(fits) {
+        let (Some(&newest), Some((v, _))) = (members.last(), &fit[0]) else {
+            continue;
+        };
+        let speed = v.fixed_rows::<3>(0).norm();
+        let turn = v.fixed_rows::<3>(3).norm();
+        // Among hundreds of groups of a still swarm, some pass the test by
+        // chance: below these rates old frames are not worth inflating.
+        if speed < MIN_SPEED_M_S && turn < MIN_TURN_RAD_S {
+            continue;
+        }
+        let e = out.entry(frames[newest].pair()).or_insert((0.0, 0.0));
+        *e = (e.0.max(speed), e.1.max(turn));
+    }
+    out
+}
+
+/// One group (`members` ascending in time) moved along its significant
+/// velocities (`fit`, per hypothesis) to its newest member's time. Returns
+/// whether any hypothesis was moved.
+fn compensate_group(
+    frames: &mut [Frame],
+    members: &[usize],
+    fit: &[Option<(SVector<f64, 6>, Cov6)>; 2],
+) -> bool {
     let Some(&newest) = members.last() else {
         return false;
     };
-    if members.len() < 2 {
-        return false;
-    }
     let t_n = frames[newest].stamp_ns;
     let mut moved = false;
     for h in 0..2 {
-        let Some(anchor) = frames[newest].hyps[h].map(|c| c.a_from_b) else {
+        let (Some(anchor), Some((v, cov_v))) = (frames[newest].hyps[h].map(|c| c.a_from_b), fit[h])
+        else {
             continue;
         };
-        let Some((v, cov_v)) = fit_velocity(frames, members, h, t_n, &anchor, model) else {
-            continue;
-        };
-        let significance = cov_v.cholesky().map_or(0.0, |c| v.dot(&c.solve(&v)));
-        if significance.is_nan() || significance <= model.significance_chi2 {
-            continue;
-        }
         for &i in members {
             let Some(c) = frames[i].hyps[h] else {
                 continue;
@@ -175,7 +236,13 @@ mod tests {
         let mut frames = drifting(20, 0.02);
         let groups = group_tracks(&frames, 27.86, true);
         assert_eq!(groups.members.len(), 1);
-        assert_eq!(compensate(&mut frames, &groups, &MotionModel::default()), 1);
+        assert_eq!(
+            {
+                let fits = fit_groups(&frames, &groups, &MotionModel::default());
+                compensate(&mut frames, &groups, &fits)
+            },
+            1
+        );
         let newest_y = 0.02 * 1.9;
         for f in &frames {
             let y = f.hyps[0].unwrap().a_from_b.translation.vector.y;
@@ -192,7 +259,13 @@ mod tests {
         let mut frames = drifting(20, 0.0);
         let before = frames.clone();
         let groups = group_tracks(&frames, 27.86, true);
-        assert_eq!(compensate(&mut frames, &groups, &MotionModel::default()), 0);
+        assert_eq!(
+            {
+                let fits = fit_groups(&frames, &groups, &MotionModel::default());
+                compensate(&mut frames, &groups, &fits)
+            },
+            0
+        );
         assert_eq!(frames, before);
         let mut moving = drifting(20, 0.02);
         let off = MotionModel {
@@ -200,6 +273,50 @@ mod tests {
             ..MotionModel::default()
         };
         let groups = group_tracks(&moving, 27.86, true);
-        assert_eq!(compensate(&mut moving, &groups, &off), 0);
+        assert_eq!(
+            {
+                let fits = fit_groups(&moving, &groups, &off);
+                compensate(&mut moving, &groups, &fits)
+            },
+            0
+        );
+    }
+
+    #[test]
+    fn only_pairs_seen_to_move_get_a_motion_and_every_old_frame_the_fastest_uncertainty() {
+        // Pair 1–2 drifts 2 cm/s (significant); pair 1–3 holds still.
+        let mut frames = drifting(20, 0.02);
+        for k in 0..20 {
+            let p = pose_from_xyz_rpy([2.0, -1.0, 0.0], [0.0; 3]);
+            frames.push(frame(20 + k, 1, 3, k as u64 * FRAME_NS, p, None));
+        }
+        frames.sort_by_key(|f| f.stamp_ns);
+        let groups = group_tracks(&frames, 27.86, true);
+        let moving = pair_motion(
+            &frames,
+            &groups,
+            &fit_groups(&frames, &groups, &MotionModel::default()),
+        );
+        assert_eq!(moving.keys().copied().collect::<Vec<_>>(), vec![(1, 2)]);
+        let (speed, turn) = moving[&(1, 2)];
+        // The fit, pulled slightly towards rest by its prior.
+        assert!((speed - 0.02).abs() < 1e-3, "{speed}");
+        assert!(turn < 1e-3, "{turn}");
+        let off = MotionModel {
+            enabled: false,
+            ..MotionModel::default()
+        };
+        assert!(pair_motion(&frames, &groups, &fit_groups(&frames, &groups, &off)).is_empty());
+
+        let before = frames.clone();
+        let now = 19 * FRAME_NS;
+        crate::solve::frames::inflate_moving(&mut frames, &moving, now);
+        for (a, b) in frames.iter().zip(&before) {
+            let (ca, cb) = (a.hyps[0].unwrap().covariance, b.hyps[0].unwrap().covariance);
+            let age = (now - a.stamp_ns) as f64 * 1e-9;
+            // Pair 1–3 shows no motion of its own: it gets the fastest seen.
+            assert!((ca[(1, 1)] - cb[(1, 1)] - (speed * age).powi(2)).abs() < 1e-12);
+            assert!((ca[(4, 4)] - cb[(4, 4)] - (turn * age).powi(2)).abs() < 1e-12);
+        }
     }
 }

@@ -13,6 +13,7 @@ pub const S: u64 = 1_000_000_000;
 /// Admission limits of the tests: a 2 s window, 0.25 s of clock skew, σ ≤ 5.
 pub const LIMITS: Admission = Admission {
     window_ns: 2 * S,
+    link_window_ns: 8 * S,
     max_clock_skew_ns: S / 4,
     max_std: 5.0,
 };
@@ -66,7 +67,11 @@ pub fn with_alternative(mut obs: Observation, alt: Pose) -> Observation {
 }
 
 pub fn stored(obs: Observation, target: VehicleId) -> Stored {
-    Stored { obs, target }
+    Stored {
+        obs,
+        target,
+        linked: false,
+    }
 }
 
 /// Frame `index` of `observer`'s camera 0 seeing `target`'s marker `target`

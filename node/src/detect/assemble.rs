@@ -69,13 +69,15 @@ const FRAME_SQUARES: [(f64, Polarity, u8); 2] = [
 
 /// The marker around `code`: for [`CodeSet::Shoal`] its frame squares
 /// (matched among `quads`, or from the prediction), then the code square.
+/// `None` when the enhanced marker's outer frame edge should be in the
+/// image and is not there ([`DetectParams::require_frame`]).
 pub(crate) fn assemble<G: MatTraitConst + ToInputArray>(
     params: &DetectParams,
     codes: CodeSet,
     images: &Images<'_, G>,
     code: CodeSquare,
     quads: &[Quad],
-) -> Marker {
+) -> Option<Marker> {
     let mut squares = Vec::with_capacity(3);
     let code_corners = code.square.corners;
     let module_px = code.module_px;
@@ -102,19 +104,84 @@ pub(crate) fn assemble<G: MatTraitConst + ToInputArray>(
                 });
             }
         }
+        let outer_found = squares.iter().any(|s| s.first == 0);
+        if params.require_frame
+            && !outer_found
+            && !frame_in_pixels(&images.view, codes, &code_corners, module_px)
+        {
+            return None;
+        }
     }
     squares.push(MarkerSquare {
         first: if codes == CodeSet::Shoal { 8 } else { 0 },
         source: SquareSource::Contour,
         square: code.square,
     });
-    Marker {
+    Some(Marker {
         id: code.id,
         hamming: code.hamming,
         module_px,
         squares,
-    }
+    })
 }
+
+/// Whether the pixels around a code square show the enhanced marker's
+/// frame when its outer edge was not found as a square: sampled along the
+/// four sides (corners left out), the frame band (1–2 modules outside the
+/// code square) must be darker than both the white ring inside it and what
+/// lies outside it, each by at least [`FRAME_CONTRAST`] of the code square's
+/// own contrast (ring against its black border). A ratio, so turbid water,
+/// which lowers every contrast alike, does not fail it; another fiducial's
+/// black square does: around an AprilTag or a lone ArUco marker the band is
+/// background, and in a ChArUco board the band falls on the black squares,
+/// which go on outside it. Where too little of the band is in the image (a
+/// marker cut by the border) there is nothing to judge: true.
+fn frame_in_pixels(view: &GrayView<'_>, codes: CodeSet, code: &[Px; 4], module_px: f64) -> bool {
+    let ms = codes.data_side() as f64 + 2.0;
+    let cells = [[0.0, 0.0], [ms, 0.0], [ms, ms], [0.0, ms]];
+    let Some(h) = homography_4(&cells, code) else {
+        return true;
+    };
+    // Mean grey level at `depth` modules outside the code square's edges
+    // (negative: inside), over the points in view; and how many were.
+    let ring_mean = |depth: f64| {
+        let (mut sum, mut n, mut total) = (0.0, 0usize, 0usize);
+        let steps = ((ms - 2.0) * 2.0) as usize;
+        for side in 0..4 {
+            for k in 0..=steps {
+                let u = 1.0 + k as f64 * 0.5;
+                let p = match side {
+                    0 => [u, -depth],
+                    1 => [ms + depth, u],
+                    2 => [ms - u, ms + depth],
+                    _ => [-depth, ms - u],
+                };
+                let q = apply(&h, p);
+                total += 1;
+                if view.contains(q[0], q[1], 1.0) {
+                    sum += view.sample(q[0], q[1]);
+                    n += 1;
+                }
+            }
+        }
+        (sum / n.max(1) as f64, n, total)
+    };
+    let (border, _, _) = ring_mean(-0.5);
+    let (ring, _, _) = ring_mean(0.5);
+    let (band, n_band, total) = ring_mean(1.5);
+    let (outside, n_out, _) = ring_mean(2.5);
+    if n_band * 2 < total || n_out * 2 < total || module_px < 1.0 {
+        return true;
+    }
+    let contrast = ring - border;
+    contrast > 0.0
+        && ring - band >= FRAME_CONTRAST * contrast
+        && outside - band >= FRAME_CONTRAST * contrast
+}
+
+/// Least darkening of the frame band, as a share of the code square's
+/// contrast, that [`frame_in_pixels`] accepts (chosen before measuring).
+const FRAME_CONTRAST: f64 = 0.25;
 
 /// The square `off` modules outside the code square, mapped by the code
 /// square's homography (the paper's 10x10 module grid).

@@ -60,6 +60,14 @@ pub struct DetectParams {
     /// The camera, when known: its lens distortion is taken out of the
     /// pattern fit (a planar marker is a homography only without it).
     pub lens: Option<shoal_proto::camera::CameraModel>,
+    /// An enhanced marker whose outer frame edge lies wholly inside the
+    /// image must show it (as a contour or from the prediction): a code
+    /// square alone, or with only the white ring around it, is another
+    /// fiducial's black square — an ArUco 4x4 marker (in a ChArUco board, its
+    /// white square is the ring) or an AprilTag reads as a shoal code from
+    /// it. A marker clipped by the image border keeps the squares it has.
+    /// Default true.
+    pub require_frame: bool,
 }
 
 /// When [`super::pattern::fit_pattern`] replaces the per-side corner fits.
@@ -99,6 +107,7 @@ impl Default for DetectParams {
             fit_on_raw: true,
             fit_pattern: FitPattern::WhenEdgesWeak { below_dn: 16.0 },
             lens: None,
+            require_frame: true,
         }
     }
 }
