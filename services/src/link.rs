@@ -17,7 +17,7 @@ use shoal_proto::clock::Clock;
 use shoal_proto::compact::{self, LinkPacket};
 use shoal_proto::config::Fleet;
 use shoal_proto::{Observation, VehicleId};
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -105,7 +105,6 @@ pub fn spawn(bus: &Bus, cfg: LinkConfig, clock: Arc<dyn Clock>) -> Result<LinkHa
     let publisher: Publisher<LinkPacket> = bus.publisher(keys.link(cfg.vehicle))?;
     let stats: Arc<Mutex<LinkStats>> = Arc::default();
     let stats2 = stats.clone();
-    let dropped = AtomicU64::new(0);
     // What the receivers' fusion window still takes when it arrives.
     let max_age_ns = (LINK_WINDOW_S * 1e9) as u64 - MODEM_LATENCY_NS;
     // The session lives as long as the sender, whatever the caller does with its `Bus`.
@@ -125,7 +124,6 @@ pub fn spawn(bus: &Bus, cfg: LinkConfig, clock: Arc<dyn Clock>) -> Result<LinkHa
                     local.wrong_observer += 1;
                 }
             }
-            dropped.store(own.dropped(), Ordering::Relaxed);
             let now = clock.now_ns();
             while busy_until <= now {
                 let Some(obs) = queue.next(now) else { break };
@@ -154,7 +152,7 @@ pub fn spawn(bus: &Bus, cfg: LinkConfig, clock: Arc<dyn Clock>) -> Result<LinkHa
                 busy_until = busy_until.max(now) + airtime_ns(n, cfg.overhead_bytes, cfg.rate_bps);
             }
             local.queue = queue.stats();
-            local.dropped = dropped.load(Ordering::Relaxed);
+            local.dropped = own.dropped();
             if let Ok(mut g) = stats2.lock() {
                 *g = local;
             }
