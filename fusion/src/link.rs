@@ -38,6 +38,12 @@ pub const MODEM_OVERHEAD_BYTES: usize = 8;
 /// (`docs/results.md`, "links").
 pub const LINK_WINDOW_S: f64 = 8.0;
 
+/// How long a packet of `payload` bytes occupies a modem of `rate_bps`
+/// that adds `overhead_bytes` of framing, ns (rounded up).
+pub fn airtime_ns(payload: usize, overhead_bytes: usize, rate_bps: f64) -> u64 {
+    (((payload + overhead_bytes) * 8) as f64 / rate_bps * 1e9).ceil() as u64
+}
+
 /// A token bucket of bits: `rate_bps` tokens a second, at most `burst_bits` saved.
 #[derive(Debug, Clone)]
 pub struct TokenBucket {
@@ -249,6 +255,14 @@ fn summarize(frames: &VecDeque<Observation>) -> Option<(Observation, u64, u64)> 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_packet_holds_the_modem_for_its_bits_and_framing() {
+        // 53 + 8 bytes at 1 000 bit/s: 488 ms; at 300 bit/s 1.627 s (rounded up).
+        assert_eq!(airtime_ns(53, 8, 1000.0), 488_000_000);
+        assert_eq!(airtime_ns(53, 8, 300.0), 1_626_666_667);
+        assert_eq!(airtime_ns(66, 0, 1000.0), 528_000_000);
+    }
     use proto::geometry::Cov6;
     use proto::{CodeSet, ImageQuality, Pose};
 

@@ -12,7 +12,7 @@
 //! service started with `--link` (`FusionConfig::link`) reads them.
 
 use shoal_bus::{Bus, BusError, Publisher, Subscription, Worker};
-use shoal_fusion::link::{LinkQueue, LinkQueueStats, LINK_WINDOW_S, MODEM_LATENCY_NS};
+use shoal_fusion::link::{airtime_ns, LinkQueue, LinkQueueStats, LINK_WINDOW_S, MODEM_LATENCY_NS};
 use shoal_proto::clock::Clock;
 use shoal_proto::compact::{self, LinkPacket};
 use shoal_proto::config::Fleet;
@@ -80,11 +80,6 @@ impl LinkHandle {
     pub fn stop(self) {
         self.worker.stop();
     }
-}
-
-/// How long a packet of `payload` bytes occupies the modem, ns.
-pub fn airtime_ns(payload: usize, overhead_bytes: usize, rate_bps: f64) -> u64 {
-    (((payload + overhead_bytes) * 8) as f64 / rate_bps * 1e9).ceil() as u64
 }
 
 /// Start `cfg.vehicle`'s link sender on `bus`, taking `now` from `clock`
@@ -163,17 +158,4 @@ pub fn spawn(bus: &Bus, cfg: LinkConfig, clock: Arc<dyn Clock>) -> Result<LinkHa
         source,
     })?;
     Ok(LinkHandle { worker, stats })
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn a_packet_holds_the_modem_for_its_bits_and_framing() {
-        // 53 + 8 bytes at 1 000 bit/s: 488 ms; at 300 bit/s 1.627 s (rounded up).
-        assert_eq!(airtime_ns(53, 8, 1000.0), 488_000_000);
-        assert_eq!(airtime_ns(53, 8, 300.0), 1_626_666_667);
-        assert_eq!(airtime_ns(66, 0, 1000.0), 528_000_000);
-    }
 }

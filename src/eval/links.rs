@@ -27,7 +27,9 @@ use super::{EvalError, EvalOptions};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde_json::{json, Map, Value};
-use shoal_fusion::link::{LinkQueue, LINK_WINDOW_S, MODEM_LATENCY_NS, MODEM_OVERHEAD_BYTES};
+use shoal_fusion::link::{
+    airtime_ns, LinkQueue, LINK_WINDOW_S, MODEM_LATENCY_NS, MODEM_OVERHEAD_BYTES,
+};
 use shoal_fusion::{Fusion, FusionParams};
 use shoal_proto::config::Fleet;
 use shoal_proto::{FleetMap, Observation, Pose, VehicleId, VehicleState, VehicleTruth};
@@ -278,8 +280,8 @@ fn run_trial(
                 let Some((obs, n)) = s.next(now)? else {
                     break;
                 };
-                let bits = ((n + MODEM_OVERHEAD_BYTES) * 8) as f64;
-                s.busy_until_ns = s.busy_until_ns.max(now) + (bits / rate_bps * 1e9) as u64;
+                s.busy_until_ns =
+                    s.busy_until_ns.max(now) + airtime_ns(n, MODEM_OVERHEAD_BYTES, rate_bps);
                 s.packets += 1;
                 s.bytes += (n + MODEM_OVERHEAD_BYTES) as u64;
                 for r in (0..ids.len()).filter(|r| *r != k) {
