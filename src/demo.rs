@@ -65,6 +65,14 @@ pub struct DemoConfig {
     /// A vehicle hidden from every camera for a span of the run (its own
     /// cameras blind too); the summary then reports how the map kept it.
     pub occlude: Option<shoal_services::sim::Occlusion>,
+    /// Loopback port of the in-process Zenoh router, where outside clients
+    /// (`shoal station`, `shoal record`, a Python or ROS 2 client) attach;
+    /// `None`: any free port. When the port is taken the router listens on a
+    /// free one and [`SimulatedSwarm::port_taken`] says so (with `ros2`, it
+    /// also joins the router holding the port: a ROS 2 `rmw_zenohd`).
+    pub router_port: Option<u16>,
+    /// Publish in ROS 2 over `rmw_zenoh` in this domain (`shoal_services::ros2`).
+    pub ros2: Option<u32>,
 }
 
 impl Default for DemoConfig {
@@ -85,6 +93,8 @@ impl Default for DemoConfig {
             station: None,
             nav: true,
             occlude: None,
+            router_port: None,
+            ros2: None,
         }
     }
 }
@@ -151,11 +161,16 @@ pub struct LogSummary {
 fn load_fleet(cfg: &DemoConfig) -> anyhow::Result<Fleet> {
     Ok(match &cfg.fleet {
         Some(p) => Fleet::load(p)?,
-        None => Fleet::parse(
-            PAPER_FLEET,
-            std::path::Path::new("configs/fleets/paper.toml"),
-        )?,
+        None => paper_fleet()?,
     })
+}
+
+/// The built-in copy of `configs/fleets/paper.toml` (the demo's default fleet).
+pub fn paper_fleet() -> anyhow::Result<Fleet> {
+    Ok(Fleet::parse(
+        PAPER_FLEET,
+        std::path::Path::new("configs/fleets/paper.toml"),
+    )?)
 }
 
 /// A running simulated swarm: an in-process Zenoh router, fusion, one node
@@ -164,8 +179,11 @@ pub struct SimulatedSwarm {
     pub fleet: Arc<Fleet>,
     pub clock: Arc<ManualClock>,
     port: u16,
+    /// The port asked for, when another process held it.
+    port_taken: Option<u16>,
     _router: Bus,
     fusion: Option<shoal_services::fusion::FusionHandle>,
+    ros2: Option<shoal_services::ros2::Ros2Handle>,
     nodes: BTreeMap<VehicleId, NodeHandle>,
     sim: Option<shoal_services::sim::SimHandle>,
     station: Option<shoal_station::StationHandle>,
@@ -196,15 +214,16 @@ impl SimulatedSwarm {
         let water = WaterPresets::builtin()
             .get(cfg.water_c_per_m)
             .with_context(|| format!("water {} /m", cfg.water_c_per_m))?;
-        let port = free_port().context("no free loopback port")?;
-        let router = Bus::open(&Connect::Router { port })?;
+        let (port, port_taken, router) = open_router(cfg.router_port, cfg.ros2.is_some())?;
         let clock = Arc::new(ManualClock::new(0));
         let mut swarm = SimulatedSwarm {
             fleet: fleet.clone(),
             clock: clock.clone(),
             port,
+            port_taken,
             _router: router,
             fusion: None,
+            ros2: None,
             nodes: BTreeMap::new(),
             sim: None,
             station: None,
@@ -222,6 +241,12 @@ impl SimulatedSwarm {
             },
             clock.clone(),
         )?);
+        if let Some(domain) = cfg.ros2 {
+            swarm.ros2 = Some(shoal_services::ros2::spawn(
+                &swarm.session()?,
+                shoal_services::ros2::Ros2Config::central(fleet.clone(), domain),
+            )?);
+        }
         for v in fleet.vehicles.iter().map(|v| v.id).collect::<Vec<_>>() {
             swarm.start_node(v)?;
         }
@@ -254,6 +279,21 @@ impl SimulatedSwarm {
             clock,
         )?);
         Ok(swarm)
+    }
+
+    /// Where outside Zenoh clients connect: `tcp/127.0.0.1:<port>`.
+    pub fn endpoint(&self) -> String {
+        format!("tcp/127.0.0.1:{}", self.port)
+    }
+
+    /// The port [`DemoConfig::router_port`] asked for, when it was taken.
+    pub fn port_taken(&self) -> Option<u16> {
+        self.port_taken
+    }
+
+    /// The ROS 2 publisher, when [`DemoConfig::ros2`] asked for one.
+    pub fn ros2(&self) -> Option<&shoal_services::ros2::Ros2Handle> {
+        self.ros2.as_ref()
     }
 
     /// A new Zenoh session on the swarm's router.
@@ -316,11 +356,61 @@ impl SimulatedSwarm {
         if let Some(f) = self.fusion.take() {
             f.stop();
         }
+        if let Some(r) = self.ros2.take() {
+            r.stop();
+        }
         if let Some(s) = self.station.take() {
             s.stop();
         }
         Ok(counts)
     }
+}
+
+/// Tell the user where outside clients attach (and ROS 2 users where to look).
+fn say_where(cfg: &DemoConfig, swarm: &SimulatedSwarm) {
+    let endpoint = swarm.endpoint();
+    match swarm.port_taken() {
+        None => crate::errln!(
+            "zenoh: the demo's router listens on {endpoint}; `shoal station`, `shoal record` and Python zenoh clients connect there"
+        ),
+        Some(p) if cfg.ros2.is_some() => crate::errln!(
+            "zenoh: port {p} is taken (a ROS 2 rmw_zenohd?): the demo's router joined it and listens on {endpoint}"
+        ),
+        Some(p) => crate::errln!(
+            "zenoh: port {p} is taken (another demo or a zenohd?): the demo's router listens on {endpoint} instead; clients use --port {}",
+            swarm.port
+        ),
+    }
+    if let Some(domain) = cfg.ros2 {
+        crate::errln!(
+            "ROS 2: node /shoal_fusion in domain {domain} on rmw_zenoh; try `RMW_IMPLEMENTATION=rmw_zenoh_cpp ros2 topic echo /tf` (docs/ros2.md)"
+        );
+    }
+}
+
+/// The demo's router on `wanted` (else any free port): returns the port it
+/// listens on, the wanted port when it was taken, and the session. With
+/// `join`, a router found on the wanted port is joined (a ROS 2
+/// `rmw_zenohd`, so ROS 2 nodes see the demo).
+fn open_router(wanted: Option<u16>, join: bool) -> anyhow::Result<(u16, Option<u16>, Bus)> {
+    if let Some(p) = wanted {
+        if std::net::TcpListener::bind(("127.0.0.1", p)).is_ok() {
+            // Free a moment ago; a race with another process is reported by Zenoh.
+            let router = Bus::open(&Connect::Router { port: p })
+                .with_context(|| format!("Zenoh router on tcp/127.0.0.1:{p}"))?;
+            return Ok((p, None, router));
+        }
+    }
+    let port = free_port().context("no free loopback port")?;
+    let taken = wanted;
+    let router = match taken.filter(|_| join) {
+        Some(p) => Bus::open(&Connect::RouterLinked {
+            port,
+            routers: vec![p],
+        })?,
+        None => Bus::open(&Connect::Router { port })?,
+    };
+    Ok((port, taken, router))
 }
 
 /// Start the recorder on `sw` when `cfg.log` asks for a log (before the simulator starts).
@@ -557,6 +647,7 @@ pub fn run_until(
             Ok(())
         },
     )?;
+    say_where(cfg, &swarm);
     let clock = swarm.clock.clone();
     let observer_bus = swarm.session()?;
     let truth_sub: Subscription<SimTruth> = observer_bus.subscribe(&fleet.keys().truth(), 256)?;
@@ -748,4 +839,24 @@ pub fn pair_errors(
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_router_takes_the_documented_port_and_says_when_it_cannot() {
+        // Free: taken as asked.
+        let p = free_port().unwrap();
+        let (port, taken, router) = open_router(Some(p), false).unwrap();
+        assert_eq!((port, taken), (p, None));
+        // Held by that router now: the next one listens elsewhere and says so.
+        let (other, taken2, second) = open_router(Some(p), false).unwrap();
+        assert_ne!(other, p);
+        assert_eq!(taken2, Some(p));
+        // A client of the documented port reaches the first router.
+        let client = Bus::open(&client_of(p)).unwrap();
+        drop((client, second, router));
+    }
 }

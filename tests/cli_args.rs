@@ -76,6 +76,8 @@ fn bad_numbers_are_refused_with_the_flag_named() {
         ),
         (&["detect", "--size-mm=-100", out], "--size-mm"),
         (&["demo", "--duration", "inf"], "--duration"),
+        (&["demo", "--ros2-domain", "233"], "--ros2-domain"),
+        (&["fusion", "--ros2-domain", "x"], "--ros2-domain"),
         (&["demo", "--time-scale", "0"], "--time-scale"),
         (
             &[

@@ -284,6 +284,38 @@ impl<M: WireMessage> Publisher<M> {
     }
 }
 
+/// A publisher of bytes in another vocabulary than shoal's envelope (ROS 2
+/// CDR samples), each with an optional attachment.
+pub struct RawPublisher {
+    key: String,
+    publisher: zenoh::pubsub::Publisher<'static>,
+}
+
+impl std::fmt::Debug for RawPublisher {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("RawPublisher")
+            .field("key", &self.key)
+            .finish()
+    }
+}
+
+impl RawPublisher {
+    pub fn put(&self, bytes: Vec<u8>, attachment: Option<Vec<u8>>) -> Result<(), BusError> {
+        let mut put = self.publisher.put(bytes);
+        if let Some(a) = attachment {
+            put = put.attachment(a);
+        }
+        put.wait().map_err(|e| BusError::Put {
+            key: self.key.clone(),
+            reason: e.to_string(),
+        })
+    }
+
+    pub fn key(&self) -> &str {
+        &self.key
+    }
+}
+
 /// Keeps a liveliness token (or any declaration) alive until dropped.
 pub struct Token {
     _token: zenoh::liveliness::LivelinessToken,
@@ -344,6 +376,21 @@ impl Bus {
             publisher,
             _m: PhantomData,
         })
+    }
+
+    /// This session's Zenoh ID as Zenoh prints it (lowercase hex).
+    pub fn zid(&self) -> String {
+        self.session.zid().to_string()
+    }
+
+    /// A publisher of raw bytes on a concrete key.
+    pub fn raw_publisher(&self, key: String) -> Result<RawPublisher, BusError> {
+        let publisher = self
+            .session
+            .declare_publisher(key.clone())
+            .wait()
+            .map_err(declare_err("publisher", &key))?;
+        Ok(RawPublisher { key, publisher })
     }
 
     /// Subscribe to `key_expr`; decoded messages go into a drop-oldest queue

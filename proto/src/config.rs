@@ -183,6 +183,18 @@ struct FleetFile {
     description: String,
     rigs: BTreeMap<String, RigSpec>,
     vehicles: Vec<VehicleSpec>,
+    #[serde(default)]
+    ros2: Option<Ros2Settings>,
+}
+
+/// A fleet file's `[ros2]` table: the services hosting a ROS 2 publisher
+/// (`shoal fusion`, `shoal demo`) publish in ROS 2 as if given `--ros2`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Ros2Settings {
+    /// The ROS 2 domain ID (0–232); `ROS_DOMAIN_ID` and `--ros2-domain` override it.
+    #[serde(default)]
+    pub domain: u32,
 }
 
 /// A resolved camera.
@@ -220,6 +232,8 @@ pub struct Fleet {
     pub description: String,
     pub reference_vehicle: VehicleId,
     pub vehicles: Vec<Vehicle>,
+    /// Publish in ROS 2 too (the file's `[ros2]` table).
+    pub ros2: Option<Ros2Settings>,
     /// Where it was loaded from (for messages and relative paths).
     pub source: PathBuf,
 }
@@ -394,11 +408,20 @@ impl Fleet {
                 format!("vehicle {} is not in the fleet", file.reference_vehicle),
             ));
         }
+        if let Some(r) = file.ros2 {
+            if r.domain > 232 {
+                return Err(invalid(
+                    "ros2.domain".into(),
+                    format!("{}: a ROS 2 domain ID is 0 to 232", r.domain),
+                ));
+            }
+        }
         Ok(Fleet {
             name: file.fleet,
             description: file.description,
             reference_vehicle: file.reference_vehicle,
             vehicles,
+            ros2: file.ros2,
             source: path.to_path_buf(),
         })
     }
@@ -697,6 +720,24 @@ markers = [ { codes = "shoal", id = 7, side_m = 0.1, body_from_marker = { xyz_m 
         assert_eq!(f.marker_owner(CodeSet::Shoal, 7), MarkerOwner::Vehicle(2));
         assert_eq!(f.marker_owner(CodeSet::Shoal, 8), MarkerOwner::Unknown);
         assert_eq!(f.vehicle(1).unwrap().cameras[0].model.width, 1440);
+    }
+
+    #[test]
+    fn a_ros2_table_turns_ros2_on_and_its_domain_is_checked() {
+        assert_eq!(Fleet::parse(MINI, Path::new("m.toml")).unwrap().ros2, None);
+        let on = format!("{MINI}\n[ros2]\ndomain = 5\n");
+        let f = Fleet::parse(&on, Path::new("m.toml")).unwrap();
+        assert_eq!(f.ros2, Some(Ros2Settings { domain: 5 }));
+        let default = format!("{MINI}\n[ros2]\n");
+        let f = Fleet::parse(&default, Path::new("m.toml")).unwrap();
+        assert_eq!(f.ros2, Some(Ros2Settings { domain: 0 }));
+        for (bad, field) in [("domain = 233", "ros2.domain"), ("topic = 1", "topic")] {
+            let text = format!("{MINI}\n[ros2]\n{bad}\n");
+            let e = Fleet::parse(&text, Path::new("m.toml"))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(field), "{bad}: {e}");
+        }
     }
 
     #[test]

@@ -16,6 +16,7 @@
 //! - [`files`]: the bounded reader of every small input file and the output that appears only when complete;
 //! - [`queue`]: the bounded drop-oldest queue every shoal queue is;
 //! - [`clock`]: injected clocks (wall time, or simulation and replay time).
+//! - [`ros2`]: ROS 2 messages in CDR and `rmw_zenoh`'s keys and tokens (no Zenoh here either).
 
 // A library reports failures as errors; an `unwrap()` that cannot fail says why with `expect`.
 #![warn(clippy::unwrap_used)]
@@ -33,6 +34,7 @@ pub mod marker;
 pub mod messages;
 pub mod nav;
 pub mod queue;
+pub mod ros2;
 pub mod samples;
 pub mod splitmix;
 

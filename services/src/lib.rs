@@ -17,6 +17,8 @@
 //! - [`recorder`]: the recorder (`shoal record`): the fleet's keys →
 //!   `shoal_record::Recording` (MCAP);
 //! - [`replay`]: replay (`shoal replay`): a log → its keys, byte for byte;
+//! - [`ros2`]: shoal as a ROS 2 node over `rmw_zenoh` (`--ros2`): maps,
+//!   observations and health republished as ROS 2 topics, CDR-encoded;
 //! - [`relay`]: the fault-injecting TCP relay between two routers
 //!   (`shoal relay`, the link-fault tests), and message-level faults.
 //!
@@ -31,4 +33,5 @@ pub mod node;
 pub mod recorder;
 pub mod relay;
 pub mod replay;
+pub mod ros2;
 pub mod sim;

@@ -62,9 +62,21 @@ pub struct DemoArgs {
     /// (e.g. `17:5:15`); the figures then say how the map kept it.
     #[arg(long, value_name = "V:FROM:TO")]
     occlude: Option<shoal_services::sim::Occlusion>,
+    /// Loopback port of the demo's Zenoh router, where `shoal station`,
+    /// `shoal record` or a Python/ROS 2 client in another terminal attach
+    /// (when taken, a free port is used and printed).
+    #[arg(long, default_value_t = 7447)]
+    port: u16,
+    #[command(flatten)]
+    ros2: super::net::Ros2Args,
 }
 
 pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
+    let fleet_for_ros2 = match &a.fleet {
+        Some(p) => shoal_proto::config::Fleet::load(p)?,
+        None => shoal::demo::paper_fleet()?,
+    };
+    let ros2 = a.ros2.domain(&fleet_for_ros2)?;
     let cfg = DemoConfig {
         fleet: a.fleet,
         water_c_per_m: a.water,
@@ -85,6 +97,8 @@ pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
         }),
         nav: !a.no_nav,
         occlude: a.occlude,
+        router_port: Some(a.port),
+        ros2,
     };
     let bar = ProgressBar::new((cfg.duration_s * 10.0) as u64);
     bar.set_style(

@@ -37,3 +37,39 @@ pub fn wait_for_ctrl_c(done: impl Fn() -> bool) {
         std::thread::sleep(std::time::Duration::from_millis(100));
     }
 }
+
+/// ROS 2 publication options shared by the services that host it.
+#[derive(Debug, Args)]
+pub struct Ros2Args {
+    /// Also publish in ROS 2 over rmw_zenoh (no bridge): fused poses, /tf,
+    /// observations and /diagnostics (docs/ros2.md). On by default when the
+    /// fleet file has a `[ros2]` table.
+    #[arg(long)]
+    pub ros2: bool,
+    /// ROS 2 domain ID, 0–232 (default: `ROS_DOMAIN_ID`, else the fleet
+    /// file's `[ros2] domain`, else 0). Implies --ros2.
+    #[arg(long, value_parser = parse_domain)]
+    pub ros2_domain: Option<u32>,
+}
+
+fn parse_domain(s: &str) -> Result<u32, String> {
+    shoal_services::ros2::parse_domain(s)
+}
+
+impl Ros2Args {
+    /// The domain to publish in, or `None` when ROS 2 publication is off.
+    pub fn domain(&self, fleet: &shoal_proto::config::Fleet) -> anyhow::Result<Option<u32>> {
+        if !self.ros2 && self.ros2_domain.is_none() && fleet.ros2.is_none() {
+            return Ok(None);
+        }
+        if let Some(d) = self.ros2_domain {
+            return Ok(Some(d));
+        }
+        if std::env::var_os("ROS_DOMAIN_ID").is_some() {
+            return Ok(Some(
+                shoal_services::ros2::domain_from_env().map_err(anyhow::Error::msg)?,
+            ));
+        }
+        Ok(Some(fleet.ros2.map_or(0, |r| r.domain)))
+    }
+}

@@ -1,6 +1,6 @@
 //! `shoal node`, `shoal fusion`, `shoal sim`: the services as standalone processes.
 
-use super::net::{wait_for_ctrl_c, NetArgs};
+use super::net::{wait_for_ctrl_c, NetArgs, Ros2Args};
 use anyhow::{bail, Context};
 use clap::{Args, Subcommand};
 use shoal_fusion::FusionParams;
@@ -162,6 +162,8 @@ pub struct FusionArgs {
     #[arg(long)]
     link: bool,
     #[command(flatten)]
+    ros2: Ros2Args,
+    #[command(flatten)]
     net: NetArgs,
 }
 
@@ -269,8 +271,22 @@ pub fn run_fusion(a: FusionArgs) -> anyhow::Result<()> {
             bail!("--on-vehicle {v}: no such vehicle in {}", a.fleet.display());
         }
     }
+    let ros2_domain = a.ros2.domain(&fleet)?;
     let bus = a.net.open()?;
     let clock = service_clock(&a.clock, &bus, &fleet)?;
+    let ros2 = ros2_domain
+        .map(|domain| {
+            let mut cfg = shoal_services::ros2::Ros2Config::central(fleet.clone(), domain);
+            if let Some(v) = a.on_vehicle {
+                cfg.map_key = fleet.keys().map_of(&v.to_string());
+                cfg.node_name = format!("shoal_fusion_auv{v}");
+            }
+            shoal_services::ros2::spawn(&bus, cfg)
+        })
+        .transpose()?;
+    if let Some(r) = &ros2 {
+        tracing::info!("ROS 2 node announced: {}", r.node_token());
+    }
     let handle = shoal_services::fusion::spawn(
         &bus,
         FusionConfig {
@@ -288,6 +304,14 @@ pub fn run_fusion(a: FusionArgs) -> anyhow::Result<()> {
     tracing::info!("fusion running; Ctrl-C to stop");
     wait_for_ctrl_c(|| false);
     handle.stop();
+    if let Some(r) = ros2 {
+        let s = r.stats();
+        r.stop();
+        shoal::outln!(
+            "ROS 2: {} maps as {} poses and {} /tf messages, {} observations, {} diagnostics, {} failed",
+            s.maps, s.poses, s.tf, s.observations, s.diagnostics, s.failed
+        );
+    }
     Ok(())
 }
 
