@@ -9,6 +9,7 @@ use std::process::Command;
 fn shoal(args: &[&str]) -> (Option<i32>, String) {
     let out = Command::new(env!("CARGO_BIN_EXE_shoal"))
         .args(args)
+        .env_remove("SHOAL_STATION_TOKEN")
         .output()
         .expect("run shoal");
     (
@@ -105,4 +106,53 @@ fn bad_numbers_are_refused_with_the_flag_named() {
         "a refused command wrote its output"
     );
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `shoal station`'s access options: each refusal says what and how, before
+/// any server or Zenoh session starts, and never panics.
+#[test]
+fn station_access_options_are_refused_with_a_reason() {
+    let (code, err) = shoal(&["station", "--tls-cert", "cert.pem"]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("--tls-key"), "{err}");
+    let cases: &[(&[&str], &str)] = &[
+        (
+            &["station", "--bind", "0.0.0.0", "--no-foxglove"],
+            "--insecure-public",
+        ),
+        (
+            &[
+                "station",
+                "--bind",
+                "0.0.0.0",
+                "--token",
+                "0123456789abcdef0123",
+            ],
+            "--no-foxglove",
+        ),
+        (&["station", "--token", "secret"], "16"),
+        (
+            &["station", "--allow-host", "http://vessel.local/"],
+            "--allow-host",
+        ),
+        (
+            &[
+                "station",
+                "--tls-cert",
+                "/nonexistent/station-cert.pem",
+                "--tls-key",
+                "/nonexistent/station-key.pem",
+            ],
+            "/nonexistent/station-cert.pem",
+        ),
+    ];
+    for (args, says) in cases {
+        let (code, err) = shoal(args);
+        assert_eq!(code, Some(1), "shoal {args:?}: exit {code:?}, stderr {err}");
+        assert!(
+            err.contains(says),
+            "shoal {args:?}: stderr lacks {says:?}: {err}"
+        );
+        assert!(!err.contains("panicked"), "shoal {args:?}: {err}");
+    }
 }

@@ -4,6 +4,9 @@
 //! — in the same page, without reloading (checked through the DevTools
 //! protocol: the page's own DOM read twice, seconds apart).
 //!
+//! A station with a token is opened from its `?token=` URL: the page then
+//! streams by its HttpOnly cookie, with the token gone from the address bar.
+//!
 //! `SHOAL_STATION_SCREENSHOT=path.png` also saves a screenshot of the page.
 
 use shoal::demo::{DemoConfig, SimulatedSwarm};
@@ -11,6 +14,7 @@ use shoal_station::StationConfig;
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
 use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
 /// The whole test's budget; each wait below fails with a message at its own deadline.
@@ -66,7 +70,13 @@ impl Drop for Browser {
 
 fn launch(chromium_path: &str, url: &str, deadline: Instant) -> Browser {
     use std::os::unix::process::CommandExt;
-    let profile = std::env::temp_dir().join(format!("shoal-chromium-{}", std::process::id()));
+    // One profile per browser: the tests of this file run in parallel in one process.
+    static LAUNCHED: AtomicUsize = AtomicUsize::new(0);
+    let profile = std::env::temp_dir().join(format!(
+        "shoal-chromium-{}-{}",
+        std::process::id(),
+        LAUNCHED.fetch_add(1, Ordering::Relaxed)
+    ));
     let mut child = Command::new(chromium_path)
         .args([
             "--headless=new",
@@ -382,6 +392,61 @@ fn station_page_shows_three_vehicles_and_updates_live_in_chromium() {
     drop(devtools);
     drop(browser);
     swarm.shutdown().unwrap();
+}
+
+#[test]
+fn station_page_with_a_token_opens_from_its_url_and_streams_by_cookie() {
+    const TOKEN: &str = "4b1d0c9e2f7a6b3c8d5e0f1a2b3c4d5e";
+    let deadline = Instant::now() + BUDGET;
+    let chromium_path = chromium();
+    // No swarm needed: the station pushes its (empty) snapshot at its rate all the same.
+    let bus = shoal_bus::Bus::open(&shoal_bus::Connect::Router {
+        port: shoal_bus::free_port().unwrap(),
+    })
+    .unwrap();
+    let fleet = shoal_proto::config::Fleet::load(std::path::Path::new("configs/fleets/paper.toml"))
+        .unwrap();
+    let station = shoal_station::spawn(
+        &bus,
+        std::sync::Arc::new(fleet),
+        StationConfig {
+            http_port: 0,
+            foxglove_port: None,
+            token: Some(TOKEN.into()),
+            ..StationConfig::default()
+        },
+    )
+    .unwrap();
+    let base = station.url();
+    let browser = launch(&chromium_path, &format!("{base}?token={TOKEN}"), deadline);
+    let mut devtools = DevTools::connect(browser.devtools_port, &base, deadline);
+    let state = loop {
+        let s = devtools.page_state();
+        if s["received"].as_u64().unwrap_or(0) >= 5 {
+            break s;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the page opened with ?token= never streamed: {s}"
+        );
+        std::thread::sleep(Duration::from_millis(250));
+    };
+    assert_eq!(state["conn"], "live", "{state}");
+    let r = devtools.call(
+        "Runtime.evaluate",
+        serde_json::json!({
+            "expression": "JSON.stringify({href: location.href, cookie: document.cookie})",
+            "returnByValue": true
+        }),
+    );
+    let seen: serde_json::Value =
+        serde_json::from_str(r["result"]["value"].as_str().unwrap()).unwrap();
+    // Redirected to the page without the token; the cookie is out of the script's reach.
+    assert_eq!(seen["href"], base.as_str(), "{seen}");
+    assert_eq!(seen["cookie"], "", "{seen}");
+    drop(devtools);
+    drop(browser);
+    station.stop();
 }
 
 /// Standard base64 (the DevTools screenshot), without a dependency for one call.

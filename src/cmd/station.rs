@@ -22,9 +22,33 @@ pub struct StationArgs {
     /// Do not start the Foxglove server.
     #[arg(long)]
     no_foxglove: bool,
-    /// Address to bind both servers to (default loopback: reach it through an SSH tunnel; 0.0.0.0 exposes it).
+    /// Address to bind both servers to (default loopback: reach it through an SSH tunnel). Any other
+    /// address needs --token (and --no-foxglove), or --insecure-public.
     #[arg(long, default_value = "127.0.0.1")]
     bind: IpAddr,
+    /// Access token the page requires (16-256 of A-Z a-z 0-9 -._~+/=, e.g. `openssl rand -hex 16`):
+    /// scripts send `Authorization: Bearer TOKEN`, a browser opens /?token=TOKEN once (then a cookie).
+    #[arg(
+        long,
+        env = "SHOAL_STATION_TOKEN",
+        hide_env_values = true,
+        value_name = "TOKEN"
+    )]
+    token: Option<String>,
+    /// Another host name the page answers to (NAME or NAME:PORT; repeatable). By default only its
+    /// own address, localhost, 127.0.0.1 and [::1] at its port: other Hosts are refused (DNS rebinding).
+    #[arg(long = "allow-host", value_name = "NAME")]
+    allow_host: Vec<String>,
+    /// Serve the page over HTTPS with this certificate chain (PEM; with --tls-key).
+    #[arg(long, value_name = "PEM", requires = "tls_key")]
+    tls_cert: Option<PathBuf>,
+    /// The certificate's private key (PEM; with --tls-cert).
+    #[arg(long, value_name = "PEM", requires = "tls_cert")]
+    tls_key: Option<PathBuf>,
+    /// Serve on a non-loopback --bind without a token, and the Foxglove server there: anyone on
+    /// that network can watch the swarm.
+    #[arg(long)]
+    insecure_public: bool,
     /// Snapshots pushed to the page per second.
     #[arg(long, default_value_t = 10.0, value_parser = super::args::positive)]
     rate: f64,
@@ -34,18 +58,31 @@ pub struct StationArgs {
 
 pub fn run_station(a: StationArgs) -> anyhow::Result<()> {
     let fleet = Arc::new(Fleet::load(&a.fleet)?);
+    let cfg = StationConfig {
+        bind: a.bind,
+        http_port: a.http_port,
+        foxglove_port: (!a.no_foxglove).then_some(a.foxglove_port),
+        rate_hz: a.rate,
+        token: a.token.clone(),
+        allow_hosts: a.allow_host,
+        tls: a
+            .tls_cert
+            .zip(a.tls_key)
+            .map(|(cert, key)| shoal_station::TlsFiles { cert, key }),
+        insecure_public: a.insecure_public,
+    };
+    // A refused token, host name, certificate or public address is reported before Zenoh opens.
+    cfg.check()?;
     let bus = a.net.open()?;
-    let station = shoal_station::spawn(
-        &bus,
-        fleet,
-        StationConfig {
-            bind: a.bind,
-            http_port: a.http_port,
-            foxglove_port: (!a.no_foxglove).then_some(a.foxglove_port),
-            rate_hz: a.rate,
-        },
-    )?;
-    shoal::errln!("shoal station: open {} in a browser", station.url());
+    let station = shoal_station::spawn(&bus, fleet, cfg)?;
+    if a.token.is_some() {
+        shoal::errln!(
+            "shoal station: open {}?token=TOKEN in a browser (your token; the page then keeps a cookie)",
+            station.url()
+        );
+    } else {
+        shoal::errln!("shoal station: open {} in a browser", station.url());
+    }
     if let Some(p) = station.foxglove_port() {
         shoal::errln!("shoal station: Foxglove live at ws://{}:{p}", a.bind);
     }

@@ -15,21 +15,33 @@
 //!
 //! Both only listen to Zenoh, so `shoal replay LOG.mcap` drives them exactly
 //! as a live swarm does.
+//!
+//! The page's server ([`http`]) is axum on a tokio runtime of its own; the
+//! snapshots are computed on a plain thread. It answers only to its own
+//! host names ([`access`]: no DNS rebinding of a loopback page), can require
+//! a token, and serves HTTPS ([`tls`]) when given a certificate. A station
+//! bound beyond loopback without a token is refused
+//! ([`StationConfig::insecure_public`] overrides).
 
 // A library reports failures as errors; an `unwrap()` that cannot fail says why with `expect`.
 #![warn(clippy::unwrap_used)]
 
 extern crate shoal_proto as proto;
 
+pub mod access;
 pub mod http;
 pub mod live;
+pub mod tls;
 pub mod view;
+
+pub use tls::TlsFiles;
 
 use proto::config::Fleet;
 use proto::{FleetMap, KeyKind, NodeStatus, Observation, SimTruth, VehicleId};
 use shoal_bus::{Bus, Declaration, Subscription, Worker};
 use std::collections::{BTreeMap, VecDeque};
 use std::net::{IpAddr, Ipv4Addr, SocketAddr};
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -53,10 +65,37 @@ pub enum StationError {
     Thread(String),
     #[error("station rate {0} Hz: must be between 1 and 100")]
     Rate(f64),
+    #[error("station token refused: {0}")]
+    Token(String),
+    #[error("--allow-host {name:?}: {reason}")]
+    AllowHost { name: String, reason: String },
+    #[error("cannot read the station's TLS {what} {path}: {source}")]
+    TlsRead {
+        what: &'static str,
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("the station's TLS {what} {path} is not usable: {reason}")]
+    TlsPem {
+        what: &'static str,
+        path: PathBuf,
+        reason: String,
+    },
+    #[error("the TLS key {key} does not go with the certificate {cert}: {reason}")]
+    TlsKey {
+        cert: PathBuf,
+        key: PathBuf,
+        reason: String,
+    },
+    #[error("refusing to serve the station on {bind}, beyond loopback, without a token: anyone on that network could watch the swarm. Give a token (--token or SHOAL_STATION_TOKEN; with --tls-cert/--tls-key so it does not cross the network in clear), reach a loopback station through an SSH tunnel, or pass --insecure-public to serve it open anyway")]
+    PublicWithoutToken { bind: IpAddr },
+    #[error("refusing to serve the Foxglove live server on {bind}, beyond loopback: it has no token or TLS of its own. Pass --no-foxglove (and reach it through an SSH tunnel from a loopback station), or --insecure-public to serve it open anyway")]
+    PublicFoxglove { bind: IpAddr },
 }
 
-/// Where the station listens and how often it pushes.
-#[derive(Debug, Clone, PartialEq)]
+/// Where the station listens, how often it pushes, and who may see it.
+#[derive(Clone, PartialEq)]
 pub struct StationConfig {
     /// Address both servers bind (default loopback: reach it over an SSH tunnel).
     pub bind: IpAddr,
@@ -66,6 +105,15 @@ pub struct StationConfig {
     pub foxglove_port: Option<u16>,
     /// Snapshots pushed to the page per second.
     pub rate_hz: f64,
+    /// Access token: when set, every page request needs it ([`access`]).
+    pub token: Option<String>,
+    /// Host names the page answers to besides its own address and the
+    /// loopback names (`NAME` or `NAME:PORT`, see [`access`]).
+    pub allow_hosts: Vec<String>,
+    /// Serve the page over HTTPS with this certificate.
+    pub tls: Option<TlsFiles>,
+    /// Serve beyond loopback without a token (and the Foxglove server there at all).
+    pub insecure_public: bool,
 }
 
 impl Default for StationConfig {
@@ -75,6 +123,73 @@ impl Default for StationConfig {
             http_port: 8080,
             foxglove_port: Some(8765),
             rate_hz: 10.0,
+            token: None,
+            allow_hosts: Vec::new(),
+            tls: None,
+            insecure_public: false,
+        }
+    }
+}
+
+/// Debug without the token's value.
+impl std::fmt::Debug for StationConfig {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("StationConfig")
+            .field("bind", &self.bind)
+            .field("http_port", &self.http_port)
+            .field("foxglove_port", &self.foxglove_port)
+            .field("rate_hz", &self.rate_hz)
+            .field("token", &self.token.as_ref().map(|_| "(set)"))
+            .field("allow_hosts", &self.allow_hosts)
+            .field("tls", &self.tls)
+            .field("insecure_public", &self.insecure_public)
+            .finish()
+    }
+}
+
+impl StationConfig {
+    /// Check everything that can be checked before binding: rate, token,
+    /// host names, TLS files (loaded), and the rule for public addresses.
+    pub fn check(&self) -> Result<http::ServeOptions, StationError> {
+        if !(1.0..=100.0).contains(&self.rate_hz) {
+            return Err(StationError::Rate(self.rate_hz));
+        }
+        let token = self.token.as_deref().map(access::Token::new).transpose()?;
+        let allowed_hosts = self
+            .allow_hosts
+            .iter()
+            .map(|h| access::parse_allowed_host(h))
+            .collect::<Result<Vec<_>, _>>()?;
+        let tls = self.tls.as_ref().map(tls::server_config).transpose()?;
+        if !self.bind.is_loopback() && !self.insecure_public {
+            if self.token.is_none() {
+                return Err(StationError::PublicWithoutToken { bind: self.bind });
+            }
+            if self.foxglove_port.is_some() {
+                return Err(StationError::PublicFoxglove { bind: self.bind });
+            }
+        }
+        Ok(http::ServeOptions {
+            allowed_hosts,
+            token,
+            tls,
+        })
+    }
+    /// Say loudly what a station beyond loopback exposes.
+    fn warn_if_exposed(&self) {
+        if self.bind.is_loopback() {
+            return;
+        }
+        if self.token.is_none() {
+            tracing::warn!(
+                "station: serving on {} with no token (--insecure-public): anyone who reaches it sees the swarm",
+                self.bind
+            );
+        } else if self.tls.is_none() {
+            tracing::warn!(
+                "station: serving on {} without TLS: the token crosses the network in clear (add --tls-cert/--tls-key)",
+                self.bind
+            );
         }
     }
 }
@@ -113,9 +228,10 @@ impl StationHandle {
         self.http.addr
     }
 
-    /// The page's URL.
+    /// The page's URL (`https://` when serving TLS; without any token).
     pub fn url(&self) -> String {
-        format!("http://{}/", self.http.addr)
+        let scheme = if self.http.tls { "https" } else { "http" };
+        format!("{scheme}://{}/", self.http.addr)
     }
 
     /// The Foxglove WebSocket port, if that server runs.
@@ -162,17 +278,20 @@ impl Feeds {
 }
 
 /// Start the station on `bus` for `fleet`. Fails (without panicking) when a
-/// port is taken.
+/// port is taken or the configuration is refused ([`StationConfig::check`]).
 pub fn spawn(
     bus: &Bus,
     fleet: Arc<Fleet>,
     cfg: StationConfig,
 ) -> Result<StationHandle, StationError> {
-    if !(1.0..=100.0).contains(&cfg.rate_hz) {
-        return Err(StationError::Rate(cfg.rate_hz));
-    }
+    let options = cfg.check()?;
+    cfg.warn_if_exposed();
     let hub = http::Hub::new();
-    let http = http::HttpServer::start(SocketAddr::new(cfg.bind, cfg.http_port), hub.clone())?;
+    let http = http::HttpServer::start(
+        SocketAddr::new(cfg.bind, cfg.http_port),
+        hub.clone(),
+        options,
+    )?;
     let foxglove = match cfg.foxglove_port {
         Some(port) => Some(live::FoxgloveLive::start(&cfg.bind.to_string(), port)?),
         None => None,

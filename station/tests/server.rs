@@ -25,13 +25,14 @@ fn config(http_port: u16, foxglove_port: Option<u16>) -> StationConfig {
         http_port,
         foxglove_port,
         rate_hz: 10.0,
+        ..StationConfig::default()
     }
 }
 
 fn get(addr: std::net::SocketAddr, path: &str) -> (u16, String) {
     let mut s = TcpStream::connect(addr).unwrap();
     s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
-    write!(s, "GET {path} HTTP/1.1\r\nHost: x\r\n\r\n").unwrap();
+    write!(s, "GET {path} HTTP/1.1\r\nHost: {addr}\r\n\r\n").unwrap();
     let mut text = String::new();
     s.read_to_string(&mut text).unwrap();
     let status = text[9..12].parse().unwrap();
@@ -79,6 +80,9 @@ fn snapshot_and_event_stream_follow_the_published_map() {
     let mut seq = 1;
     loop {
         p.put(&map(seq, 1.5 + 0.01 * seq as f64)).unwrap();
+        // Two station periods (10 Hz) for the map to reach the snapshot; before
+        // the subscription matches, a map is lost and the next one is tried.
+        std::thread::sleep(Duration::from_millis(200));
         let (status, body) = get(addr, "/api/snapshot");
         assert_eq!(status, 200);
         let v: serde_json::Value = serde_json::from_str(&body).unwrap();
@@ -98,7 +102,6 @@ fn snapshot_and_event_stream_follow_the_published_map() {
             "the snapshot never showed map {seq}: {body}"
         );
         seq += 1;
-        std::thread::sleep(Duration::from_millis(200));
     }
     // The page and its script are served; unknown paths are 404.
     assert!(get(addr, "/").1.contains("/app.js"));
@@ -108,7 +111,7 @@ fn snapshot_and_event_stream_follow_the_published_map() {
     // Server-sent events: at least 5 snapshots a second, numbered upward.
     let s = TcpStream::connect(addr).unwrap();
     s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
-    (&s).write_all(b"GET /events HTTP/1.1\r\nHost: x\r\n\r\n")
+    (&s).write_all(format!("GET /events HTTP/1.1\r\nHost: {addr}\r\n\r\n").as_bytes())
         .unwrap();
     let mut lines = BufReader::new(&s);
     let started = Instant::now();

@@ -335,15 +335,7 @@ setInterval(() => {
   if (silent > 3) setConn(`no update for ${silent.toFixed(0)} s — reconnecting…`, "conn-down");
   if (silent > 10) {
     lastMessageAt = Date.now();
-    // The server embeds the snapshot current when the page was requested, so the
-// first picture needs no round trip (and a screenshot at load shows the swarm).
-try {
-  const initial = JSON.parse(document.getElementById("initial-snapshot").textContent);
-  if (initial && initial.vehicles) render(initial);
-} catch (err) {
-  setConn("bad initial snapshot: " + err, "conn-down");
-}
-connect();
+    connect();
   }
 }, 1000);
 
