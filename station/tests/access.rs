@@ -331,11 +331,12 @@ fn https_with_a_generated_certificate_serves_the_page() {
     // Plain HTTP to the HTTPS port gets no page.
     let mut s = TcpStream::connect(addr).unwrap();
     s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
-    write!(
+    // The server may refuse the handshake and close before the write ends
+    // (a broken pipe): either way no page may come back.
+    let _ = write!(
         s,
         "GET / HTTP/1.1\r\nHost: localhost:{port}\r\nAuthorization: Bearer {TOKEN}\r\n\r\n"
-    )
-    .unwrap();
+    );
     let mut text = Vec::new();
     let _ = s.read_to_end(&mut text);
     assert!(
