@@ -158,19 +158,15 @@ pub struct LogSummary {
     pub file_bytes: u64,
 }
 
-fn load_fleet(cfg: &DemoConfig) -> anyhow::Result<Fleet> {
+/// The demo's fleet: [`DemoConfig::fleet`], or the built-in paper fleet.
+pub fn load_fleet(cfg: &DemoConfig) -> anyhow::Result<Fleet> {
     Ok(match &cfg.fleet {
         Some(p) => Fleet::load(p)?,
-        None => paper_fleet()?,
+        None => Fleet::parse(
+            PAPER_FLEET,
+            std::path::Path::new("configs/fleets/paper.toml"),
+        )?,
     })
-}
-
-/// The built-in copy of `configs/fleets/paper.toml` (the demo's default fleet).
-pub fn paper_fleet() -> anyhow::Result<Fleet> {
-    Ok(Fleet::parse(
-        PAPER_FLEET,
-        std::path::Path::new("configs/fleets/paper.toml"),
-    )?)
 }
 
 /// A running simulated swarm: an in-process Zenoh router, fusion, one node
@@ -244,7 +240,11 @@ impl SimulatedSwarm {
         if let Some(domain) = cfg.ros2 {
             swarm.ros2 = Some(shoal_services::ros2::spawn(
                 &swarm.session()?,
-                shoal_services::ros2::Ros2Config::central(fleet.clone(), domain),
+                shoal_services::ros2::Ros2Config::for_fusion(
+                    fleet.clone(),
+                    domain,
+                    Placement::Central,
+                ),
             )?);
         }
         for v in fleet.vehicles.iter().map(|v| v.id).collect::<Vec<_>>() {

@@ -27,6 +27,16 @@ pub enum Placement {
     OnVehicle(VehicleId),
 }
 
+impl Placement {
+    /// Who produces the map (`central` or the vehicle's ID) and the key it is published on.
+    pub fn producer_and_key(self, keys: &Keys) -> (String, String) {
+        match self {
+            Placement::Central => ("central".to_string(), keys.map()),
+            Placement::OnVehicle(v) => (v.to_string(), keys.map_of(&v.to_string())),
+        }
+    }
+}
+
 #[derive(Debug, Clone)]
 pub struct FusionConfig {
     pub fleet: Arc<Fleet>,
@@ -211,10 +221,7 @@ pub fn spawn(
     clock: Arc<dyn Clock>,
 ) -> Result<FusionHandle, BusError> {
     let keys = cfg.fleet.keys();
-    let (producer, map_key) = match cfg.placement {
-        Placement::Central => ("central".to_string(), keys.map()),
-        Placement::OnVehicle(v) => (v.to_string(), keys.map_of(&v.to_string())),
-    };
+    let (producer, map_key) = cfg.placement.producer_and_key(&keys);
     let inputs = Inputs::subscribe(bus, &cfg)?;
     let liveliness: DropOldestQueue<(String, bool)> = DropOldestQueue::new(1024);
     let l = liveliness.clone();

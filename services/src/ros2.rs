@@ -17,6 +17,7 @@
 //! the same Zenoh network (connect one to the other, or run shoal's services
 //! with `--zenoh-config` pointing at the ROS 2 router).
 
+use crate::fusion::Placement;
 use shoal_bus::{Bus, BusError, RawPublisher, Subscription, Token, Worker};
 use shoal_proto::config::Fleet;
 use shoal_proto::ros2::msgs::{
@@ -64,13 +65,18 @@ pub struct Ros2Config {
 }
 
 impl Ros2Config {
-    /// The central map, observations and diagnostics, as node `shoal_fusion`.
-    pub fn central(fleet: Arc<Fleet>, domain: u32) -> Self {
-        let map_key = fleet.keys().map();
+    /// The map of fusion at `placement`, observations and diagnostics, as
+    /// node `shoal_fusion` (`shoal_fusion_auv<V>` on vehicle `V`).
+    pub fn for_fusion(fleet: Arc<Fleet>, domain: u32, placement: Placement) -> Self {
+        let (_, map_key) = placement.producer_and_key(&fleet.keys());
+        let node_name = match placement {
+            Placement::Central => "shoal_fusion".to_string(),
+            Placement::OnVehicle(v) => format!("shoal_fusion_auv{v}"),
+        };
         Self {
             fleet,
             domain,
-            node_name: "shoal_fusion".into(),
+            node_name,
             map_key,
             observations: true,
             diagnostics: true,

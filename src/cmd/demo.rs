@@ -72,12 +72,7 @@ pub struct DemoArgs {
 }
 
 pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
-    let fleet_for_ros2 = match &a.fleet {
-        Some(p) => shoal_proto::config::Fleet::load(p)?,
-        None => shoal::demo::paper_fleet()?,
-    };
-    let ros2 = a.ros2.domain(&fleet_for_ros2)?;
-    let cfg = DemoConfig {
+    let mut cfg = DemoConfig {
         fleet: a.fleet,
         water_c_per_m: a.water,
         duration_s: a.duration,
@@ -98,8 +93,9 @@ pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
         nav: !a.no_nav,
         occlude: a.occlude,
         router_port: Some(a.port),
-        ros2,
+        ros2: None,
     };
+    cfg.ros2 = a.ros2.domain(&shoal::demo::load_fleet(&cfg)?)?;
     let bar = ProgressBar::new((cfg.duration_s * 10.0) as u64);
     bar.set_style(
         ProgressStyle::with_template("{spinner} sim {pos:>4}/{len} ds [{bar:30}] {elapsed} {msg}")

@@ -272,15 +272,15 @@ pub fn run_fusion(a: FusionArgs) -> anyhow::Result<()> {
         }
     }
     let ros2_domain = a.ros2.domain(&fleet)?;
+    let placement = a
+        .on_vehicle
+        .map_or(Placement::Central, Placement::OnVehicle);
     let bus = a.net.open()?;
     let clock = service_clock(&a.clock, &bus, &fleet)?;
     let ros2 = ros2_domain
         .map(|domain| {
-            let mut cfg = shoal_services::ros2::Ros2Config::central(fleet.clone(), domain);
-            if let Some(v) = a.on_vehicle {
-                cfg.map_key = fleet.keys().map_of(&v.to_string());
-                cfg.node_name = format!("shoal_fusion_auv{v}");
-            }
+            let cfg =
+                shoal_services::ros2::Ros2Config::for_fusion(fleet.clone(), domain, placement);
             shoal_services::ros2::spawn(&bus, cfg)
         })
         .transpose()?;
@@ -292,9 +292,7 @@ pub fn run_fusion(a: FusionArgs) -> anyhow::Result<()> {
         FusionConfig {
             fleet,
             params: FusionParams::default(),
-            placement: a
-                .on_vehicle
-                .map_or(Placement::Central, Placement::OnVehicle),
+            placement,
             rate_hz: a.rate,
             queue_capacity: 4096,
             link: a.link,
