@@ -3,7 +3,10 @@
 //! with Python `eclipse-zenoh`, decodes every sample with `rosbags` (its own
 //! CDR deserializer, Jazzy type definitions and RIHS01 hashes) and checks the
 //! keys, attachments and liveliness tokens. Here the decoded values are
-//! compared with the wire messages they came from.
+//! compared with the wire messages they came from. A recorder in the ROS 2
+//! profile runs beside it; `tests/python/ros2_mcap.py` decodes its log with
+//! the reference `mcap` reader and a `rosbags` type store built only from the
+//! file's own `ros2msg` schemas, and the same comparisons are made.
 
 use shoal::demo::DemoConfig;
 use shoal_bus::{client_of, free_port, Bus, Subscription};
@@ -105,6 +108,7 @@ fn a_python_rosbags_client_decodes_every_ros2_topic_and_the_values_match_the_wir
         ros2: Some(DOMAIN),
         ..DemoConfig::default()
     };
+    let fleet = std::sync::Arc::new(shoal::demo::load_fleet(&cfg).unwrap());
     let demo = std::thread::spawn(move || shoal::demo::run(&cfg, |_, _, _| {}));
     // The wire side, on the demo's router as soon as it is up.
     let bus = (0..50)
@@ -116,6 +120,17 @@ fn a_python_rosbags_client_decodes_every_ros2_topic_and_the_values_match_the_wir
     let keys = shoal_proto::Keys::new("paper").unwrap();
     let maps: Subscription<FleetMap> = bus.subscribe(&keys.map(), 4096).unwrap();
     let obs: Subscription<Observation> = bus.subscribe(&keys.all_observations(), 4096).unwrap();
+    let log = std::env::temp_dir().join(format!("shoal-ros2-{}.mcap", std::process::id()));
+    let recorder = shoal_services::recorder::Recorder::spawn(
+        &bus,
+        fleet,
+        &log,
+        shoal_record::RecordOptions {
+            ros2_profile: true,
+            ..Default::default()
+        },
+    )
+    .unwrap();
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/ros2_listen.py");
     let out = Command::new("python3")
         .arg(&script)
@@ -125,6 +140,7 @@ fn a_python_rosbags_client_decodes_every_ros2_topic_and_the_values_match_the_wir
         .output()
         .unwrap();
     let summary = demo.join().unwrap().unwrap();
+    let recorded = recorder.stop().unwrap();
     assert!(
         out.status.success(),
         "{}",
@@ -150,17 +166,50 @@ fn a_python_rosbags_client_decodes_every_ros2_topic_and_the_values_match_the_wir
         "{} map stamps on the wire",
         maps_at.len()
     );
-    let topics = report["topics"].as_object().unwrap();
-    check_map_poses(topics, &maps_at);
-    check_tf(topics, &maps_at);
     let wire: Vec<Observation> = obs.drain().into_iter().map(|r| r.msg).collect();
-    let observations = check_observations(topics, &wire);
+    let check_all = |report: &serde_json::Value, what: &str| {
+        let topics = report["topics"].as_object().unwrap();
+        check_map_poses(topics, &maps_at);
+        check_tf(topics, &maps_at);
+        let observations = check_observations(topics, &wire);
+        assert!(
+            observations >= 5,
+            "{what}: {observations} observations matched of {} sent",
+            summary.observations_sent
+        );
+        check_diagnostics(topics);
+    };
+    check_all(&report, "live");
+
+    // The ROS 2-profile log of the same run.
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/ros2_mcap.py");
+    let out = Command::new("python3")
+        .arg(&script)
+        .arg(&log)
+        .output()
+        .unwrap();
     assert!(
-        observations >= 5,
-        "{observations} observations matched of {} sent",
-        summary.observations_sent
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
     );
-    check_diagnostics(topics);
+    let from_log: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(
+        from_log["problems"],
+        serde_json::json!([]),
+        "{}",
+        from_log["problems"]
+    );
+    assert_eq!(from_log["profile"], "ros2");
+    let written: u64 = recorded.channels.values().map(|c| c.messages).sum();
+    assert_eq!(from_log["samples"].as_u64().unwrap(), written);
+    assert!(
+        recorded.channels.keys().all(|topic| topic.starts_with('/')),
+        "only ROS 2 topics in a ros2-profile log: {:?}",
+        recorded.channels.keys()
+    );
+    check_all(&from_log, "log");
+    let _ = std::fs::remove_file(&log);
 }
 
 type Topics = serde_json::Map<String, serde_json::Value>;

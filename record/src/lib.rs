@@ -68,6 +68,8 @@ pub enum RecordError {
         #[source]
         source: proto::config::ConfigError,
     },
+    #[error("ROS 2 type {0} has no ros2msg definition in shoal (it is read, never written)")]
+    NoRos2Definition(&'static str),
     #[error("encoding a {what}")]
     Encode {
         what: &'static str,

@@ -34,6 +34,12 @@ pub struct RecordOptions {
     pub frame_queue_capacity: usize,
     /// Also write Foxglove well-known-schema channels.
     pub foxglove: bool,
+    /// A ROS 2 log instead (MCAP profile `ros2`, `docs/ros2.md`): only the
+    /// ROS 2 topics that `--ros2` publishes (fused poses, `/tf`, observations,
+    /// `/diagnostics`), CDR with `ros2msg` schemas, so `ros2 bag`, `rosbags`
+    /// and Rerun read it. No wire or Foxglove channels and no frames: shoal's
+    /// own tools (`log info`, `replay`, `fuse`) need a shoal-profile log.
+    pub ros2_profile: bool,
     /// Messages buffered between the Zenoh callback and the writer thread.
     pub queue_capacity: usize,
     /// Close the current chunk at least this often, so a killed recorder loses at most this much.
@@ -55,6 +61,7 @@ impl Default for RecordOptions {
             image_rate_limit_hz: Some(1.0),
             frame_queue_capacity: 128,
             foxglove: true,
+            ros2_profile: false,
             queue_capacity: 4096,
             flush_interval: Duration::from_secs(1),
             writer: WriterOptions::default(),
@@ -139,9 +146,13 @@ pub fn create_log(
             fleet.source.display()
         );
     }
+    let mut writer_options = opts.writer.clone();
+    if opts.ros2_profile {
+        writer_options.profile = crate::writer::ROS2_PROFILE;
+    }
     LogWriter::create(
         path,
-        &opts.writer,
+        &writer_options,
         &file_metadata(fleet, opts, start),
         fleet_toml.as_deref(),
         start,
@@ -236,6 +247,9 @@ impl Recording {
                         conv.write(&mut writer, &key, &bytes, now, &stats2)?;
                     }
                     for (key, alive, heard_ns) in liveliness2.drain() {
+                        if opts.ros2_profile {
+                            continue;
+                        }
                         let vehicle = match keys2.parse(&key) {
                             Ok(KeyKind::Alive { vehicle }) => Some(vehicle),
                             _ => None,
@@ -385,6 +399,8 @@ pub(crate) struct Converter {
     last_image_ns: HashMap<(u32, u8), u64>,
     /// When set, PNG images are encoded on the image thread instead of inline.
     png_jobs: Option<DropOldestQueue<PngJob>>,
+    /// ROS 2 topic names of the fleet (the ROS 2 profile).
+    ros2_names: proto::ros2::Ros2Names,
 }
 
 /// A frame waiting for its PNG image.
@@ -454,7 +470,9 @@ fn rate_allows(
 impl Converter {
     pub(crate) fn new(fleet: Arc<Fleet>, opts: RecordOptions) -> Converter {
         let keys = fleet.keys();
+        let ros2_names = proto::ros2::Ros2Names::new(&fleet.name);
         Converter {
+            ros2_names,
             fleet,
             opts,
             keys,
@@ -473,6 +491,9 @@ impl Converter {
         log_time: u64,
         stats: &RecorderStats,
     ) -> Result<(), RecordError> {
+        if self.opts.ros2_profile {
+            return self.write_ros2(w, bytes, log_time, stats);
+        }
         let kind = envelope_kind(bytes);
         let key_kind = self.keys.parse(key).ok();
         let mut fox = Vec::new();
@@ -587,6 +608,80 @@ impl Converter {
         }
         Ok(())
     }
+}
+
+impl Converter {
+    /// The ROS 2 profile: a map, observation or node status as the ROS 2
+    /// messages `--ros2` publishes for it; other kinds are not written.
+    fn write_ros2(
+        &mut self,
+        w: &mut LogWriter,
+        bytes: &[u8],
+        log_time: u64,
+        stats: &RecorderStats,
+    ) -> Result<(), RecordError> {
+        use proto::ros2::{self as ros, msgs::RosMessage};
+        let mut out: Vec<(String, proto::ros2::msgs::RosType, Vec<u8>, u64)> = Vec::new();
+        let mut put = |topic: &str, ty, cdr, stamp| out.push((topic.to_string(), ty, cdr, stamp));
+        let undecodable = match envelope_kind(bytes) {
+            Some(MessageKind::FleetMap) => match codec::decode::<FleetMap>(bytes) {
+                Ok(m) => {
+                    for (topic, msg) in ros::map_poses(&m, &self.ros2_names) {
+                        put(&topic, msg_type(&msg), msg.to_cdr(), m.stamp_ns);
+                    }
+                    let tf = ros::map_tf(&m);
+                    if !tf.transforms.is_empty() {
+                        put(ros::Ros2Names::TF, msg_type(&tf), tf.to_cdr(), m.stamp_ns);
+                    }
+                    let d = ros::map_diagnostics(&m);
+                    put(
+                        ros::Ros2Names::DIAGNOSTICS,
+                        msg_type(&d),
+                        d.to_cdr(),
+                        m.stamp_ns,
+                    );
+                    false
+                }
+                Err(_) => true,
+            },
+            Some(MessageKind::Observation) => match codec::decode::<Observation>(bytes) {
+                Ok(o) => {
+                    if let Some((topic, msg)) = ros::observation_pose(&o, &self.ros2_names) {
+                        put(&topic, msg_type(&msg), msg.to_cdr(), o.stamp_ns);
+                    }
+                    false
+                }
+                Err(_) => true,
+            },
+            Some(MessageKind::NodeStatus) => match codec::decode::<NodeStatus>(bytes) {
+                Ok(s) => {
+                    let d = ros::node_diagnostics(&s);
+                    put(
+                        ros::Ros2Names::DIAGNOSTICS,
+                        msg_type(&d),
+                        d.to_cdr(),
+                        s.stamp_ns,
+                    );
+                    false
+                }
+                Err(_) => true,
+            },
+            Some(_) => false,
+            None => true,
+        };
+        if undecodable {
+            stats.undecodable.fetch_add(1, Ordering::Relaxed);
+        }
+        for (topic, ty, cdr, stamp) in out {
+            w.write_ros2(&topic, &ty, &cdr, log_time, stamp)?;
+            stats.written.fetch_add(1, Ordering::Relaxed);
+        }
+        Ok(())
+    }
+}
+
+fn msg_type<M: proto::ros2::msgs::RosMessage>(_: &M) -> proto::ros2::msgs::RosType {
+    M::TYPE
 }
 
 /// CPU time of the calling thread, seconds (Linux `/proc/thread-self/stat`; 0 elsewhere).

@@ -5,6 +5,8 @@
 //!   `MessageKind::schema_name`; channel metadata `schema`, `schema_version`,
 //!   `kind`);
 //! - Foxglove channels in JSON ([`crate::foxglove`]);
+//! - or, in the ROS 2 profile ([`ROS2_PROFILE`]), only ROS 2 channels: CDR
+//!   messages with `ros2msg` schemas, as `rosbag2`'s MCAP storage writes them;
 //! - a `shoal` metadata record (fleet, water, software, start time) and the
 //!   fleet file as an attachment, both at the start of the file so that a
 //!   killed recording still carries them;
@@ -14,6 +16,7 @@ use crate::foxglove::FoxgloveSchema;
 use crate::RecordError;
 use mcap::records::{MessageHeader, Metadata};
 use proto::codec::SCHEMA_VERSION;
+use proto::ros2::msgs::RosType;
 use proto::MessageKind;
 use std::collections::{BTreeMap, HashMap};
 use std::fs::File;
@@ -30,6 +33,8 @@ pub const METADATA_NAME: &str = "shoal";
 pub const FLEET_ATTACHMENT: &str = "fleet.toml";
 /// MCAP profile string of shoal logs.
 pub const PROFILE: &str = "shoal";
+/// MCAP profile string of ROS 2 logs (only CDR channels with `ros2msg` schemas).
+pub const ROS2_PROFILE: &str = "ros2";
 
 /// Messages and bytes written on one channel.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
@@ -46,6 +51,8 @@ pub struct WriterOptions {
     pub chunk_size: u64,
     /// zstd level (0: the library default, 3).
     pub zstd_level: u32,
+    /// The header's profile: [`PROFILE`] or [`ROS2_PROFILE`].
+    pub profile: &'static str,
 }
 
 impl Default for WriterOptions {
@@ -53,6 +60,7 @@ impl Default for WriterOptions {
         Self {
             chunk_size: 4 << 20,
             zstd_level: 0,
+            profile: PROFILE,
         }
     }
 }
@@ -63,6 +71,7 @@ pub struct LogWriter {
     w: mcap::Writer<BufWriter<File>>,
     raw_schemas: HashMap<MessageKind, u16>,
     fox_schemas: HashMap<FoxgloveSchema, u16>,
+    ros2_schemas: HashMap<&'static str, u16>,
     channels: HashMap<String, u16>,
     sequence: HashMap<u16, u32>,
     counts: BTreeMap<String, ChannelCount>,
@@ -102,7 +111,7 @@ impl LogWriter {
             // One writer thread per recorder; zstd worker threads would compete with the fleet for 2 cores.
             .compression_threads(0)
             .chunk_size(Some(opts.chunk_size))
-            .profile(PROFILE)
+            .profile(opts.profile)
             .library(format!(
                 "shoal-record/{} ({})",
                 env!("CARGO_PKG_VERSION"),
@@ -115,6 +124,7 @@ impl LogWriter {
             w,
             raw_schemas: HashMap::new(),
             fox_schemas: HashMap::new(),
+            ros2_schemas: HashMap::new(),
             channels: HashMap::new(),
             sequence: HashMap::new(),
             counts: BTreeMap::new(),
@@ -261,6 +271,41 @@ impl LogWriter {
         };
         let data = serde_json::to_vec(value)?;
         self.write(topic, channel, &data, log_time, publish_time)
+    }
+
+    /// Write one CDR-encoded ROS 2 message of type `ty` on `topic`.
+    pub fn write_ros2(
+        &mut self,
+        topic: &str,
+        ty: &RosType,
+        cdr: &[u8],
+        log_time: u64,
+        publish_time: u64,
+    ) -> Result<(), RecordError> {
+        let channel = match self.channels.get(topic) {
+            Some(&c) => c,
+            None => {
+                let sid = match self.ros2_schemas.get(ty.name) {
+                    Some(&s) => s,
+                    None => {
+                        let text = ty.ros2msg().ok_or(RecordError::NoRos2Definition(ty.name))?;
+                        let s = self
+                            .w
+                            .add_schema(ty.name, "ros2msg", text.as_bytes())
+                            .map_err(mcap_err(&self.path))?;
+                        self.ros2_schemas.insert(ty.name, s);
+                        s
+                    }
+                };
+                let c = self
+                    .w
+                    .add_channel(sid, topic, "cdr", &BTreeMap::new())
+                    .map_err(mcap_err(&self.path))?;
+                self.channels.insert(topic.to_string(), c);
+                c
+            }
+        };
+        self.write(topic, channel, cdr, log_time, publish_time)
     }
 
     /// Close the current chunk and push it to the file, so a crash after this keeps it.

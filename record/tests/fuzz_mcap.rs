@@ -68,6 +68,7 @@ fn intact() -> &'static (Vec<u8>, Vec<Vec<u8>>) {
         let opts = WriterOptions {
             chunk_size: 4096,
             zstd_level: 0,
+            ..Default::default()
         };
         let mut meta = BTreeMap::new();
         meta.insert("fleet".to_string(), "paper".to_string());

@@ -54,6 +54,7 @@ fn paper_log(name: &str) -> PathBuf {
     let opts = WriterOptions {
         chunk_size: 4096,
         zstd_level: 0,
+        ..Default::default()
     };
     let mut w = LogWriter::create(&path, &opts, &meta, Some(&fleet_toml), 1).unwrap();
     for i in 0..MESSAGES {

@@ -31,6 +31,11 @@ pub struct RecordArgs {
     /// Raw wire channels only, no Foxglove channels.
     #[arg(long)]
     no_foxglove: bool,
+    /// `shoal`: wire + Foxglove channels (replay, fuse, log info read it);
+    /// `ros2`: only the ROS 2 topics `--ros2` publishes, CDR with `ros2msg`
+    /// schemas, for `ros2 bag`, rosbags and Rerun (docs/ros2.md).
+    #[arg(long, default_value = "shoal", value_parser = ["shoal", "ros2"])]
+    profile: String,
     /// Water attenuation coefficient of the trial, per metre (file metadata).
     #[arg(long, value_parser = super::args::non_negative)]
     water: Option<f64>,
@@ -52,6 +57,7 @@ pub fn run_record(a: RecordArgs) -> anyhow::Result<()> {
         frame_rate_limit_hz: (a.frame_rate > 0.0).then_some(a.frame_rate),
         image_rate_limit_hz: (a.image_rate > 0.0).then_some(a.image_rate),
         foxglove: !a.no_foxglove,
+        ros2_profile: a.profile == "ros2",
         flush_interval: Duration::from_millis(a.flush_ms.max(1)),
         water_c_per_m: a.water,
         ..RecordOptions::default()

@@ -55,6 +55,81 @@ pub const ALL_TYPES: [RosType; 5] = [
     COMPRESSED_IMAGE,
 ];
 
+/// The separator between definitions in a `ros2msg` schema (80 `=`).
+const SEPARATOR: &str =
+    "================================================================================\n";
+const TIME: &str = "int32 sec\nuint32 nanosec\n";
+const HEADER: &str = "builtin_interfaces/Time stamp\nstring frame_id\n";
+const QUATERNION: &str = "float64 x\nfloat64 y\nfloat64 z\nfloat64 w\n";
+const XYZ: &str = "float64 x\nfloat64 y\nfloat64 z\n";
+
+impl RosType {
+    /// The type's full `.msg` definition as MCAP's `ros2msg` schema encoding
+    /// (and `rosbag2`) carry it: the type's own fields, then each type it
+    /// uses after a line of 80 `=` and `MSG: pkg/Name`. `None` for the
+    /// image types, which shoal reads but never writes.
+    pub fn ros2msg(&self) -> Option<String> {
+        let (own, deps): (&str, &[(&str, &str)]) = match self.name {
+            "geometry_msgs/msg/PoseWithCovarianceStamped" => (
+                "std_msgs/Header header\ngeometry_msgs/PoseWithCovariance pose\n",
+                &[
+                    ("std_msgs/Header", HEADER),
+                    ("builtin_interfaces/Time", TIME),
+                    (
+                        "geometry_msgs/PoseWithCovariance",
+                        "geometry_msgs/Pose pose\nfloat64[36] covariance\n",
+                    ),
+                    (
+                        "geometry_msgs/Pose",
+                        "geometry_msgs/Point position\ngeometry_msgs/Quaternion orientation\n",
+                    ),
+                    ("geometry_msgs/Point", XYZ),
+                    ("geometry_msgs/Quaternion", QUATERNION),
+                ],
+            ),
+            "tf2_msgs/msg/TFMessage" => (
+                "geometry_msgs/TransformStamped[] transforms\n",
+                &[
+                    (
+                        "geometry_msgs/TransformStamped",
+                        "std_msgs/Header header\nstring child_frame_id\ngeometry_msgs/Transform transform\n",
+                    ),
+                    ("std_msgs/Header", HEADER),
+                    ("builtin_interfaces/Time", TIME),
+                    (
+                        "geometry_msgs/Transform",
+                        "geometry_msgs/Vector3 translation\ngeometry_msgs/Quaternion rotation\n",
+                    ),
+                    ("geometry_msgs/Vector3", XYZ),
+                    ("geometry_msgs/Quaternion", QUATERNION),
+                ],
+            ),
+            "diagnostic_msgs/msg/DiagnosticArray" => (
+                "std_msgs/Header header\ndiagnostic_msgs/DiagnosticStatus[] status\n",
+                &[
+                    ("std_msgs/Header", HEADER),
+                    ("builtin_interfaces/Time", TIME),
+                    (
+                        "diagnostic_msgs/DiagnosticStatus",
+                        "byte OK=0\nbyte WARN=1\nbyte ERROR=2\nbyte STALE=3\nbyte level\nstring name\nstring message\nstring hardware_id\ndiagnostic_msgs/KeyValue[] values\n",
+                    ),
+                    ("diagnostic_msgs/KeyValue", "string key\nstring value\n"),
+                ],
+            ),
+            _ => return None,
+        };
+        let mut text = own.to_string();
+        for (name, body) in deps {
+            text.push_str(SEPARATOR);
+            text.push_str("MSG: ");
+            text.push_str(name);
+            text.push('\n');
+            text.push_str(body);
+        }
+        Some(text)
+    }
+}
+
 /// A ROS 2 message with its CDR encoding.
 pub trait RosMessage: Sized {
     const TYPE: RosType;
@@ -449,6 +524,21 @@ mod tests {
             data: vec![0xFF, 0xD8, 0xFF],
         };
         assert_eq!(CompressedImage::from_cdr(&jpeg.to_cdr()).unwrap(), jpeg);
+    }
+
+    #[test]
+    fn written_types_carry_their_whole_definition() {
+        let pose = POSE_WITH_COVARIANCE_STAMPED.ros2msg().unwrap();
+        assert!(pose.starts_with("std_msgs/Header header\n"));
+        // Header, Time, PoseWithCovariance, Pose, Point, Quaternion.
+        assert_eq!(pose.matches("\nMSG: ").count(), 6);
+        assert!(pose.contains(&format!("\n{}\nMSG: std_msgs/Header\n", "=".repeat(80))));
+        assert_eq!(TF_MESSAGE.ros2msg().unwrap().matches("MSG: ").count(), 6);
+        assert_eq!(
+            DIAGNOSTIC_ARRAY.ros2msg().unwrap().matches("MSG: ").count(),
+            4
+        );
+        assert_eq!(IMAGE.ros2msg(), None);
     }
 
     #[test]
