@@ -13,7 +13,9 @@
 //! | `water-sheet`    | the simulator's water presets side by side                  | [`water_sheet`]  |
 //! | `code-tables`    | regenerate `proto/data/codes/` from OpenCV and libapriltag  | [`code_tables`]  |
 //! | `record-cost`    | the recorder's cost per camera frame on a real log          | [`record_cost`]  |
+//! | `big-log`        | a log of N GB from a real one, to measure reading costs     | [`big_log`]      |
 
+pub mod big_log;
 pub mod code_tables;
 pub mod hoirm;
 pub mod psf_scale;
@@ -41,6 +43,8 @@ pub enum Probe {
     CodeTables(code_tables::CodeTablesArgs),
     /// Cost of recording camera frames, stage by stage, on the frames of a log.
     RecordCost(record_cost::RecordCostArgs),
+    /// A log of a given size made of a real one repeated (stamps shifted), for memory measurements.
+    BigLog(big_log::BigLogArgs),
 }
 
 /// Run `probe`, printing its findings on stdout.
@@ -53,6 +57,7 @@ pub fn run(probe: &Probe) -> Result<(), EvalError> {
         Probe::WaterSheet(a) => water_sheet::run(a),
         Probe::CodeTables(a) => code_tables::run(a),
         Probe::RecordCost(a) => record_cost::run(a),
+        Probe::BigLog(a) => big_log::run(a),
     }
 }
 
