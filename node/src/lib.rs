@@ -28,6 +28,7 @@ pub mod pipeline;
 pub mod pose;
 pub mod print;
 pub mod restore;
+pub mod ros_image;
 pub mod source;
 pub mod track;
 pub mod vehicle;

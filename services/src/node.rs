@@ -25,6 +25,8 @@ pub enum Source {
     /// A folder of images, a video file or a live camera, played as one of
     /// the vehicle's cameras.
     Local(LocalSource),
+    /// A ROS 2 image topic over `rmw_zenoh`, played as one of the vehicle's cameras.
+    Ros2(crate::ros2::Ros2ImageSource),
 }
 
 #[derive(Debug, Clone)]
@@ -115,21 +117,19 @@ impl FrameInput for ZenohFrames {
     }
 }
 
-/// Start a node on `bus`.
-pub fn spawn(bus: &Bus, cfg: NodeConfig) -> Result<NodeHandle, NodeError> {
-    let vehicle = cfg
-        .fleet
-        .vehicle(cfg.vehicle)
-        .ok_or_else(|| NodeError::UnknownVehicle(cfg.vehicle, cfg.fleet.name.clone()))?
-        .clone();
-    let keys = cfg.fleet.keys();
-    let stop = Arc::new(AtomicBool::new(false));
-    let stats = Arc::new(NodeStats::new(&vehicle.cameras));
-    let publisher: Arc<Publisher<Observation>> =
-        Arc::new(bus.publisher(keys.observations(cfg.vehicle))?);
-    let mut threads = Vec::new();
+/// Inputs per camera (`None`: the camera gets no frames from this source),
+/// and the local source's feed with the camera it plays.
+type CameraInputs = (
+    Vec<Option<Box<dyn FrameInput>>>,
+    Option<(LocalInput, usize)>,
+);
 
-    // Inputs per camera; the local source's feed and the camera it plays.
+fn camera_inputs(
+    bus: &Bus,
+    cfg: &NodeConfig,
+    vehicle: &shoal_proto::config::Vehicle,
+) -> Result<CameraInputs, NodeError> {
+    let keys = cfg.fleet.keys();
     let mut inputs: Vec<Option<Box<dyn FrameInput>>> = Vec::new();
     let mut local_feed: Option<(LocalInput, usize)> = None;
     for (i, cam) in vehicle.cameras.iter().enumerate() {
@@ -144,8 +144,49 @@ pub fn spawn(bus: &Bus, cfg: NodeConfig) -> Result<NodeHandle, NodeError> {
                 Some(Box::new(input))
             }
             Source::Local(_) => None,
+            Source::Ros2(r) if r.camera == cam.index => {
+                let info = CameraInfo {
+                    model: cam.model,
+                    body_from_camera: cam.body_from_camera,
+                };
+                Some(Box::new(crate::ros2::Ros2Frames::subscribe(
+                    bus,
+                    r,
+                    cfg.vehicle,
+                    info,
+                    cfg.queue_capacity,
+                )?))
+            }
+            Source::Ros2(_) => None,
         });
     }
+    if let Source::Ros2(r) = &cfg.source {
+        if !vehicle.cameras.iter().any(|c| c.index == r.camera) {
+            return Err(NodeError::NoSuchCamera {
+                what: format!("ROS 2 topic {}", r.topic),
+                vehicle: cfg.vehicle,
+                camera: r.camera,
+            });
+        }
+    }
+    Ok((inputs, local_feed))
+}
+
+/// Start a node on `bus`.
+pub fn spawn(bus: &Bus, cfg: NodeConfig) -> Result<NodeHandle, NodeError> {
+    let vehicle = cfg
+        .fleet
+        .vehicle(cfg.vehicle)
+        .ok_or_else(|| NodeError::UnknownVehicle(cfg.vehicle, cfg.fleet.name.clone()))?
+        .clone();
+    let keys = cfg.fleet.keys();
+    let stop = Arc::new(AtomicBool::new(false));
+    let stats = Arc::new(NodeStats::new(&vehicle.cameras));
+    let publisher: Arc<Publisher<Observation>> =
+        Arc::new(bus.publisher(keys.observations(cfg.vehicle))?);
+    let mut threads = Vec::new();
+
+    let (inputs, local_feed) = camera_inputs(bus, &cfg, &vehicle)?;
     if let Source::Local(local) = &cfg.source {
         let Some((feed, i)) = local_feed else {
             return Err(NodeError::NoSuchCamera {

@@ -312,3 +312,158 @@ fn publish_map(
         count(r, &mut stats.diagnostics, &mut stats.failed);
     }
 }
+
+/// A node camera fed from a ROS 2 image topic (`shoal node --source ros2:TOPIC`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Ros2ImageSource {
+    pub domain: u32,
+    /// Fully qualified topic of `sensor_msgs/msg/Image` or `CompressedImage`.
+    pub topic: String,
+    /// Which of the vehicle's cameras it is (index in the fleet file).
+    pub camera: u8,
+}
+
+/// Frames of one camera from a ROS 2 image topic: every sample on the topic's
+/// keys (`<domain>/<topic>/<type>/<hash>`, either image type), decoded to
+/// 8-bit grey; the capture stamp is the header's (arrival time when it is
+/// zero). Samples that are not images, or not readable ones, are counted
+/// and logged, never passed on.
+pub struct Ros2Frames {
+    queue: shoal_bus::RawQueue,
+    _subscription: shoal_bus::Declaration,
+    _tokens: [Token; 2],
+    vehicle: shoal_proto::VehicleId,
+    camera: u8,
+    info: shoal_proto::CameraInfo,
+    topic: String,
+    seq: std::sync::atomic::AtomicU64,
+    rejected: std::sync::atomic::AtomicU64,
+}
+
+impl std::fmt::Debug for Ros2Frames {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Ros2Frames")
+            .field("topic", &self.topic)
+            .finish()
+    }
+}
+
+impl Ros2Frames {
+    /// Subscribe to `src.topic` for `vehicle`'s camera `info`, and announce
+    /// the subscription as ROS 2 node `shoal_node_auv<vehicle>`.
+    pub fn subscribe(
+        bus: &Bus,
+        src: &Ros2ImageSource,
+        vehicle: shoal_proto::VehicleId,
+        info: shoal_proto::CameraInfo,
+        capacity: usize,
+    ) -> Result<Ros2Frames, BusError> {
+        if !rmw::valid_topic(&src.topic) {
+            return Err(BusError::ConfigValue(format!(
+                "ROS 2 topic {:?}: expected a fully qualified name such as /camera/image_raw",
+                src.topic
+            )));
+        }
+        let stripped = src.topic.trim_start_matches('/');
+        let (queue, subscription) =
+            bus.subscribe_raw(&format!("{}/{stripped}/*/*", src.domain), capacity)?;
+        let node = RosNode {
+            domain: src.domain,
+            zid: bus.zid(),
+            id: 0,
+            namespace: "/".into(),
+            name: format!("shoal_node_auv{vehicle}"),
+        };
+        // image_transport names compressed topics `…/compressed`.
+        let ty = if src.topic.ends_with("/compressed") {
+            shoal_proto::ros2::msgs::COMPRESSED_IMAGE
+        } else {
+            shoal_proto::ros2::msgs::IMAGE
+        };
+        let tokens = [
+            bus.liveliness_token(node.token())?,
+            bus.liveliness_token(node.endpoint_token(
+                EntityKind::Subscription,
+                1,
+                &src.topic,
+                &ty,
+                Qos::SENSOR_DATA,
+            ))?,
+        ];
+        Ok(Ros2Frames {
+            queue,
+            _subscription: subscription,
+            _tokens: tokens,
+            vehicle,
+            camera: src.camera,
+            info,
+            topic: src.topic.clone(),
+            seq: Default::default(),
+            rejected: Default::default(),
+        })
+    }
+
+    /// The grey image and capture stamp of one sample on `key`.
+    fn decode(&self, key: &str, bytes: &[u8]) -> Result<(shoal_proto::GrayImage, u64), String> {
+        use shoal_node::ros_image::{gray_of_compressed, gray_of_image};
+        use shoal_proto::ros2::msgs::{CompressedImage, Image, COMPRESSED_IMAGE, IMAGE};
+        let mut chunks = key.rsplit('/');
+        let (hash, dds) = (chunks.next().unwrap_or(""), chunks.next().unwrap_or(""));
+        let at = |e: shoal_proto::ros2::cdr::CdrError| format!("{key}: {e}");
+        let (gray, stamp) = if dds == IMAGE.dds_name() && hash == IMAGE.hash {
+            let img = Image::from_cdr(bytes).map_err(at)?;
+            (gray_of_image(&self.topic, &img), img.header.stamp)
+        } else if dds == COMPRESSED_IMAGE.dds_name() && hash == COMPRESSED_IMAGE.hash {
+            let img = CompressedImage::from_cdr(bytes).map_err(at)?;
+            (gray_of_compressed(&self.topic, &img), img.header.stamp)
+        } else {
+            return Err(format!(
+                "{key}: not a sensor_msgs/msg/Image or CompressedImage of ROS 2 Jazzy"
+            ));
+        };
+        let stamp_ns = stamp.to_ns().filter(|&t| t > 0).unwrap_or_else(|| {
+            SystemTime::now()
+                .duration_since(UNIX_EPOCH)
+                .map_or(0, |d| d.as_nanos() as u64)
+        });
+        Ok((gray.map_err(|e| e.to_string())?, stamp_ns))
+    }
+}
+
+impl shoal_node::vehicle::FrameInput for Ros2Frames {
+    fn next(&self, timeout: Duration) -> Option<shoal_proto::CameraFrame> {
+        let (key, bytes) = self.queue.pop_timeout(timeout).ok()?;
+        match self.decode(&key, &bytes) {
+            Ok((g, stamp_ns)) => {
+                let mut info = self.info;
+                info.model.width = g.width;
+                info.model.height = g.height;
+                Some(shoal_proto::CameraFrame {
+                    vehicle: self.vehicle,
+                    camera: self.camera,
+                    seq: self.seq.fetch_add(1, Ordering::Relaxed),
+                    stamp_ns,
+                    info,
+                    format: shoal_proto::PixelFormat::Mono8,
+                    data: g.data,
+                })
+            }
+            Err(e) => {
+                let n = self.rejected.fetch_add(1, Ordering::Relaxed) + 1;
+                if n.is_power_of_two() {
+                    tracing::warn!("ROS 2 image #{n} refused: {e}");
+                }
+                None
+            }
+        }
+    }
+    fn dropped(&self) -> u64 {
+        self.queue.dropped()
+    }
+    fn rejected(&self) -> u64 {
+        self.rejected.load(Ordering::Relaxed)
+    }
+    fn messages_rejected(&self) -> u64 {
+        0
+    }
+}

@@ -52,7 +52,7 @@ pub struct Ros2Args {
     pub ros2_domain: Option<u32>,
 }
 
-fn parse_domain(s: &str) -> Result<u32, String> {
+pub fn parse_domain(s: &str) -> Result<u32, String> {
     shoal_services::ros2::parse_domain(s)
 }
 
@@ -62,14 +62,21 @@ impl Ros2Args {
         if !self.ros2 && self.ros2_domain.is_none() && fleet.ros2.is_none() {
             return Ok(None);
         }
-        if let Some(d) = self.ros2_domain {
-            return Ok(Some(d));
-        }
-        if std::env::var_os("ROS_DOMAIN_ID").is_some() {
-            return Ok(Some(
-                shoal_services::ros2::domain_from_env().map_err(anyhow::Error::msg)?,
-            ));
-        }
-        Ok(Some(fleet.ros2.map_or(0, |r| r.domain)))
+        ros2_domain(self.ros2_domain, fleet).map(Some)
     }
+}
+
+/// The ROS 2 domain: `explicit` (`--ros2-domain`), else `ROS_DOMAIN_ID`,
+/// else the fleet file's `[ros2] domain`, else 0.
+pub fn ros2_domain(
+    explicit: Option<u32>,
+    fleet: &shoal_proto::config::Fleet,
+) -> anyhow::Result<u32> {
+    if let Some(d) = explicit {
+        return Ok(d);
+    }
+    if std::env::var_os("ROS_DOMAIN_ID").is_some() {
+        return shoal_services::ros2::domain_from_env().map_err(anyhow::Error::msg);
+    }
+    Ok(fleet.ros2.map_or(0, |r| r.domain))
 }

@@ -33,7 +33,9 @@ pub struct NodeArgs {
     #[arg(long)]
     vehicle: u32,
     /// Frames from: `zenoh` (simulator or camera drivers), `images:DIR`,
-    /// `video:FILE`, `camera:DEVICE`, or `mcap:FILE` — re-run detection on
+    /// `video:FILE`, `camera:DEVICE`, `ros2:TOPIC` (a ROS 2
+    /// `sensor_msgs/msg/Image` or `CompressedImage` topic over rmw_zenoh,
+    /// domain as --ros2-domain), or `mcap:FILE` — re-run detection on
     /// this vehicle's frames of a recorded trial (`shoal record --frames`)
     /// and exit when they are done.
     #[arg(long, default_value = "zenoh")]
@@ -53,6 +55,10 @@ pub struct NodeArgs {
     /// Water attenuation coefficient (1/m) for restoration; default: estimated from the images.
     #[arg(long, value_parser = super::args::non_negative)]
     water: Option<f64>,
+    /// ROS 2 domain of a `ros2:TOPIC` source, 0–232 (default: `ROS_DOMAIN_ID`,
+    /// else the fleet file's `[ros2] domain`, else 0).
+    #[arg(long, value_parser = super::net::parse_domain)]
+    ros2_domain: Option<u32>,
     #[command(flatten)]
     net: NetArgs,
 }
@@ -91,8 +97,13 @@ pub fn run_node(a: NodeArgs) -> anyhow::Result<()> {
                 .with_context(|| format!("camera device {dev:?} is not a number"))?,
             camera: a.camera_index,
         }),
+        Some(("ros2", topic)) => Source::Ros2(shoal_services::ros2::Ros2ImageSource {
+            domain: super::net::ros2_domain(a.ros2_domain, &fleet)?,
+            topic: topic.to_string(),
+            camera: a.camera_index,
+        }),
         _ => bail!(
-            "--source {:?}: expected zenoh, images:DIR, video:FILE, camera:DEVICE or mcap:FILE",
+            "--source {:?}: expected zenoh, images:DIR, video:FILE, camera:DEVICE, ros2:TOPIC or mcap:FILE",
             a.source
         ),
     };
