@@ -393,6 +393,8 @@ fn say_where(cfg: &DemoConfig, swarm: &SimulatedSwarm) {
 /// `join`, a router found on the wanted port is joined (a ROS 2
 /// `rmw_zenohd`, so ROS 2 nodes see the demo).
 fn open_router(wanted: Option<u16>, join: bool) -> anyhow::Result<(u16, Option<u16>, Bus)> {
+    // Port 0 asks for any free port, as `None` does (binding 0 would succeed, then nothing could connect to it).
+    let wanted = wanted.filter(|&p| p != 0);
     if let Some(p) = wanted {
         if std::net::TcpListener::bind(("127.0.0.1", p)).is_ok() {
             // Free a moment ago; a race with another process is reported by Zenoh.

@@ -1,13 +1,14 @@
-//! shoal's messages in Foxglove's well-known schemas, JSON encoding
-//! (`message_encoding = "json"`, `schema encoding = "jsonschema"`), so a log
-//! opens in Foxglove with no shoal code.
+//! shoal's messages in Foxglove's well-known schemas, as the `foxglove`
+//! crate's typed messages: protobuf (`message_encoding = "protobuf"`, the
+//! schema record a `FileDescriptorSet` as the crate ships it), so a log opens
+//! in Foxglove, Rerun or any MCAP reader with the published `.proto` files and
+//! no shoal code. The recorder writes these bytes to the log and the
+//! station's live server sends the very same bytes on the same topics with the
+//! same schema records ([`FoxgloveMessage::encode`], [`FoxgloveSchema::schema`]).
 //!
-//! The JSON schemas below are written here from Foxglove's published schema
-//! definitions (<https://docs.foxglove.dev/docs/visualization/message-schemas>):
-//! same type names, field names, units and enum values. Times are
-//! `{sec, nsec}`; `bytes` fields are base64 strings (Foxglove's JSON
-//! convention). Only the fields shoal fills are listed as properties; Foxglove
-//! treats absent arrays as empty.
+//! Log format 1 (before `log_format` metadata existed) held these channels as
+//! JSON with JSON schemas; the readers never depended on them, so old logs
+//! still read (`tests/data/logs/format1_demo.mcap`).
 //!
 //! Frame names (DESIGN.md: "anything exported to ROS-style tools states its
 //! frame names"):
@@ -22,40 +23,73 @@
 mod frame;
 mod schema;
 
-pub use frame::{base64, camera_image, FrameView};
-pub use schema::FoxgloveSchema;
+pub use frame::{camera_image, FrameView};
+pub use schema::{FoxgloveMessage, FoxgloveSchema, FoxgloveValue};
 
+use foxglove::messages as fm;
 use nalgebra::{Matrix3, Rotation3, SymmetricEigen, UnitQuaternion, Vector3};
 use proto::config::Fleet;
 use proto::geometry::{Cov6, Pose};
 use proto::{FleetMap, NodeStatus, Observation, SimTruth, VehicleId, VehicleState};
-use serde_json::{json, Value};
 
 // ---------------------------------------------------------------- values
 
-fn t(stamp_ns: u64) -> Value {
-    json!({"sec": stamp_ns / 1_000_000_000, "nsec": stamp_ns % 1_000_000_000})
+/// A stamp in nanoseconds as a Foxglove time (seconds saturate past 2106).
+fn t(stamp_ns: u64) -> Option<fm::Timestamp> {
+    let sec = u32::try_from(stamp_ns / 1_000_000_000).unwrap_or(u32::MAX);
+    // The remainder is below 10^9, which fits a u32.
+    let nsec = u32::try_from(stamp_ns % 1_000_000_000).unwrap_or(0);
+    Some(fm::Timestamp::new(sec, nsec))
 }
-fn v3(v: &Vector3<f64>) -> Value {
-    json!({"x": v.x, "y": v.y, "z": v.z})
-}
-fn q(r: &UnitQuaternion<f64>) -> Value {
-    json!({"x": r.i, "y": r.j, "z": r.k, "w": r.w})
-}
-fn pose_value(p: &Pose) -> Value {
-    json!({"position": v3(&p.translation.vector), "orientation": q(&p.rotation)})
-}
-fn rgba(r: f64, g: f64, b: f64, a: f64) -> Value {
-    json!({"r": r, "g": g, "b": b, "a": a})
-}
-fn transform(stamp_ns: u64, parent: &str, child: &str, parent_from_child: &Pose) -> Value {
-    json!({
-        "timestamp": t(stamp_ns),
-        "parent_frame_id": parent,
-        "child_frame_id": child,
-        "translation": v3(&parent_from_child.translation.vector),
-        "rotation": q(&parent_from_child.rotation),
+fn v3(v: &Vector3<f64>) -> Option<fm::Vector3> {
+    Some(fm::Vector3 {
+        x: v.x,
+        y: v.y,
+        z: v.z,
     })
+}
+fn q(r: &UnitQuaternion<f64>) -> Option<fm::Quaternion> {
+    Some(fm::Quaternion {
+        x: r.i,
+        y: r.j,
+        z: r.k,
+        w: r.w,
+    })
+}
+fn pose_value(p: &Pose) -> fm::Pose {
+    fm::Pose {
+        position: v3(&p.translation.vector),
+        orientation: q(&p.rotation),
+    }
+}
+fn rgba(r: f64, g: f64, b: f64, a: f64) -> Option<fm::Color> {
+    Some(fm::Color { r, g, b, a })
+}
+fn point2(c: [f32; 2]) -> fm::Point2 {
+    fm::Point2 {
+        x: f64::from(c[0]),
+        y: f64::from(c[1]),
+    }
+}
+fn kv(key: &str, value: &str) -> fm::KeyValuePair {
+    fm::KeyValuePair {
+        key: key.into(),
+        value: value.into(),
+    }
+}
+fn transform(
+    stamp_ns: u64,
+    parent: &str,
+    child: &str,
+    parent_from_child: &Pose,
+) -> fm::FrameTransform {
+    fm::FrameTransform {
+        timestamp: t(stamp_ns),
+        parent_frame_id: parent.into(),
+        child_frame_id: child.into(),
+        translation: v3(&parent_from_child.translation.vector),
+        rotation: q(&parent_from_child.rotation),
+    }
 }
 
 /// Fused body frame of a vehicle.
@@ -81,24 +115,12 @@ pub fn camera_topic(fleet: &Fleet, v: VehicleId, k: u8) -> String {
     format!("/v{v}/cam/{}", camera_name(fleet, v, k))
 }
 
-/// One Foxglove message to write.
-#[derive(Debug, Clone, PartialEq)]
-pub struct FoxgloveMessage {
-    pub topic: String,
-    pub schema: FoxgloveSchema,
-    pub value: Value,
-}
-
-fn msg(topic: String, schema: FoxgloveSchema, value: Value) -> FoxgloveMessage {
-    FoxgloveMessage {
-        topic,
-        schema,
-        value,
-    }
+fn msg(topic: String, value: FoxgloveValue) -> FoxgloveMessage {
+    FoxgloveMessage { topic, value }
 }
 
 /// A vehicle's display colour (stable per ID).
-fn vehicle_color(v: VehicleId, a: f64) -> Value {
+fn vehicle_color(v: VehicleId, a: f64) -> Option<fm::Color> {
     const PALETTE: [(f64, f64, f64); 6] = [
         (0.90, 0.30, 0.20),
         (0.20, 0.60, 0.90),
@@ -114,58 +136,58 @@ fn vehicle_color(v: VehicleId, a: f64) -> Value {
 /// An observation: the seen vehicle's pose in the observer's body frame, and
 /// its corners as an annotation of the camera image it came from.
 pub fn observation(fleet: &Fleet, o: &Observation) -> Vec<FoxgloveMessage> {
-    let poses = json!({
-        "timestamp": t(o.stamp_ns),
-        "frame_id": body_frame(o.observer),
-        "poses": [pose_value(&o.observer_from_target)],
-    });
+    let poses = fm::PosesInFrame {
+        timestamp: t(o.stamp_ns),
+        frame_id: body_frame(o.observer),
+        poses: vec![pose_value(&o.observer_from_target)],
+    };
     let color = if o.predicted {
         rgba(0.6, 0.6, 0.6, 1.0)
     } else {
         rgba(0.1, 1.0, 0.2, 1.0)
     };
-    let points: Vec<Value> = o
-        .corners_px
-        .iter()
-        .map(|c| json!({"x": c[0], "y": c[1]}))
-        .collect();
-    let label_at = o.corners_px.first().map_or(
-        json!({"x": 0.0, "y": 0.0}),
-        |c| json!({"x": c[0], "y": c[1]}),
-    );
     let target = o
         .target_vehicle
         .map_or_else(|| "?".to_string(), |v| v.to_string());
-    let annotations = json!({
-        "circles": [],
-        "points": [{
-            "timestamp": t(o.stamp_ns),
-            "type": 1,
-            "points": points,
-            "outline_color": color,
-            "outline_colors": [],
-            "fill_color": color,
-            "thickness": 6.0,
+    let annotations = fm::ImageAnnotations {
+        timestamp: t(o.stamp_ns),
+        circles: Vec::new(),
+        // Observations without corners (predicted, or sent compact over a link) get only the label.
+        points: (!o.corners_px.is_empty())
+            .then(|| fm::PointsAnnotation {
+                timestamp: t(o.stamp_ns),
+                r#type: fm::points_annotation::Type::Points as i32,
+                points: o.corners_px.iter().map(|c| point2(*c)).collect(),
+                outline_color: color,
+                outline_colors: Vec::new(),
+                fill_color: color,
+                thickness: 6.0,
+                metadata: Vec::new(),
+            })
+            .into_iter()
+            .collect(),
+        texts: vec![fm::TextAnnotation {
+            timestamp: t(o.stamp_ns),
+            position: Some(point2(o.corners_px.first().copied().unwrap_or([0.0, 0.0]))),
+            text: format!(
+                "{}#{} -> v{target}, rms {:.2} px",
+                o.codes, o.target_marker, o.reprojection_rms_px
+            ),
+            font_size: 24.0,
+            text_color: rgba(1.0, 1.0, 1.0, 1.0),
+            background_color: rgba(0.0, 0.0, 0.0, 0.6),
+            metadata: Vec::new(),
         }],
-        "texts": [{
-            "timestamp": t(o.stamp_ns),
-            "position": label_at,
-            "text": format!("{}#{} -> v{target}, rms {:.2} px", o.codes, o.target_marker, o.reprojection_rms_px),
-            "font_size": 24.0,
-            "text_color": rgba(1.0, 1.0, 1.0, 1.0),
-            "background_color": rgba(0.0, 0.0, 0.0, 0.6),
-        }],
-    });
+        metadata: Vec::new(),
+    };
     vec![
         msg(
             format!("/v{}/observations", o.observer),
-            FoxgloveSchema::PosesInFrame,
-            poses,
+            FoxgloveValue::PosesInFrame(poses),
         ),
         msg(
             format!("{}/annotations", camera_topic(fleet, o.observer, o.camera)),
-            FoxgloveSchema::ImageAnnotations,
-            annotations,
+            FoxgloveValue::ImageAnnotations(annotations),
         ),
     ]
 }
@@ -214,8 +236,7 @@ pub fn fleet_map(fleet: &Fleet, m: &FleetMap) -> Vec<FoxgloveMessage> {
                     m.stamp_ns,
                     &reference,
                     v.vehicle,
-                    veh.hull.diameter_m,
-                    veh.hull.length_m,
+                    (veh.hull.diameter_m, veh.hull.length_m),
                     &v.reference_from_vehicle,
                     &v.covariance,
                     v.state,
@@ -232,26 +253,29 @@ pub fn fleet_map(fleet: &Fleet, m: &FleetMap) -> Vec<FoxgloveMessage> {
     vec![
         msg(
             format!("{prefix}/tf"),
-            FoxgloveSchema::FrameTransforms,
-            json!({"transforms": transforms}),
+            FoxgloveValue::FrameTransforms(fm::FrameTransforms { transforms }),
         ),
         msg(
             format!("{prefix}/poses"),
-            FoxgloveSchema::PosesInFrame,
-            json!({"timestamp": t(m.stamp_ns), "frame_id": reference, "poses": poses}),
+            FoxgloveValue::PosesInFrame(fm::PosesInFrame {
+                timestamp: t(m.stamp_ns),
+                frame_id: reference,
+                poses,
+            }),
         ),
         msg(
             format!("{prefix}/scene"),
-            FoxgloveSchema::SceneUpdate,
-            json!({"deletions": [], "entities": entities}),
+            FoxgloveValue::SceneUpdate(fm::SceneUpdate {
+                deletions: Vec::new(),
+                entities,
+            }),
         ),
         msg(
             format!("{prefix}/log"),
-            FoxgloveSchema::Log,
             log_value(
                 m.stamp_ns,
-                2,
-                &format!(
+                fm::log::Level::Info,
+                format!(
                     "map {}: {live}/{} vehicles live, {} edges ({} rejected), solve {} us",
                     m.seq,
                     m.vehicles.len(),
@@ -280,15 +304,44 @@ pub fn liveliness_message(
     } else {
         format!("{who}: node gone — liveliness token withdrawn ({key})")
     };
+    let level = if alive {
+        fm::log::Level::Info
+    } else {
+        fm::log::Level::Warning
+    };
     msg(
         "/liveliness".to_string(),
-        FoxgloveSchema::Log,
-        log_value(stamp_ns, if alive { 2 } else { 3 }, &text, "liveliness"),
+        log_value(stamp_ns, level, text, "liveliness"),
     )
 }
 
-fn log_value(stamp_ns: u64, level: u8, message: &str, name: &str) -> Value {
-    json!({"timestamp": t(stamp_ns), "level": level, "message": message, "name": name, "file": "", "line": 0})
+fn log_value(stamp_ns: u64, level: fm::log::Level, message: String, name: &str) -> FoxgloveValue {
+    FoxgloveValue::Log(fm::Log {
+        timestamp: t(stamp_ns),
+        level: level as i32,
+        message,
+        name: name.into(),
+        file: String::new(),
+        line: 0,
+    })
+}
+
+fn entity(
+    stamp_ns: u64,
+    frame_id: String,
+    id: String,
+    metadata: Vec<fm::KeyValuePair>,
+) -> fm::SceneEntity {
+    fm::SceneEntity {
+        timestamp: t(stamp_ns),
+        frame_id,
+        id,
+        // Zero: shown until replaced by the next map's entity of the same id.
+        lifetime: Some(fm::Duration::new(0, 0)),
+        frame_locked: true,
+        metadata,
+        ..Default::default()
+    }
 }
 
 /// Hull (cylinder along body x) in the vehicle's body frame, and the 3-sigma
@@ -298,12 +351,11 @@ fn vehicle_entity(
     stamp_ns: u64,
     reference: &str,
     v: VehicleId,
-    diameter_m: f64,
-    length_m: f64,
+    (diameter_m, length_m): (f64, f64),
     reference_from_vehicle: &Pose,
     cov: &Cov6,
     state: VehicleState,
-) -> Vec<Value> {
+) -> Vec<fm::SceneEntity> {
     let alpha = if state == VehicleState::Live {
         0.9
     } else {
@@ -311,48 +363,54 @@ fn vehicle_entity(
     };
     let hull_axis =
         UnitQuaternion::from_axis_angle(&Vector3::y_axis(), std::f64::consts::FRAC_PI_2);
-    let hull = json!({
-        "pose": {"position": v3(&Vector3::zeros()), "orientation": q(&hull_axis)},
-        "size": {"x": diameter_m, "y": diameter_m, "z": length_m},
-        "bottom_scale": 1.0, "top_scale": 1.0,
-        "color": vehicle_color(v, alpha),
+    let mut hull = entity(
+        stamp_ns,
+        body_frame(v),
+        format!("vehicle/{v}"),
+        vec![
+            kv("state", &format!("{state:?}")),
+            kv("reference", reference),
+        ],
+    );
+    hull.cylinders.push(fm::CylinderPrimitive {
+        pose: Some(fm::Pose {
+            position: v3(&Vector3::zeros()),
+            orientation: q(&hull_axis),
+        }),
+        size: v3(&Vector3::new(diameter_m, diameter_m, length_m)),
+        bottom_scale: 1.0,
+        top_scale: 1.0,
+        color: vehicle_color(v, alpha),
     });
-    let mut out = vec![json!({
-        "timestamp": t(stamp_ns),
-        "frame_id": body_frame(v),
-        "id": format!("vehicle/{v}"),
-        "lifetime": {"sec": 0, "nsec": 0},
-        "frame_locked": true,
-        "metadata": [{"key": "state", "value": format!("{state:?}")}, {"key": "reference", "value": reference}],
-        "arrows": [], "cubes": [], "spheres": [],
-        "cylinders": [hull],
-        "lines": [], "triangles": [],
-        "texts": [{
-            "pose": {"position": {"x": 0.0, "y": 0.0, "z": -diameter_m}, "orientation": q(&UnitQuaternion::identity())},
-            "billboard": true, "font_size": 14.0, "scale_invariant": true,
-            "color": rgba(1.0, 1.0, 1.0, 1.0),
-            "text": format!("v{v} {state:?}"),
-        }],
-        "models": [],
-    })];
+    hull.texts.push(fm::TextPrimitive {
+        pose: Some(fm::Pose {
+            position: v3(&Vector3::new(0.0, 0.0, -diameter_m)),
+            orientation: q(&UnitQuaternion::identity()),
+        }),
+        billboard: true,
+        font_size: 14.0,
+        scale_invariant: true,
+        color: rgba(1.0, 1.0, 1.0, 1.0),
+        text: format!("v{v} {state:?}"),
+    });
+    let mut out = vec![hull];
     // The ellipsoid lives in the reference frame (left-frame perturbation): a second entity.
     if let Some((axes, rotation)) = position_ellipsoid(cov) {
-        let center = reference_from_vehicle.translation.vector;
-        out.push(json!({
-            "timestamp": t(stamp_ns),
-            "frame_id": reference,
-            "id": format!("covariance/{v}"),
-            "lifetime": {"sec": 0, "nsec": 0},
-            "frame_locked": true,
-            "metadata": [{"key": "sigma", "value": "3"}],
-            "arrows": [], "cubes": [],
-            "spheres": [{
-                "pose": {"position": v3(&center), "orientation": q(&rotation)},
-                "size": v3(&axes),
-                "color": vehicle_color(v, 0.3),
-            }],
-            "cylinders": [], "lines": [], "triangles": [], "texts": [], "models": [],
-        }));
+        let mut e = entity(
+            stamp_ns,
+            reference.to_string(),
+            format!("covariance/{v}"),
+            vec![kv("sigma", "3")],
+        );
+        e.spheres.push(fm::SpherePrimitive {
+            pose: Some(fm::Pose {
+                position: v3(&reference_from_vehicle.translation.vector),
+                orientation: q(&rotation),
+            }),
+            size: v3(&axes),
+            color: vehicle_color(v, 0.3),
+        });
+        out.push(e);
     }
     out
 }
@@ -381,7 +439,7 @@ pub fn position_ellipsoid(cov: &Cov6) -> Option<(Vector3<f64>, UnitQuaternion<f6
 /// Ground truth: `world → truth/v<id>` for every vehicle, and the fused tree
 /// hung under the reference vehicle's truth frame.
 pub fn sim_truth(fleet: &Fleet, s: &SimTruth) -> Vec<FoxgloveMessage> {
-    let mut transforms: Vec<Value> = s
+    let mut transforms: Vec<fm::FrameTransform> = s
         .vehicles
         .iter()
         .map(|v| {
@@ -404,7 +462,7 @@ pub fn sim_truth(fleet: &Fleet, s: &SimTruth) -> Vec<FoxgloveMessage> {
             &Pose::identity(),
         ));
     }
-    let poses: Vec<Value> = s
+    let poses = s
         .vehicles
         .iter()
         .map(|v| pose_value(&v.world_from_body))
@@ -412,13 +470,15 @@ pub fn sim_truth(fleet: &Fleet, s: &SimTruth) -> Vec<FoxgloveMessage> {
     vec![
         msg(
             "/truth/tf".into(),
-            FoxgloveSchema::FrameTransforms,
-            json!({"transforms": transforms}),
+            FoxgloveValue::FrameTransforms(fm::FrameTransforms { transforms }),
         ),
         msg(
             "/truth/poses".into(),
-            FoxgloveSchema::PosesInFrame,
-            json!({"timestamp": t(s.stamp_ns), "frame_id": "world", "poses": poses}),
+            FoxgloveValue::PosesInFrame(fm::PosesInFrame {
+                timestamp: t(s.stamp_ns),
+                frame_id: "world".into(),
+                poses,
+            }),
         ),
     ]
 }
@@ -455,15 +515,14 @@ pub fn node_status(s: &NodeStatus) -> Vec<FoxgloveMessage> {
         s.messages_rejected,
         cams.join("; ")
     );
+    let level = if trouble {
+        fm::log::Level::Warning
+    } else {
+        fm::log::Level::Info
+    };
     vec![msg(
         format!("/v{}/status", s.vehicle),
-        FoxgloveSchema::Log,
-        log_value(
-            s.stamp_ns,
-            if trouble { 3 } else { 2 },
-            &text,
-            &format!("node/{}", s.vehicle),
-        ),
+        log_value(s.stamp_ns, level, text, &format!("node/{}", s.vehicle)),
     )]
 }
 

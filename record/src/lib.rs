@@ -84,8 +84,8 @@ pub enum RecordError {
     },
     #[error("{0}: the log carries no fleet file (or its attachment is damaged, see `shoal log info`); pass one with --fleet")]
     NoFleet(PathBuf),
-    #[error("JSON")]
-    Json(#[from] serde_json::Error),
+    #[error("Foxglove message on {topic}: protobuf encoding failed: {reason}")]
+    FoxgloveEncode { topic: String, reason: String },
     /// The transport a recording or replay runs over (Zenoh, in `shoal-services`).
     #[error(transparent)]
     Transport(Box<dyn std::error::Error + Send + Sync>),

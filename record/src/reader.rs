@@ -1,8 +1,8 @@
 //! Reading shoal MCAP logs, including damaged ones.
 //!
 //! [`scan`] streams the file record by record (one record in memory at a
-//! time; chunks decompressed within a per-chunk and a per-file bound, CRCs
-//! checked where present). Damage costs only the record it is in: the scan
+//! time; each chunk decoded by the `mcap` crate's streaming reader within a
+//! per-chunk and a per-file bound, CRCs checked where present). Damage costs only the record it is in: the scan
 //! skips it, resumes at the next readable record (found from the summary's
 //! index when that is intact, else by the records' framing, see
 //! [`framing`]) and reports every skipped region. The summary and footer are
@@ -15,7 +15,7 @@ mod framing;
 pub use framing::{decompression_budget, MAX_CHUNK_UNCOMPRESSED, MAX_RECORD};
 
 use crate::writer::{FLEET_ATTACHMENT, METADATA_NAME, WIRE_ENCODING};
-use framing::{chunk_records, decompress_chunk, plausible, Framer, SummaryIndex, HEAD};
+use framing::{plausible, ChunkDecoder, Framer, SummaryIndex, HEAD};
 use mcap::records::{op, Record};
 use std::collections::BTreeMap;
 use std::io::{Read, Seek};
@@ -245,7 +245,7 @@ pub fn scan<E>(
             None
         }
     };
-    let mut budget = decompression_budget(f.len);
+    let mut chunks = ChunkDecoder::new(decompression_budget(f.len));
     let mut data_crc = Some(crc32fast::Hasher::new());
     if let Some(h) = data_crc.as_mut() {
         h.update(&magic);
@@ -270,7 +270,7 @@ pub fn scan<E>(
         };
         let Some((opcode, len)) = head.filter(|_| framed) else {
             data_crc = None;
-            let next = resync(&mut f, at + 1, index.as_ref(), budget)?;
+            let next = resync(&mut f, at + 1, index.as_ref(), chunks.budget)?;
             out.skip(
                 at,
                 next.unwrap_or(f.len) - at,
@@ -321,7 +321,7 @@ pub fn scan<E>(
             opcode,
             body,
             &mut out,
-            &mut budget,
+            &mut chunks,
             index.as_ref(),
             &mut visit,
         ) {
@@ -330,7 +330,9 @@ pub fn scan<E>(
                 // A damaged length can still look framed: with an intact
                 // summary, resume where it says the next record is.
                 let next = match index.as_ref() {
-                    Some(_) => resync(&mut f, at + 1, index.as_ref(), budget)?.unwrap_or(f.len),
+                    Some(_) => {
+                        resync(&mut f, at + 1, index.as_ref(), chunks.budget)?.unwrap_or(f.len)
+                    }
                     None => at + HEAD + len,
                 };
                 out.skip(at, next - at, reason);
@@ -339,7 +341,7 @@ pub fn scan<E>(
             Err(Problem::Visitor(e)) => return Err(ScanError::Visitor(e)),
         }
     }
-    out.decompressed_bytes = decompression_budget(f.len) - budget;
+    out.decompressed_bytes = decompression_budget(f.len) - chunks.budget;
     finish(&mut out, index.as_ref(), data_end, data_crc);
     Ok(out)
 }
@@ -443,9 +445,8 @@ fn resync<R: Read + Seek>(
         }
         let body = f.body(at, len)?;
         Ok(match mcap::parse_record(opcode, body) {
-            Ok(Record::Chunk { header, data }) => {
-                decompress_chunk(&header, &data, &mut budget.clone())
-                    .is_ok_and(|plain| chunk_records(&plain).is_ok())
+            Ok(Record::Chunk { header, .. }) => {
+                ChunkDecoder::new(budget).read(&header, body).is_ok()
             }
             Ok(_) => true,
             Err(_) => false,
@@ -464,7 +465,7 @@ fn process<E>(
     opcode: u8,
     body: &[u8],
     out: &mut ScanOutcome,
-    budget: &mut u64,
+    chunks: &mut ChunkDecoder,
     index: Option<&SummaryIndex>,
     visit: &mut impl FnMut(Item<'_>) -> Result<(), E>,
 ) -> Result<(), Problem<E>> {
@@ -472,10 +473,10 @@ fn process<E>(
         return Ok(());
     }
     let record = mcap::parse_record(opcode, body).map_err(|e| Problem::Damaged(e.to_string()))?;
-    if let Record::Chunk { header, data } = record {
-        let plain = decompress_chunk(&header, &data, budget)
+    if let Record::Chunk { header, .. } = record {
+        let records = chunks
+            .read(&header, body)
             .map_err(|e| Problem::Damaged(format!("chunk: {e}")))?;
-        let records = chunk_records(&plain).map_err(|e| Problem::Damaged(format!("chunk: {e}")))?;
         out.chunks += 1;
         for r in records {
             handle(r, out, index, visit).map_err(Problem::Visitor)?;

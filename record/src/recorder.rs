@@ -221,13 +221,7 @@ impl Recording {
                 };
                 let write_images = |writer: &mut LogWriter| -> Result<(), RecordError> {
                     for (m, log_time, publish_time) in png_done.drain() {
-                        writer.write_foxglove(
-                            &m.topic,
-                            m.schema,
-                            &m.value,
-                            log_time,
-                            publish_time,
-                        )?;
+                        writer.write_foxglove(&m, log_time, publish_time)?;
                     }
                     Ok(())
                 };
@@ -255,7 +249,7 @@ impl Recording {
                             _ => None,
                         };
                         let m = crate::foxglove::liveliness_message(&key, vehicle, alive, heard_ns);
-                        writer.write_foxglove(&m.topic, m.schema, &m.value, heard_ns, heard_ns)?;
+                        writer.write_foxglove(&m, heard_ns, heard_ns)?;
                     }
                     write_images(&mut writer)?;
                     if last_flush.elapsed() >= opts.flush_interval {
@@ -603,7 +597,7 @@ impl Converter {
         stats.written.fetch_add(1, Ordering::Relaxed);
         if self.opts.foxglove {
             for m in fox {
-                w.write_foxglove(&m.topic, m.schema, &m.value, log_time, publish_time)?;
+                w.write_foxglove(&m, log_time, publish_time)?;
             }
         }
         Ok(())

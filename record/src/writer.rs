@@ -4,7 +4,7 @@
 //!   (message encoding [`WIRE_ENCODING`]; schema named after the message kind,
 //!   `MessageKind::schema_name`; channel metadata `schema`, `schema_version`,
 //!   `kind`);
-//! - Foxglove channels in JSON ([`crate::foxglove`]);
+//! - Foxglove channels in protobuf ([`crate::foxglove`]);
 //! - or, in the ROS 2 profile ([`ROS2_PROFILE`]), only ROS 2 channels: CDR
 //!   messages with `ros2msg` schemas, as `rosbag2`'s MCAP storage writes them;
 //! - a `shoal` metadata record (fleet, water, software, start time) and the
@@ -12,7 +12,7 @@
 //!   killed recording still carries them;
 //! - zstd chunks, closed at least every `flush_interval` by the recorder.
 
-use crate::foxglove::FoxgloveSchema;
+use crate::foxglove::{FoxgloveMessage, FoxgloveSchema};
 use crate::RecordError;
 use mcap::records::{MessageHeader, Metadata};
 use proto::codec::SCHEMA_VERSION;
@@ -31,6 +31,11 @@ pub const WIRE_SCHEMA_ENCODING: &str = "shoal-wire";
 pub const METADATA_NAME: &str = "shoal";
 /// Name of the fleet-file attachment.
 pub const FLEET_ATTACHMENT: &str = "fleet.toml";
+/// Version of shoal's log layout, in the `shoal` metadata record as
+/// `log_format`: 2 writes the Foxglove channels in protobuf; 1 (no
+/// `log_format` key) wrote them in JSON. The wire channels are the same in
+/// both, and the readers use only those, so every version reads.
+pub const LOG_FORMAT: u32 = 2;
 /// MCAP profile string of shoal logs.
 pub const PROFILE: &str = "shoal";
 /// MCAP profile string of ROS 2 logs (only CDR channels with `ros2msg` schemas).
@@ -129,9 +134,11 @@ impl LogWriter {
             sequence: HashMap::new(),
             counts: BTreeMap::new(),
         };
+        let mut metadata = metadata.clone();
+        metadata.insert("log_format".into(), LOG_FORMAT.to_string());
         lw.w.write_metadata(&Metadata {
             name: METADATA_NAME.into(),
-            metadata: metadata.clone(),
+            metadata,
         })
         .map_err(mcap_err(path))?;
         if let Some(text) = fleet_toml {
@@ -237,25 +244,26 @@ impl LogWriter {
         Ok(id)
     }
 
-    /// Write one Foxglove JSON message.
+    /// Write one Foxglove message (protobuf, with the `foxglove` crate's
+    /// schema record, as the station's live server declares it).
     pub fn write_foxglove(
         &mut self,
-        topic: &str,
-        schema: FoxgloveSchema,
-        value: &serde_json::Value,
+        m: &FoxgloveMessage,
         log_time: u64,
         publish_time: u64,
     ) -> Result<(), RecordError> {
-        let channel = match self.channels.get(topic) {
+        let data = m.encode()?;
+        let schema = m.schema();
+        let channel = match self.channels.get(&m.topic) {
             Some(&c) => c,
             None => {
                 let sid = match self.fox_schemas.get(&schema) {
                     Some(&s) => s,
                     None => {
-                        let text = serde_json::to_vec(&schema.json_schema())?;
+                        let record = schema.schema();
                         let s = self
                             .w
-                            .add_schema(schema.name(), "jsonschema", &text)
+                            .add_schema(&record.name, &record.encoding, &record.data)
                             .map_err(mcap_err(&self.path))?;
                         self.fox_schemas.insert(schema, s);
                         s
@@ -263,14 +271,13 @@ impl LogWriter {
                 };
                 let c = self
                     .w
-                    .add_channel(sid, topic, "json", &BTreeMap::new())
+                    .add_channel(sid, &m.topic, schema.message_encoding(), &BTreeMap::new())
                     .map_err(mcap_err(&self.path))?;
-                self.channels.insert(topic.to_string(), c);
+                self.channels.insert(m.topic.clone(), c);
                 c
             }
         };
-        let data = serde_json::to_vec(value)?;
-        self.write(topic, channel, &data, log_time, publish_time)
+        self.write(&m.topic, channel, &data, log_time, publish_time)
     }
 
     /// Write one CDR-encoded ROS 2 message of type `ty` on `topic`.

@@ -322,3 +322,78 @@ fn fuse_refuses_another_fleet_and_counts_what_it_cannot_decode() {
         Err(RecordError::FleetMismatch { .. })
     ));
 }
+
+/// A log of format 1 (Foxglove channels in JSON, no `log_format` key), as
+/// `shoal demo` wrote it before protobuf: `tests/data/logs/README.md`.
+fn format1_log() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/data/logs/format1_demo.mcap")
+}
+
+/// Counts what a replay sends.
+#[derive(Default)]
+struct Count {
+    keys: usize,
+    messages: u64,
+}
+
+impl shoal_record::ReplaySink for Count {
+    fn declare(&mut self, _key: &str, _kind: MessageKind) -> Result<(), RecordError> {
+        self.keys += 1;
+        Ok(())
+    }
+    fn send(&mut self, _key: &str, envelope: &[u8]) -> Result<(), RecordError> {
+        shoal_proto::codec::peek_header(envelope).unwrap();
+        self.messages += 1;
+        Ok(())
+    }
+}
+
+#[test]
+fn format1_logs_still_read_replay_and_refuse() {
+    let old = format1_log();
+    let info = shoal_record::info(&old).unwrap();
+    assert!(info.complete, "{:?}", info.damage);
+    assert!(!info.metadata.contains_key("log_format"));
+    assert!(info.has_fleet_file);
+    assert_eq!(info.vehicles, vec![10, 15, 17]);
+    let json = |c: &&shoal_record::info::ChannelFigures| c.message_encoding == "json";
+    let wire = |c: &&shoal_record::info::ChannelFigures| c.message_encoding == "shoal-envelope";
+    assert!(info.channels.iter().filter(json).count() >= 10);
+    let wire_messages: u64 = info.channels.iter().filter(wire).map(|c| c.messages).sum();
+    let obs: u64 = info
+        .channels
+        .iter()
+        .filter(|c| c.schema == "shoal.Observation")
+        .map(|c| c.messages)
+        .sum();
+    assert!(obs > 0);
+
+    let mut sink = Count::default();
+    let opts = shoal_record::ReplayOptions {
+        rate: f64::INFINITY,
+        settle: std::time::Duration::ZERO,
+        ..Default::default()
+    };
+    let r = shoal_record::replay_into(
+        &mut sink,
+        &old,
+        &opts,
+        &std::sync::atomic::AtomicBool::new(false),
+    )
+    .unwrap();
+    assert_eq!((r.messages, sink.messages), (wire_messages, wire_messages));
+
+    // Re-fused into a format-2 log (its own folder: another test lists the shared one).
+    let dir =
+        Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("log_format1-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let out = dir.join("format1_refused.mcap");
+    let s = refuse(&old, &out, &FuseOptions::default()).unwrap();
+    assert_eq!(s.observations, obs);
+    assert!(s.maps_written > 0 && s.undecodable == 0, "{s:?}");
+    let new = shoal_record::info(&out).unwrap();
+    assert_eq!(
+        new.metadata.get("log_format"),
+        Some(&shoal_record::writer::LOG_FORMAT.to_string())
+    );
+}

@@ -21,18 +21,26 @@
 //! [`MessageFaults`], which counts each fault so a test can check that the
 //! receiver neither double-counts nor misses them.
 //!
-//! Everything is seeded and uses std threads only (no async runtime).
+//! Everything is seeded. The sockets and timers run as tasks on one
+//! single-threaded tokio runtime on the relay's own thread (`relay`): a
+//! relay is waiting on many sockets and timers at once, which is what tokio
+//! is for, where the thread version needed two threads per direction per
+//! connection. Its API stays synchronous ([`Relay::start`], drop to stop,
+//! [`LinkSwitch`] from any thread).
 
-use std::io::{Read, Write};
-use std::net::{Shutdown, SocketAddr, TcpListener, TcpStream};
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::mpsc;
-use std::sync::{Arc, Mutex};
+use std::net::SocketAddr;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use shoal_fusion::link::TokenBucket;
 use shoal_proto::splitmix::SplitMix64;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::tcp::{OwnedReadHalf, OwnedWriteHalf};
+use tokio::net::{TcpListener, TcpStream};
+use tokio::sync::{mpsc, watch};
+use tokio::task::JoinSet;
 
 /// Errors of the relay.
 #[derive(Debug, thiserror::Error)]
@@ -43,8 +51,10 @@ pub enum RelayError {
         #[source]
         source: std::io::Error,
     },
-    #[error("relay cannot start a thread: {0}")]
+    #[error("relay cannot start its thread: {0}")]
     Thread(#[source] std::io::Error),
+    #[error("relay cannot start its tokio runtime: {0}")]
+    Runtime(#[source] std::io::Error),
     #[error("fault plan: {0}")]
     Plan(String),
 }
@@ -124,7 +134,7 @@ pub struct RelayStats {
     pub connections: AtomicU64,
     /// Connections closed on accept because the link was cut.
     pub refused: AtomicU64,
-    /// Open connections shut down by a cut.
+    /// Open connections closed by a cut.
     pub cut: AtomicU64,
     pub bytes_forwarded: AtomicU64,
     pub chunks_forwarded: AtomicU64,
@@ -136,58 +146,42 @@ pub struct RelayStats {
 /// The link's switch: cut (partition) and heal, from any thread.
 #[derive(Debug, Clone)]
 pub struct LinkSwitch {
-    inner: Arc<SwitchInner>,
-}
-
-#[derive(Debug)]
-struct SwitchInner {
-    up: AtomicBool,
-    open: Mutex<Vec<TcpStream>>,
-    stats: Arc<RelayStats>,
+    up: Arc<watch::Sender<bool>>,
 }
 
 impl LinkSwitch {
-    fn new(stats: Arc<RelayStats>) -> Self {
+    fn new() -> Self {
         Self {
-            inner: Arc::new(SwitchInner {
-                up: AtomicBool::new(true),
-                open: Mutex::new(Vec::new()),
-                stats,
-            }),
+            up: Arc::new(watch::Sender::new(true)),
         }
     }
     pub fn is_up(&self) -> bool {
-        self.inner.up.load(Ordering::SeqCst)
+        *self.up.borrow()
     }
-    /// Partition: shut down every open connection and refuse new ones.
+    /// Partition: close every open connection and refuse new ones.
     pub fn cut(&self) {
-        self.inner.up.store(false, Ordering::SeqCst);
-        if let Ok(mut open) = self.inner.open.lock() {
-            for s in open.drain(..) {
-                if s.shutdown(Shutdown::Both).is_ok() {
-                    self.inner.stats.cut.fetch_add(1, Ordering::Relaxed);
-                }
-            }
-        }
+        self.up.send_replace(false);
     }
     /// Heal: accept connections again.
     pub fn heal(&self) {
-        self.inner.up.store(true, Ordering::SeqCst);
+        self.up.send_replace(true);
     }
-    fn register(&self, streams: [&TcpStream; 2]) -> bool {
-        let Ok(mut open) = self.inner.open.lock() else {
-            return false;
-        };
-        // Checked under the lock so a concurrent cut cannot miss these.
-        if !self.is_up() {
-            return false;
+    /// A connection's view of the link: subscribed before its first check,
+    /// so a cut that comes after that check is always seen.
+    fn watch(&self) -> watch::Receiver<bool> {
+        self.up.subscribe()
+    }
+}
+
+/// Resolves when the link is (or goes) down.
+async fn link_down(link: &mut watch::Receiver<bool>) {
+    loop {
+        if !*link.borrow_and_update() {
+            return;
         }
-        for s in streams {
-            if let Ok(c) = s.try_clone() {
-                open.push(c);
-            }
+        if link.changed().await.is_err() {
+            return;
         }
-        true
     }
 }
 
@@ -199,54 +193,56 @@ pub struct Relay {
     local: SocketAddr,
     switch: LinkSwitch,
     stats: Arc<RelayStats>,
-    stop: Arc<AtomicBool>,
-    threads: Vec<JoinHandle<()>>,
+    stop: watch::Sender<bool>,
+    thread: Option<JoinHandle<()>>,
 }
 
 impl Relay {
     /// Start relaying `listen` → `upstream`.
     pub fn start(listen: &str, upstream: SocketAddr, plan: FaultPlan) -> Result<Relay, RelayError> {
         plan.validate()?;
-        let listener = TcpListener::bind(listen).map_err(|source| RelayError::Bind {
+        let bind = |source| RelayError::Bind {
             addr: listen.to_string(),
             source,
-        })?;
-        let local = listener.local_addr().map_err(|source| RelayError::Bind {
-            addr: listen.to_string(),
-            source,
-        })?;
-        listener
-            .set_nonblocking(true)
-            .map_err(|source| RelayError::Bind {
-                addr: listen.to_string(),
-                source,
-            })?;
+        };
+        let listener = std::net::TcpListener::bind(listen).map_err(bind)?;
+        let local = listener.local_addr().map_err(bind)?;
+        listener.set_nonblocking(true).map_err(bind)?;
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .map_err(RelayError::Runtime)?;
         let stats = Arc::new(RelayStats::default());
-        let switch = LinkSwitch::new(stats.clone());
-        let stop = Arc::new(AtomicBool::new(false));
-        let mut threads = Vec::new();
-        let (sw, st, stp) = (switch.clone(), stats.clone(), stop.clone());
-        threads.push(
-            std::thread::Builder::new()
-                .name("relay-accept".into())
-                .spawn(move || accept_loop(listener, upstream, plan, sw, st, stp))
-                .map_err(RelayError::Thread)?,
-        );
-        if let Some(flap) = plan.flap {
-            let (sw, stp) = (switch.clone(), stop.clone());
-            threads.push(
-                std::thread::Builder::new()
-                    .name("relay-flap".into())
-                    .spawn(move || flap_loop(flap, sw, stp))
-                    .map_err(RelayError::Thread)?,
-            );
-        }
+        let switch = LinkSwitch::new();
+        let stop = watch::Sender::new(false);
+        let (sw, st, stop_rx) = (switch.clone(), stats.clone(), stop.subscribe());
+        let thread = std::thread::Builder::new()
+            .name("relay".into())
+            .spawn(move || {
+                runtime.block_on(async move {
+                    let listener = match TcpListener::from_std(listener) {
+                        Ok(l) => l,
+                        Err(e) => {
+                            tracing::error!("relay: listener on {local}: {e}");
+                            return;
+                        }
+                    };
+                    let mut tasks = JoinSet::new();
+                    if let Some(flap) = plan.flap {
+                        tasks.spawn(flap_loop(flap, sw.clone()));
+                    }
+                    accept_loop(listener, upstream, plan, (sw, st), stop_rx, &mut tasks).await;
+                    // The cut that came with the stop closed the connections; end what is left.
+                    tasks.shutdown().await;
+                });
+            })
+            .map_err(RelayError::Thread)?;
         Ok(Relay {
             local,
             switch,
             stats,
             stop,
-            threads,
+            thread: Some(thread),
         })
     }
 
@@ -265,186 +261,188 @@ impl Relay {
 
 impl Drop for Relay {
     fn drop(&mut self) {
-        self.stop.store(true, Ordering::SeqCst);
         self.switch.cut();
-        for t in self.threads.drain(..) {
+        self.stop.send_replace(true);
+        if let Some(t) = self.thread.take() {
             shoal_bus::join_reporting(t);
         }
     }
 }
 
-fn flap_loop(flap: Flap, switch: LinkSwitch, stop: Arc<AtomicBool>) {
-    let sleep_until = |until: Instant| {
-        while Instant::now() < until && !stop.load(Ordering::SeqCst) {
-            std::thread::sleep(Duration::from_millis(10));
-        }
-    };
-    let mut start = Instant::now() + flap.period - flap.down;
-    while !stop.load(Ordering::SeqCst) {
-        sleep_until(start);
-        if stop.load(Ordering::SeqCst) {
-            return;
-        }
+async fn flap_loop(flap: Flap, switch: LinkSwitch) {
+    let mut start = tokio::time::Instant::now() + flap.period - flap.down;
+    loop {
+        tokio::time::sleep_until(start).await;
         tracing::debug!("relay: link down for {:?}", flap.down);
         switch.cut();
-        sleep_until(start + flap.down);
+        tokio::time::sleep_until(start + flap.down).await;
         switch.heal();
         start += flap.period;
     }
 }
 
-fn accept_loop(
+async fn accept_loop(
     listener: TcpListener,
     upstream: SocketAddr,
     plan: FaultPlan,
-    switch: LinkSwitch,
-    stats: Arc<RelayStats>,
-    stop: Arc<AtomicBool>,
+    (switch, stats): (LinkSwitch, Arc<RelayStats>),
+    mut stop: watch::Receiver<bool>,
+    tasks: &mut JoinSet<()>,
 ) {
     let mut seed = SplitMix64::new(plan.seed);
-    while !stop.load(Ordering::SeqCst) {
-        let (down, peer) = match listener.accept() {
-            Ok(c) => c,
-            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
-                std::thread::sleep(Duration::from_millis(10));
-                continue;
+    loop {
+        let accepted = tokio::select! {
+            _ = stop.wait_for(|stop| *stop) => return,
+            r = listener.accept() => r,
+        };
+        // Finished connections leave the set as they end.
+        while tasks.try_join_next().is_some() {}
+        match accepted {
+            Ok((down, peer)) => {
+                let rngs = [
+                    SplitMix64::new(seed.next_u64()),
+                    SplitMix64::new(seed.next_u64()),
+                ];
+                let link = switch.watch();
+                tasks.spawn(connection(
+                    down,
+                    peer,
+                    upstream,
+                    plan,
+                    rngs,
+                    link,
+                    stats.clone(),
+                ));
             }
             Err(e) => {
                 tracing::warn!("relay accept: {e}");
-                std::thread::sleep(Duration::from_millis(50));
-                continue;
-            }
-        };
-        if !switch.is_up() {
-            stats.refused.fetch_add(1, Ordering::Relaxed);
-            let _ = down.shutdown(Shutdown::Both);
-            continue;
-        }
-        let _ = down.set_nonblocking(false);
-        let up = match TcpStream::connect_timeout(&upstream, Duration::from_secs(2)) {
-            Ok(s) => s,
-            Err(e) => {
-                tracing::debug!("relay: upstream {upstream} for {peer}: {e}");
-                let _ = down.shutdown(Shutdown::Both);
-                continue;
-            }
-        };
-        let _ = down.set_nodelay(true);
-        let _ = up.set_nodelay(true);
-        if !switch.register([&down, &up]) {
-            stats.refused.fetch_add(1, Ordering::Relaxed);
-            let _ = down.shutdown(Shutdown::Both);
-            let _ = up.shutdown(Shutdown::Both);
-            continue;
-        }
-        stats.connections.fetch_add(1, Ordering::Relaxed);
-        for (from, to) in [(&down, &up), (&up, &down)] {
-            let (Ok(from), Ok(to)) = (from.try_clone(), to.try_clone()) else {
-                let _ = down.shutdown(Shutdown::Both);
-                let _ = up.shutdown(Shutdown::Both);
-                break;
-            };
-            let rng = SplitMix64::new(seed.next_u64());
-            let (sw, st) = (switch.clone(), stats.clone());
-            if let Err(e) = std::thread::Builder::new()
-                .name("relay-pump".into())
-                .spawn(move || pump(from, to, plan, rng, sw, st))
-            {
-                tracing::warn!("relay: cannot start a pump: {e}");
-                let _ = down.shutdown(Shutdown::Both);
-                let _ = up.shutdown(Shutdown::Both);
+                tokio::time::sleep(Duration::from_millis(50)).await;
             }
         }
     }
 }
 
-/// One direction: a reader that stamps each chunk with its due time and a
-/// writer that sends it then, never before the previous chunk.
-fn pump(
-    mut from: TcpStream,
-    mut to: TcpStream,
+/// One relayed connection: refused while the link is cut, else connected
+/// upstream and pumped both ways until both directions end or the link is
+/// cut (then both sockets close, and both peers see the session break).
+async fn connection(
+    down: TcpStream,
+    peer: SocketAddr,
+    upstream: SocketAddr,
     plan: FaultPlan,
-    mut rng: SplitMix64,
-    switch: LinkSwitch,
+    [rng_up, rng_down]: [SplitMix64; 2],
+    mut link: watch::Receiver<bool>,
     stats: Arc<RelayStats>,
 ) {
-    let (tx, rx) = mpsc::channel::<(Instant, Vec<u8>)>();
-    let writer_stats = stats.clone();
-    let writer_switch = switch.clone();
-    let writer = std::thread::Builder::new()
-        .name("relay-write".into())
-        .spawn(move || {
-            for (due, chunk) in rx {
-                let now = Instant::now();
-                if due > now {
-                    std::thread::sleep(due - now);
-                }
-                if !writer_switch.is_up() || to.write_all(&chunk).is_err() {
-                    break;
-                }
-                writer_stats
-                    .bytes_forwarded
-                    .fetch_add(chunk.len() as u64, Ordering::Relaxed);
-                writer_stats
-                    .chunks_forwarded
-                    .fetch_add(1, Ordering::Relaxed);
-            }
-            let _ = to.shutdown(Shutdown::Both);
-        });
-    let Ok(writer) = writer else {
-        let _ = from.shutdown(Shutdown::Both);
+    if !*link.borrow_and_update() {
+        stats.refused.fetch_add(1, Ordering::Relaxed);
         return;
+    }
+    let up = match tokio::time::timeout(Duration::from_secs(2), TcpStream::connect(upstream)).await
+    {
+        Ok(Ok(s)) => s,
+        Ok(Err(e)) => {
+            tracing::debug!("relay: upstream {upstream} for {peer}: {e}");
+            return;
+        }
+        Err(_) => {
+            tracing::debug!("relay: upstream {upstream} for {peer}: no answer in 2 s");
+            return;
+        }
     };
-    let mut last_due = Instant::now();
-    let started = Instant::now();
-    let elapsed_ns = || started.elapsed().as_nanos() as u64;
-    // A cap: a bucket of one second's bits, and reads no larger than that.
-    let mut bucket = plan.rate_bps.and_then(|r| TokenBucket::new(r, r, 0).ok());
-    let read_max = plan
-        .rate_bps
-        .map_or(64 * 1024, |r| ((r / 8.0) as usize).clamp(1, 64 * 1024));
-    let mut buf = vec![0u8; read_max];
-    loop {
-        let n = match from.read(&mut buf) {
-            Ok(0) | Err(_) => break,
-            Ok(n) => n,
-        };
-        if !switch.is_up() {
-            break;
-        }
-        if let Some(b) = bucket.as_mut() {
-            let bits = (n * 8) as f64;
-            while !b.try_take(bits, elapsed_ns()) {
-                let wait = b
-                    .wait_ns(bits, elapsed_ns())
-                    .unwrap_or(1_000_000)
-                    .max(1_000_000);
-                std::thread::sleep(Duration::from_nanos(wait));
-                if !switch.is_up() {
-                    break;
-                }
-            }
-            stats
-                .rate_limited_bytes
-                .fetch_add(n as u64, Ordering::Relaxed);
-        }
-        let mut extra = plan.latency;
-        if !plan.jitter.is_zero() {
-            extra += plan.jitter.mul_f64(rng.unit());
-        }
-        if plan.loss_stall_probability > 0.0 && rng.unit() < plan.loss_stall_probability {
-            stats.stalls.fetch_add(1, Ordering::Relaxed);
-            extra += plan.loss_stall;
-        }
-        let due = (Instant::now() + extra).max(last_due);
-        last_due = due;
-        if tx.send((due, buf[..n].to_vec())).is_err() {
-            break;
+    if !*link.borrow_and_update() {
+        stats.refused.fetch_add(1, Ordering::Relaxed);
+        return;
+    }
+    let _ = down.set_nodelay(true);
+    let _ = up.set_nodelay(true);
+    stats.connections.fetch_add(1, Ordering::Relaxed);
+    let (down_read, down_write) = down.into_split();
+    let (up_read, up_write) = up.into_split();
+    tokio::select! {
+        _ = async {
+            tokio::join!(
+                pump(down_read, up_write, plan, rng_up, stats.clone()),
+                pump(up_read, down_write, plan, rng_down, stats.clone()),
+            )
+        } => {}
+        () = link_down(&mut link) => {
+            stats.cut.fetch_add(1, Ordering::Relaxed);
         }
     }
-    drop(tx);
-    let _ = from.shutdown(Shutdown::Both);
-    shoal_bus::join_reporting(writer);
+}
+
+/// One direction: a reader that stamps each chunk with its due time and a
+/// writer that sends it then, never before the previous chunk; at the
+/// reader's end the writer sends what is queued, then closes its side.
+async fn pump(
+    mut from: OwnedReadHalf,
+    mut to: OwnedWriteHalf,
+    plan: FaultPlan,
+    mut rng: SplitMix64,
+    stats: Arc<RelayStats>,
+) {
+    let (tx, mut rx) = mpsc::unbounded_channel::<(Instant, Vec<u8>)>();
+    let writer_stats = stats.clone();
+    let writer = async move {
+        while let Some((due, chunk)) = rx.recv().await {
+            tokio::time::sleep_until(tokio::time::Instant::from_std(due)).await;
+            if to.write_all(&chunk).await.is_err() {
+                break;
+            }
+            writer_stats
+                .bytes_forwarded
+                .fetch_add(chunk.len() as u64, Ordering::Relaxed);
+            writer_stats
+                .chunks_forwarded
+                .fetch_add(1, Ordering::Relaxed);
+        }
+        let _ = to.shutdown().await;
+    };
+    let reader = async move {
+        let mut last_due = Instant::now();
+        let started = Instant::now();
+        let elapsed_ns = || started.elapsed().as_nanos() as u64;
+        // A cap: a bucket of one second's bits, and reads no larger than that.
+        let mut bucket = plan.rate_bps.and_then(|r| TokenBucket::new(r, r, 0).ok());
+        let read_max = plan
+            .rate_bps
+            .map_or(64 * 1024, |r| ((r / 8.0) as usize).clamp(1, 64 * 1024));
+        let mut buf = vec![0u8; read_max];
+        loop {
+            let n = match from.read(&mut buf).await {
+                Ok(0) | Err(_) => break,
+                Ok(n) => n,
+            };
+            if let Some(b) = bucket.as_mut() {
+                let bits = (n * 8) as f64;
+                while !b.try_take(bits, elapsed_ns()) {
+                    let wait = b
+                        .wait_ns(bits, elapsed_ns())
+                        .unwrap_or(1_000_000)
+                        .max(1_000_000);
+                    tokio::time::sleep(Duration::from_nanos(wait)).await;
+                }
+                stats
+                    .rate_limited_bytes
+                    .fetch_add(n as u64, Ordering::Relaxed);
+            }
+            let mut extra = plan.latency;
+            if !plan.jitter.is_zero() {
+                extra += plan.jitter.mul_f64(rng.unit());
+            }
+            if plan.loss_stall_probability > 0.0 && rng.unit() < plan.loss_stall_probability {
+                stats.stalls.fetch_add(1, Ordering::Relaxed);
+                extra += plan.loss_stall;
+            }
+            let due = (Instant::now() + extra).max(last_due);
+            last_due = due;
+            if tx.send((due, buf[..n].to_vec())).is_err() {
+                break;
+            }
+        }
+    };
+    tokio::join!(reader, writer);
 }
 
 /// Faults applied to whole messages at the transport boundary.
@@ -542,6 +540,8 @@ impl MessageFaults {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::io::{Read, Write};
+    use std::net::{TcpListener, TcpStream};
 
     fn echo_server() -> (SocketAddr, JoinHandle<()>) {
         let l = TcpListener::bind("127.0.0.1:0").unwrap();

@@ -64,7 +64,7 @@ pub struct DemoArgs {
     occlude: Option<shoal_services::sim::Occlusion>,
     /// Loopback port of the demo's Zenoh router, where `shoal station`,
     /// `shoal record` or a Python/ROS 2 client in another terminal attach
-    /// (when taken, a free port is used and printed).
+    /// (when taken, a free port is used and printed; 0: any free port).
     #[arg(long, default_value_t = 7447)]
     port: u16,
     #[command(flatten)]

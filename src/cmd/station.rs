@@ -22,6 +22,10 @@ pub struct StationArgs {
     /// Do not start the Foxglove server.
     #[arg(long)]
     no_foxglove: bool,
+    /// Also write what the Foxglove server sends to this MCAP file (the station's view, Foxglove
+    /// channels only; `shoal record` keeps the full log).
+    #[arg(long, value_name = "FILE", conflicts_with = "no_foxglove")]
+    foxglove_mcap: Option<PathBuf>,
     /// Address to bind both servers to (default loopback: reach it through an SSH tunnel). Any other
     /// address needs --token (and --no-foxglove), or --insecure-public.
     #[arg(long, default_value = "127.0.0.1")]
@@ -62,6 +66,7 @@ pub fn run_station(a: StationArgs) -> anyhow::Result<()> {
         bind: a.bind,
         http_port: a.http_port,
         foxglove_port: (!a.no_foxglove).then_some(a.foxglove_port),
+        foxglove_mcap: a.foxglove_mcap.clone(),
         rate_hz: a.rate,
         token: a.token.clone(),
         allow_hosts: a.allow_host,
@@ -85,6 +90,12 @@ pub fn run_station(a: StationArgs) -> anyhow::Result<()> {
     }
     if let Some(p) = station.foxglove_port() {
         shoal::errln!("shoal station: Foxglove live at ws://{}:{p}", a.bind);
+    }
+    if let Some(path) = &a.foxglove_mcap {
+        shoal::errln!(
+            "shoal station: writing what Foxglove is sent to {}",
+            path.display()
+        );
     }
     wait_for_ctrl_c(|| false);
     station.stop();

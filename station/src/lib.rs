@@ -59,6 +59,13 @@ pub enum StationError {
     },
     #[error("cannot start the Foxglove server on {addr}: {reason} (is another program using that port? choose another port)")]
     Foxglove { addr: String, reason: String },
+    #[error("cannot write the Foxglove MCAP file {}: {reason}", path.display())]
+    FoxgloveMcap {
+        path: std::path::PathBuf,
+        reason: String,
+    },
+    #[error("--foxglove-mcap writes what the Foxglove live server sends: it needs that server (drop --no-foxglove)")]
+    FoxgloveMcapWithoutServer,
     #[error(transparent)]
     Bus(#[from] shoal_bus::BusError),
     #[error("cannot start a station thread: {0}")]
@@ -103,6 +110,9 @@ pub struct StationConfig {
     pub http_port: u16,
     /// Foxglove WebSocket port (0: any free port; `None`: no Foxglove server).
     pub foxglove_port: Option<u16>,
+    /// Also write what the Foxglove server sends to this MCAP file (same
+    /// `foxglove::Context`, the `foxglove` crate's writer).
+    pub foxglove_mcap: Option<std::path::PathBuf>,
     /// Snapshots pushed to the page per second.
     pub rate_hz: f64,
     /// Access token: when set, every page request needs it ([`access`]).
@@ -122,6 +132,7 @@ impl Default for StationConfig {
             bind: IpAddr::V4(Ipv4Addr::LOCALHOST),
             http_port: 8080,
             foxglove_port: Some(8765),
+            foxglove_mcap: None,
             rate_hz: 10.0,
             token: None,
             allow_hosts: Vec::new(),
@@ -138,6 +149,7 @@ impl std::fmt::Debug for StationConfig {
             .field("bind", &self.bind)
             .field("http_port", &self.http_port)
             .field("foxglove_port", &self.foxglove_port)
+            .field("foxglove_mcap", &self.foxglove_mcap)
             .field("rate_hz", &self.rate_hz)
             .field("token", &self.token.as_ref().map(|_| "(set)"))
             .field("allow_hosts", &self.allow_hosts)
@@ -153,6 +165,9 @@ impl StationConfig {
     pub fn check(&self) -> Result<http::ServeOptions, StationError> {
         if !(1.0..=100.0).contains(&self.rate_hz) {
             return Err(StationError::Rate(self.rate_hz));
+        }
+        if self.foxglove_mcap.is_some() && self.foxglove_port.is_none() {
+            return Err(StationError::FoxgloveMcapWithoutServer);
         }
         let token = self.token.as_deref().map(access::Token::new).transpose()?;
         let allowed_hosts = self
@@ -293,7 +308,13 @@ pub fn spawn(
         options,
     )?;
     let foxglove = match cfg.foxglove_port {
-        Some(port) => Some(live::FoxgloveLive::start(&cfg.bind.to_string(), port)?),
+        Some(port) => {
+            let mut f = live::FoxgloveLive::start(&cfg.bind.to_string(), port)?;
+            if let Some(path) = &cfg.foxglove_mcap {
+                f.record(path)?;
+            }
+            Some(f)
+        }
         None => None,
     };
     let foxglove_port = foxglove.as_ref().map(|f| f.port());

@@ -1,17 +1,29 @@
 //! Foxglove's live WebSocket protocol (the `foxglove` crate's server), with
-//! the **same channels, schemas and JSON messages as the MCAP logs**: every
-//! message goes through `shoal_record::foxglove` (the functions the
-//! recorder writes its Foxglove channels with), and each channel declares
-//! the recorder's JSON schema (`message_encoding = "json"`, schema encoding
-//! `jsonschema`). A layout made for a log works on the live swarm unchanged.
+//! the **same channels, schema records and protobuf bytes as the MCAP logs**:
+//! every message is built by `shoal_record::foxglove` (the functions the
+//! recorder writes its Foxglove channels with) and encoded once by
+//! `FoxgloveMessage::encode`; each channel declares
+//! `FoxgloveSchema::schema` (the `foxglove` crate's descriptor). A layout
+//! made for a log works on the live swarm unchanged.
+//!
+//! `--foxglove-mcap FILE` adds the `foxglove` crate's MCAP writer as a second
+//! sink of the **same `foxglove::Context`**: the file holds exactly what the
+//! live clients were sent (the station's view of a trial, Foxglove channels
+//! only; a full log with the wire channels is `shoal record`'s).
 //!
 //! Not forwarded: camera images (the station does not subscribe to frames;
 //! at 1.5 MB each they would dominate the link to the vessel).
 
 use crate::StationError;
-use foxglove::{Context, RawChannel, Schema, WebSocketServer, WebSocketServerHandle};
+use foxglove::{
+    Context, McapWriteOptions, McapWriter, McapWriterHandle, RawChannel, WebSocketServer,
+    WebSocketServerHandle,
+};
 use shoal_record::foxglove::{FoxgloveMessage, FoxgloveSchema};
 use std::collections::HashMap;
+use std::fs::File;
+use std::io::BufWriter;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 /// The live Foxglove server and its channels (created on first use per topic).
@@ -20,7 +32,7 @@ pub struct FoxgloveLive {
     server: Option<WebSocketServerHandle>,
     port: u16,
     channels: HashMap<String, Arc<RawChannel>>,
-    schemas: HashMap<FoxgloveSchema, Vec<u8>>,
+    mcap: Option<(PathBuf, McapWriterHandle<BufWriter<File>>)>,
 }
 
 impl std::fmt::Debug for FoxgloveLive {
@@ -52,7 +64,7 @@ impl FoxgloveLive {
             server: Some(server),
             port,
             channels: HashMap::new(),
-            schemas: HashMap::new(),
+            mcap: None,
         })
     }
 
@@ -66,17 +78,31 @@ impl FoxgloveLive {
         self.server.as_ref().map_or(0, |s| s.client_count())
     }
 
-    /// Send messages (as built by `shoal_record::foxglove`) to subscribed clients.
-    /// Log time is the arrival time at the station (Foxglove's default); the
-    /// messages carry their own `stamp_ns` timestamps, as in the logs.
+    /// Also write every message sent from now on to an MCAP file (the
+    /// `foxglove` crate's writer, a second sink of this server's context).
+    pub fn record(&mut self, path: &Path) -> Result<(), StationError> {
+        let handle = McapWriter::with_options(McapWriteOptions::new().profile(""))
+            .context(&self.ctx)
+            .create_new_buffered_file(path)
+            .map_err(|e| StationError::FoxgloveMcap {
+                path: path.to_path_buf(),
+                reason: e.to_string(),
+            })?;
+        self.mcap = Some((path.to_path_buf(), handle));
+        Ok(())
+    }
+
+    /// Send messages (as built by `shoal_record::foxglove`) to subscribed
+    /// clients and the MCAP sink. Log time is the time of sending (Foxglove's
+    /// default); the messages carry their own stamps, as in the logs.
     pub fn send(&mut self, messages: Vec<FoxgloveMessage>) {
         for m in messages {
-            let Some(channel) = self.channel(&m.topic, m.schema) else {
+            let Some(channel) = self.channel(&m.topic, m.schema()) else {
                 continue;
             };
-            match serde_json::to_vec(&m.value) {
+            match m.encode() {
                 Ok(bytes) => channel.log(&bytes),
-                Err(e) => tracing::warn!("station: foxglove {}: {e}", m.topic),
+                Err(e) => tracing::warn!("station: {e}"),
             }
         }
     }
@@ -85,16 +111,11 @@ impl FoxgloveLive {
         if let Some(c) = self.channels.get(topic) {
             return Some(c.clone());
         }
-        let data = self
-            .schemas
-            .entry(schema)
-            .or_insert_with(|| serde_json::to_vec(&schema.json_schema()).unwrap_or_default())
-            .clone();
         match self
             .ctx
             .channel_builder(topic)
-            .message_encoding("json")
-            .schema(Schema::new(schema.name(), "jsonschema", data))
+            .message_encoding(schema.message_encoding())
+            .schema(schema.schema())
             .build_raw()
         {
             Ok(c) => {
@@ -116,6 +137,11 @@ impl FoxgloveLive {
     fn shutdown(&mut self) {
         if let Some(s) = self.server.take() {
             s.stop().wait_blocking();
+        }
+        if let Some((path, w)) = self.mcap.take() {
+            if let Err(e) = w.close() {
+                tracing::error!("station: closing {}: {e}", path.display());
+            }
         }
     }
 }

@@ -1,7 +1,7 @@
 //! The station's servers over real sockets: the snapshot endpoint follows
 //! Zenoh, the event stream pushes at its rate, a taken port is a clear
-//! error, and the Foxglove server advertises the MCAP logs' channels and
-//! schemas.
+//! error, and the Foxglove server sends the MCAP logs' channels, schemas
+//! and bytes.
 
 use shoal_bus::{client_of, free_port, Bus, Connect};
 use shoal_proto::config::Fleet;
@@ -169,11 +169,90 @@ fn read_frame(s: &mut impl Read) -> (u8, Vec<u8>) {
     (h[0] & 0x0f, payload)
 }
 
+/// Standard base64 with padding (RFC 4648 §4), to compare the advertised schema.
+fn base64(bytes: &[u8]) -> String {
+    const A: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+    let mut out = String::new();
+    for c in bytes.chunks(3) {
+        let n = (u32::from(c[0]) << 16)
+            | (u32::from(*c.get(1).unwrap_or(&0)) << 8)
+            | u32::from(*c.get(2).unwrap_or(&0));
+        for i in 0..4 {
+            if i <= c.len() {
+                out.push(A[(n >> (18 - 6 * i) & 63) as usize] as char);
+            } else {
+                out.push('=');
+            }
+        }
+    }
+    out
+}
+
+/// Write one client-to-server text frame (masked, RFC 6455 §5.3).
+fn write_text_frame(s: &mut impl Write, text: &str) {
+    let payload = text.as_bytes();
+    assert!(payload.len() < 126, "short frames only");
+    let mask = [0x37u8, 0xfa, 0x21, 0x3d];
+    let mut frame = vec![0x81, 0x80 | payload.len() as u8];
+    frame.extend_from_slice(&mask);
+    frame.extend(payload.iter().enumerate().map(|(i, b)| b ^ mask[i % 4]));
+    s.write_all(&frame).unwrap();
+}
+
+/// The channels a Foxglove server advertises until `/fused/poses` shows up,
+/// topic → (channel id, schema name), each checked to declare the log's
+/// protobuf schema record.
+fn read_advertised(s: &mut TcpStream) -> std::collections::BTreeMap<String, (u64, String)> {
+    use shoal_record::foxglove as fx;
+    let deadline = Instant::now() + Duration::from_secs(10);
+    // topic -> (channel id, schema name)
+    let mut advertised = std::collections::BTreeMap::new();
+    while Instant::now() < deadline && !advertised.contains_key("/fused/poses") {
+        let (opcode, payload) = read_frame(s);
+        if opcode != 1 {
+            continue;
+        }
+        let v: serde_json::Value = serde_json::from_slice(&payload).unwrap();
+        if v["op"] == "advertise" {
+            for c in v["channels"].as_array().unwrap() {
+                let name = c["schemaName"].as_str().unwrap().to_string();
+                let schema = fx::FoxgloveSchema::ALL
+                    .into_iter()
+                    .find(|s| s.name() == name)
+                    .unwrap_or_else(|| panic!("unexpected schema {c}"));
+                assert_eq!(c["encoding"], "protobuf", "{c}");
+                assert_eq!(c["schemaEncoding"], "protobuf", "{c}");
+                assert_eq!(
+                    c["schema"].as_str().unwrap(),
+                    base64(&schema.schema().data),
+                    "{name}: the advertised descriptor is not the log's"
+                );
+                advertised.insert(
+                    c["topic"].as_str().unwrap().to_string(),
+                    (c["id"].as_u64().unwrap(), name),
+                );
+            }
+        }
+    }
+    advertised
+}
+
+/// The Foxglove live server sends what the recorder logs: same topics, same
+/// schema records (the `foxglove` crate's protobuf descriptors), the same
+/// protobuf bytes for the same map; and its MCAP sink on the same context
+/// writes those bytes too.
 #[test]
-fn foxglove_server_advertises_the_log_channels_and_schemas() {
+fn foxglove_server_sends_the_log_channels_schemas_and_bytes() {
+    use shoal_record::foxglove as fx;
     let port = free_port().unwrap();
     let router = Bus::open(&Connect::Router { port }).unwrap();
-    let station = shoal_station::spawn(&router, fleet(), config(0, Some(0))).unwrap();
+    let mcap_path =
+        std::env::temp_dir().join(format!("shoal-station-fox-{}.mcap", std::process::id()));
+    let cfg = StationConfig {
+        foxglove_mcap: Some(mcap_path.clone()),
+        ..config(0, Some(0))
+    };
+    let station = shoal_station::spawn(&router, fleet(), cfg).unwrap();
     let fox = station.foxglove_port().unwrap();
     let publisher = Bus::open(&client_of(port)).unwrap();
     let p = publisher
@@ -201,38 +280,67 @@ fn foxglove_server_advertises_the_log_channels_and_schemas() {
     }
     let head = String::from_utf8_lossy(&head);
     assert!(head.starts_with("HTTP/1.1 101"), "{head}");
-    let deadline = Instant::now() + Duration::from_secs(10);
-    let mut advertised = Vec::new();
-    while Instant::now() < deadline
-        && !advertised
-            .iter()
-            .any(|(t, _): &(String, String)| t == "/fused/tf")
-    {
-        let (opcode, payload) = read_frame(&mut s);
-        if opcode != 1 {
-            continue;
-        }
-        let v: serde_json::Value = serde_json::from_slice(&payload).unwrap();
-        if v["op"] == "advertise" {
-            for c in v["channels"].as_array().unwrap() {
-                assert_eq!(c["encoding"], "json", "{c}");
-                assert_eq!(c["schemaEncoding"], "jsonschema", "{c}");
-                advertised.push((
-                    c["topic"].as_str().unwrap().to_string(),
-                    c["schemaName"].as_str().unwrap().to_string(),
-                ));
-            }
-        }
-    }
+    let advertised = read_advertised(&mut s);
     for (topic, schema) in [
         ("/fused/tf", "foxglove.FrameTransforms"),
         ("/fused/poses", "foxglove.PosesInFrame"),
         ("/fused/scene", "foxglove.SceneUpdate"),
     ] {
         assert!(
-            advertised.iter().any(|(t, s)| t == topic && s == schema),
+            advertised.get(topic).is_some_and(|(_, s)| s == schema),
             "{topic} ({schema}) not advertised: {advertised:?}"
         );
     }
+    // Subscribe to the poses, publish a new map, and compare the bytes sent
+    // with what the recorder would log for it.
+    let channel = advertised["/fused/poses"].0;
+    write_text_frame(
+        &mut s,
+        &format!(r#"{{"op":"subscribe","subscriptions":[{{"id":7,"channelId":{channel}}}]}}"#),
+    );
+    std::thread::sleep(Duration::from_millis(300));
+    let sent = map(2, 2.25);
+    let expected = fx::fleet_map(&fleet(), &sent)
+        .into_iter()
+        .find(|m| m.topic == "/fused/poses")
+        .unwrap()
+        .encode()
+        .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let mut live = None;
+    while Instant::now() < deadline && live.is_none() {
+        p.put(&sent).unwrap();
+        let (opcode, payload) = read_frame(&mut s);
+        // Binary message data: op 1, subscription id (u32 LE), log time (u64 LE), payload.
+        if opcode == 2 && payload.first() == Some(&1) && payload[1..5] == 7u32.to_le_bytes() {
+            live = Some(payload[13..].to_vec());
+        }
+    }
+    assert_eq!(
+        live.as_deref(),
+        Some(&expected[..]),
+        "live bytes differ from the log's"
+    );
     station.stop();
+
+    // The MCAP sink on the same context holds the same channel and bytes.
+    let bytes = std::fs::read(&mcap_path).unwrap();
+    let _ = std::fs::remove_file(&mcap_path);
+    let mut poses = Vec::new();
+    for m in mcap::MessageStream::new(&bytes).unwrap() {
+        let m = m.unwrap();
+        if m.channel.topic == "/fused/poses" {
+            let schema = m.channel.schema.as_ref().unwrap();
+            assert_eq!(schema.name, "foxglove.PosesInFrame");
+            assert_eq!(schema.encoding, "protobuf");
+            assert_eq!(schema.data, fx::FoxgloveSchema::PosesInFrame.schema().data);
+            assert_eq!(m.channel.message_encoding, "protobuf");
+            poses.push(m.data.into_owned());
+        }
+    }
+    assert!(
+        poses.iter().any(|d| d[..] == expected[..]),
+        "the station's MCAP lacks the map sent live ({} poses messages)",
+        poses.len()
+    );
 }

@@ -1,10 +1,10 @@
 //! Camera frames: read in place from their envelope and written as PNG
 //! `CompressedImage` messages.
 
-use super::{camera_frame, camera_topic, msg, t, FoxgloveMessage, FoxgloveSchema};
+use super::{camera_frame, camera_topic, msg, t, FoxgloveMessage, FoxgloveValue};
+use foxglove::messages::CompressedImage;
 use proto::config::Fleet;
 use proto::{PixelFormat, VehicleId};
-use serde_json::json;
 
 /// The fields of a `CameraFrame` envelope the recorder needs, read in place
 /// at the offsets pinned by `docs/wire.md` (no copy of the pixels; decoding
@@ -86,36 +86,19 @@ pub fn camera_image(
     image::ImageEncoder::write_image(encoder, f.data, f.width, f.height, color)?;
     Ok(msg(
         format!("{}/image", camera_topic(fleet, f.vehicle, f.camera)),
-        FoxgloveSchema::CompressedImage,
-        json!({"timestamp": t(f.stamp_ns), "frame_id": camera_frame(fleet, f.vehicle, f.camera), "data": base64(&png), "format": "png"}),
+        FoxgloveValue::CompressedImage(CompressedImage {
+            timestamp: t(f.stamp_ns),
+            frame_id: camera_frame(fleet, f.vehicle, f.camera),
+            data: foxglove::bytes::Bytes::from(png),
+            format: "png".into(),
+        }),
     ))
-}
-
-/// Standard base64 with padding (RFC 4648 §4), Foxglove's JSON encoding of `bytes`.
-pub fn base64(bytes: &[u8]) -> String {
-    use base64::Engine;
-    base64::engine::general_purpose::STANDARD.encode(bytes)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use proto::geometry::Pose;
-
-    #[test]
-    fn base64_matches_rfc4648_vectors() {
-        for (plain, enc) in [
-            ("", ""),
-            ("f", "Zg=="),
-            ("fo", "Zm8="),
-            ("foo", "Zm9v"),
-            ("foob", "Zm9vYg=="),
-            ("fooba", "Zm9vYmE="),
-            ("foobar", "Zm9vYmFy"),
-        ] {
-            assert_eq!(base64(plain.as_bytes()), enc);
-        }
-    }
 
     #[test]
     fn frame_view_reads_what_the_codec_wrote() {

@@ -1,7 +1,8 @@
-//! The JSON schemas of the Foxglove well-known types shoal writes, written
-//! from Foxglove's published definitions (see the parent module).
+//! The Foxglove well-known types shoal writes, their schema records and
+//! their encoding: one place for both the log and the live server.
 
-use serde_json::{json, Value};
+use foxglove::messages as fm;
+use foxglove::{Encode, Schema};
 
 /// A Foxglove well-known schema shoal writes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -12,6 +13,14 @@ pub enum FoxgloveSchema {
     SceneUpdate,
     CompressedImage,
     ImageAnnotations,
+}
+
+/// `T`'s schema record as the `foxglove` crate ships it (a protobuf
+/// `FileDescriptorSet` of Foxglove's published `.proto` files).
+fn schema_of<T: Encode>(name: &'static str) -> Schema {
+    // The well-known types always carry their schema; an empty one would
+    // still be a valid record (readers then show raw bytes).
+    T::get_schema().unwrap_or_else(|| Schema::new(name, "protobuf", Vec::new()))
 }
 
 impl FoxgloveSchema {
@@ -36,252 +45,128 @@ impl FoxgloveSchema {
         }
     }
 
-    /// The JSON schema (draft 2020-12) embedded in the log.
-    pub fn json_schema(self) -> Value {
-        let mut s = match self {
-            FoxgloveSchema::FrameTransforms => object(
-                "A list of transforms",
-                &[("transforms", array(frame_transform()))],
-            ),
-            FoxgloveSchema::PosesInFrame => object(
-                "An array of timestamped poses for an object or reference frame in 3D space",
-                &[
-                    ("timestamp", time()),
-                    ("frame_id", string()),
-                    ("poses", array(pose())),
-                ],
-            ),
-            FoxgloveSchema::Log => object(
-                "A log message",
-                &[
-                    ("timestamp", time()),
-                    (
-                        "level",
-                        json!({"type": "integer", "description": "Log level: 0 UNKNOWN, 1 DEBUG, 2 INFO, 3 WARNING, 4 ERROR, 5 FATAL",
-                               "minimum": 0, "maximum": 5}),
-                    ),
-                    ("message", string()),
-                    ("name", string()),
-                    ("file", string()),
-                    ("line", json!({"type": "integer", "minimum": 0})),
-                ],
-            ),
-            FoxgloveSchema::SceneUpdate => object(
-                "An update to the entities displayed in a 3D scene",
-                &[
-                    ("deletions", array(scene_entity_deletion())),
-                    ("entities", array(scene_entity())),
-                ],
-            ),
-            FoxgloveSchema::CompressedImage => object(
-                "A compressed image",
-                &[
-                    ("timestamp", time()),
-                    ("frame_id", string()),
-                    (
-                        "data",
-                        json!({"type": "string", "contentEncoding": "base64"}),
-                    ),
-                    ("format", string()),
-                ],
-            ),
-            FoxgloveSchema::ImageAnnotations => object(
-                "Array of annotations for a 2D image",
-                &[
-                    ("circles", array(json!({"type": "object"}))),
-                    ("points", array(points_annotation())),
-                    ("texts", array(text_annotation())),
-                ],
-            ),
-        };
-        s["$schema"] = json!("https://json-schema.org/draft/2020-12/schema");
-        s["title"] = json!(self.name());
-        s
+    /// The schema record (name, encoding `protobuf`, descriptor bytes) the
+    /// log and the live server both declare.
+    pub fn schema(self) -> Schema {
+        let name = self.name();
+        match self {
+            FoxgloveSchema::FrameTransforms => schema_of::<fm::FrameTransforms>(name),
+            FoxgloveSchema::PosesInFrame => schema_of::<fm::PosesInFrame>(name),
+            FoxgloveSchema::Log => schema_of::<fm::Log>(name),
+            FoxgloveSchema::SceneUpdate => schema_of::<fm::SceneUpdate>(name),
+            FoxgloveSchema::CompressedImage => schema_of::<fm::CompressedImage>(name),
+            FoxgloveSchema::ImageAnnotations => schema_of::<fm::ImageAnnotations>(name),
+        }
+    }
+
+    /// The channels' message encoding.
+    pub fn message_encoding(self) -> &'static str {
+        MESSAGE_ENCODING
     }
 }
 
-fn object(description: &str, props: &[(&str, Value)]) -> Value {
-    let mut p = serde_json::Map::new();
-    let mut required = Vec::new();
-    for (k, v) in props {
-        p.insert((*k).to_string(), v.clone());
-        required.push(json!(k));
+/// Message encoding of every Foxglove channel shoal writes.
+pub const MESSAGE_ENCODING: &str = "protobuf";
+
+/// One Foxglove message, typed.
+#[derive(Debug, Clone, PartialEq)]
+pub enum FoxgloveValue {
+    FrameTransforms(fm::FrameTransforms),
+    PosesInFrame(fm::PosesInFrame),
+    Log(fm::Log),
+    SceneUpdate(fm::SceneUpdate),
+    CompressedImage(fm::CompressedImage),
+    ImageAnnotations(fm::ImageAnnotations),
+}
+
+/// Protobuf-encode `m` into a buffer sized by its encoded length.
+fn encode_one<T: Encode>(m: &T) -> Result<Vec<u8>, String> {
+    let mut buf = Vec::with_capacity(m.encoded_len().unwrap_or(256));
+    m.encode(&mut buf).map_err(|e| e.to_string())?;
+    Ok(buf)
+}
+
+impl FoxgloveValue {
+    pub fn schema(&self) -> FoxgloveSchema {
+        match self {
+            FoxgloveValue::FrameTransforms(_) => FoxgloveSchema::FrameTransforms,
+            FoxgloveValue::PosesInFrame(_) => FoxgloveSchema::PosesInFrame,
+            FoxgloveValue::Log(_) => FoxgloveSchema::Log,
+            FoxgloveValue::SceneUpdate(_) => FoxgloveSchema::SceneUpdate,
+            FoxgloveValue::CompressedImage(_) => FoxgloveSchema::CompressedImage,
+            FoxgloveValue::ImageAnnotations(_) => FoxgloveSchema::ImageAnnotations,
+        }
     }
-    json!({"type": "object", "description": description, "properties": p, "required": required})
+
+    /// The protobuf bytes (a `Vec` grows as needed, so this fails only on a
+    /// bug in the encoder; the error text says what prost reported).
+    pub fn encode(&self) -> Result<Vec<u8>, String> {
+        match self {
+            FoxgloveValue::FrameTransforms(m) => encode_one(m),
+            FoxgloveValue::PosesInFrame(m) => encode_one(m),
+            FoxgloveValue::Log(m) => encode_one(m),
+            FoxgloveValue::SceneUpdate(m) => encode_one(m),
+            FoxgloveValue::CompressedImage(m) => encode_one(m),
+            FoxgloveValue::ImageAnnotations(m) => encode_one(m),
+        }
+    }
 }
-fn array(item: Value) -> Value {
-    json!({"type": "array", "items": item})
+
+/// One Foxglove message on its topic.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FoxgloveMessage {
+    pub topic: String,
+    pub value: FoxgloveValue,
 }
-fn string() -> Value {
-    json!({"type": "string"})
+
+impl FoxgloveMessage {
+    pub fn schema(&self) -> FoxgloveSchema {
+        self.value.schema()
+    }
+
+    /// The message's bytes on its channel (log and live alike).
+    pub fn encode(&self) -> Result<Vec<u8>, crate::RecordError> {
+        self.value
+            .encode()
+            .map_err(|reason| crate::RecordError::FoxgloveEncode {
+                topic: self.topic.clone(),
+                reason,
+            })
+    }
 }
-fn number() -> Value {
-    json!({"type": "number"})
-}
-fn time() -> Value {
-    object(
-        "Timestamp",
-        &[
-            ("sec", json!({"type": "integer", "minimum": 0})),
-            (
-                "nsec",
-                json!({"type": "integer", "minimum": 0, "maximum": 999_999_999}),
-            ),
-        ],
-    )
-}
-fn vector3() -> Value {
-    object(
-        "A vector in 3D space",
-        &[("x", number()), ("y", number()), ("z", number())],
-    )
-}
-fn quaternion() -> Value {
-    object(
-        "A quaternion (x, y, z, w)",
-        &[
-            ("x", number()),
-            ("y", number()),
-            ("z", number()),
-            ("w", number()),
-        ],
-    )
-}
-fn pose() -> Value {
-    object(
-        "A position and orientation",
-        &[("position", vector3()), ("orientation", quaternion())],
-    )
-}
-fn color() -> Value {
-    object(
-        "RGBA color, 0..1",
-        &[
-            ("r", number()),
-            ("g", number()),
-            ("b", number()),
-            ("a", number()),
-        ],
-    )
-}
-fn point2() -> Value {
-    object(
-        "A point in 2D (pixels)",
-        &[("x", number()), ("y", number())],
-    )
-}
-fn frame_transform() -> Value {
-    object(
-        "A transform between two reference frames in 3D space",
-        &[
-            ("timestamp", time()),
-            ("parent_frame_id", string()),
-            ("child_frame_id", string()),
-            ("translation", vector3()),
-            ("rotation", quaternion()),
-        ],
-    )
-}
-fn scene_entity_deletion() -> Value {
-    object(
-        "Command to remove previously published entities",
-        &[
-            ("timestamp", time()),
-            (
-                "type",
-                json!({"type": "integer", "minimum": 0, "maximum": 1}),
-            ),
-            ("id", string()),
-        ],
-    )
-}
-fn primitive(description: &str, extra: &[(&str, Value)]) -> Value {
-    let mut props = vec![("pose", pose()), ("size", vector3()), ("color", color())];
-    props.extend(extra.iter().cloned());
-    object(description, &props)
-}
-fn scene_entity() -> Value {
-    object(
-        "A visual element in a 3D scene",
-        &[
-            ("timestamp", time()),
-            ("frame_id", string()),
-            ("id", string()),
-            (
-                "lifetime",
-                object(
-                    "Duration",
-                    &[
-                        ("sec", json!({"type": "integer"})),
-                        ("nsec", json!({"type": "integer", "minimum": 0})),
-                    ],
-                ),
-            ),
-            ("frame_locked", json!({"type": "boolean"})),
-            (
-                "metadata",
-                array(object(
-                    "A key with its associated value",
-                    &[("key", string()), ("value", string())],
-                )),
-            ),
-            ("arrows", array(json!({"type": "object"}))),
-            ("cubes", array(json!({"type": "object"}))),
-            ("spheres", array(primitive("A sphere or ellipsoid", &[]))),
-            (
-                "cylinders",
-                array(primitive(
-                    "A cylinder, cone or truncated cone",
-                    &[("bottom_scale", number()), ("top_scale", number())],
-                )),
-            ),
-            ("lines", array(json!({"type": "object"}))),
-            ("triangles", array(json!({"type": "object"}))),
-            (
-                "texts",
-                array(object(
-                    "A text label",
-                    &[
-                        ("pose", pose()),
-                        ("billboard", json!({"type": "boolean"})),
-                        ("font_size", number()),
-                        ("scale_invariant", json!({"type": "boolean"})),
-                        ("color", color()),
-                        ("text", string()),
-                    ],
-                )),
-            ),
-            ("models", array(json!({"type": "object"}))),
-        ],
-    )
-}
-fn points_annotation() -> Value {
-    object(
-        "An array of points on a 2D image",
-        &[
-            ("timestamp", time()),
-            (
-                "type",
-                json!({"type": "integer", "description": "0 UNKNOWN, 1 POINTS, 2 LINE_LOOP, 3 LINE_STRIP, 4 LINE_LIST", "minimum": 0, "maximum": 4}),
-            ),
-            ("points", array(point2())),
-            ("outline_color", color()),
-            ("outline_colors", array(color())),
-            ("fill_color", color()),
-            ("thickness", number()),
-        ],
-    )
-}
-fn text_annotation() -> Value {
-    object(
-        "A text label on a 2D image",
-        &[
-            ("timestamp", time()),
-            ("position", point2()),
-            ("text", string()),
-            ("font_size", number()),
-            ("text_color", color()),
-            ("background_color", color()),
-        ],
-    )
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_schema_is_the_crates_protobuf_descriptor_under_its_name() {
+        for s in FoxgloveSchema::ALL {
+            let sc = s.schema();
+            assert_eq!(sc.name, s.name());
+            assert_eq!(sc.encoding, "protobuf");
+            // A FileDescriptorSet naming the type's .proto file.
+            let file = format!("foxglove/{}.proto", &s.name()["foxglove.".len()..]);
+            assert!(
+                sc.data.windows(file.len()).any(|w| w == file.as_bytes()),
+                "{}: descriptor does not name {file}",
+                s.name()
+            );
+        }
+    }
+
+    #[test]
+    fn a_log_line_round_trips_through_protobuf() {
+        let m = fm::Log {
+            timestamp: Some(fm::Timestamp::new(12, 345)),
+            level: fm::log::Level::Warning as i32,
+            message: "node 10 up".into(),
+            name: "node/10".into(),
+            file: String::new(),
+            line: 0,
+        };
+        let bytes = FoxgloveValue::Log(m.clone()).encode().unwrap();
+        let back = <fm::Log as foxglove::Decode>::decode(&bytes[..]).unwrap();
+        assert_eq!(back, m);
+    }
 }

@@ -18,7 +18,7 @@ use std::io::{self, Read, Seek, SeekFrom};
 /// Largest uncompressed chunk a reader accepts. shoal's recorder closes a
 /// chunk after about 4 MiB ([`crate::WriterOptions::chunk_size`]); one record
 /// can exceed that by a whole message (at most 64 MiB,
-/// `proto::codec::MAX_PAYLOAD`) plus its Foxglove copy (base64, 4/3 larger),
+/// `proto::codec::MAX_PAYLOAD`) plus its Foxglove copy (in format-1 logs base64, 4/3 larger),
 /// so 256 MiB leaves room for any file shoal writes.
 pub const MAX_CHUNK_UNCOMPRESSED: u64 = 256 << 20;
 
@@ -278,83 +278,90 @@ impl<R: Read + Seek> Framer<R> {
     }
 }
 
-/// A chunk's records, checked whole before any is used: the declared size
-/// bounded by [`MAX_CHUNK_UNCOMPRESSED`] and by what is left of the file's
-/// decompression `budget` (checked before anything is allocated), the CRC
-/// checked before any record is parsed, every record length checked against
-/// the bytes present. Decompressed here rather than by
-/// `mcap::read::ChunkReader`, which allocates whatever sizes a damaged chunk
-/// declares (found by `record/tests/fuzz_mcap.rs`).
-pub fn decompress_chunk<'d>(
-    header: &mcap::records::ChunkHeader,
-    data: &'d [u8],
-    budget: &mut u64,
-) -> Result<std::borrow::Cow<'d, [u8]>, String> {
-    if header.uncompressed_size > MAX_CHUNK_UNCOMPRESSED {
-        return Err(format!(
-            "declares {} uncompressed bytes, over the {MAX_CHUNK_UNCOMPRESSED}-byte limit",
-            header.uncompressed_size
-        ));
-    }
-    if header.uncompressed_size > *budget {
-        return Err(format!(
-            "declares {} uncompressed bytes, more than the {} left of the file's decompression budget (a decompression bomb?)",
-            header.uncompressed_size, *budget
-        ));
-    }
-    let size = header.uncompressed_size as usize;
-    let plain = match header.compression.as_str() {
-        "" => std::borrow::Cow::Borrowed(data),
-        "zstd" => std::borrow::Cow::Owned(
-            zstd::bulk::decompress(data, size).map_err(|e| format!("zstd: {e}"))?,
-        ),
-        "lz4" => {
-            let mut out = Vec::with_capacity(size);
-            lz4_flex::frame::FrameDecoder::new(data)
-                .take(size as u64 + 1)
-                .read_to_end(&mut out)
-                .map_err(|e| format!("lz4: {e}"))?;
-            std::borrow::Cow::Owned(out)
-        }
-        other => return Err(format!("unsupported compression {other:?}")),
-    };
-    if plain.len() != size {
-        return Err(format!(
-            "{} bytes uncompressed, the header says {size}",
-            plain.len()
-        ));
-    }
-    *budget -= header.uncompressed_size;
-    if header.uncompressed_crc != 0 {
-        let calculated = crc32fast::hash(&plain);
-        if calculated != header.uncompressed_crc {
-            return Err(format!(
-                "CRC {calculated:08x}, the header says {:08x}",
-                header.uncompressed_crc
-            ));
-        }
-    }
-    Ok(plain)
+/// Reads chunks with the `mcap` crate's own streaming reader
+/// (`sans_io::LinearReader`: its decompressors, its CRC check of the whole
+/// chunk, its record-length limit on the compressed and the declared
+/// uncompressed size, checked before anything is allocated). One reader
+/// serves every chunk of a file in turn, so its buffers are reused; after a
+/// damaged chunk a fresh one starts. shoal adds the file's decompression
+/// `budget` (a bomb spread over many chunks) and the all-or-nothing rule: a
+/// chunk whose CRC fails or whose records do not parse is lost whole, never
+/// half of it.
+pub struct ChunkDecoder {
+    reader: Option<mcap::sans_io::LinearReader>,
+    /// Decompressed bytes the file may still yield ([`decompression_budget`]).
+    pub budget: u64,
 }
 
-/// Parse every record of a decompressed chunk (all or nothing).
-pub fn chunk_records(plain: &[u8]) -> Result<Vec<Record<'_>>, String> {
-    let mut records = Vec::new();
-    let mut rest = plain;
-    while !rest.is_empty() {
-        if rest.len() < HEAD as usize {
-            return Err(format!("{} stray bytes at the end", rest.len()));
+impl ChunkDecoder {
+    pub fn new(budget: u64) -> Self {
+        Self {
+            reader: None,
+            budget,
         }
-        let (opcode, len) = head_of(rest);
-        if len > (rest.len() - HEAD as usize) as u64 {
+    }
+
+    fn fresh_reader() -> mcap::sans_io::LinearReader {
+        let options = mcap::sans_io::LinearReaderOptions::default()
+            .with_skip_start_magic(true)
+            .with_skip_end_magic(true)
+            .with_validate_chunk_crcs(true)
+            .with_record_length_limit(MAX_CHUNK_UNCOMPRESSED as usize);
+        mcap::sans_io::LinearReader::new_with_options(options)
+    }
+
+    /// The records of one chunk; `body` is the chunk record's body as it
+    /// stands in the file, `header` its parsed header.
+    pub fn read(
+        &mut self,
+        header: &mcap::records::ChunkHeader,
+        body: &[u8],
+    ) -> Result<Vec<Record<'static>>, String> {
+        if header.uncompressed_size > self.budget {
             return Err(format!(
-                "record (opcode {opcode:#04x}) of {len} bytes, {} left",
-                rest.len() - HEAD as usize
+                "declares {} uncompressed bytes, more than the {} left of the file's decompression budget (a decompression bomb?)",
+                header.uncompressed_size, self.budget
             ));
         }
-        let (body, next) = rest[HEAD as usize..].split_at(len as usize);
-        records.push(mcap::parse_record(opcode, body).map_err(|e| e.to_string())?);
-        rest = next;
+        let reader = self.reader.get_or_insert_with(Self::fresh_reader);
+        let result = feed_chunk(reader, body);
+        if result.is_err() {
+            // Its state is mid-chunk: the next chunk starts on a fresh reader.
+            self.reader = None;
+        }
+        let records = result?;
+        self.budget -= header.uncompressed_size;
+        Ok(records)
     }
-    Ok(records)
+}
+
+/// Feed one chunk record to `reader` and collect its records, until the
+/// reader asks for the next file record.
+fn feed_chunk(
+    reader: &mut mcap::sans_io::LinearReader,
+    body: &[u8],
+) -> Result<Vec<Record<'static>>, String> {
+    let mut fed = false;
+    let mut records = Vec::new();
+    while let Some(event) = reader.next_event() {
+        match event.map_err(|e| e.to_string())? {
+            mcap::sans_io::LinearReadEvent::ReadRequest(_) if fed => return Ok(records),
+            mcap::sans_io::LinearReadEvent::ReadRequest(_) => {
+                // The chunk record as it stands in the file: opcode, length, body.
+                let n = HEAD as usize + body.len();
+                let buf = reader.insert(n);
+                buf[0] = op::CHUNK;
+                buf[1..HEAD as usize].copy_from_slice(&(body.len() as u64).to_le_bytes());
+                buf[HEAD as usize..].copy_from_slice(body);
+                reader.notify_read(n);
+                fed = true;
+            }
+            mcap::sans_io::LinearReadEvent::Record { data, opcode } => {
+                let r = mcap::parse_record(opcode, data)
+                    .map_err(|e| format!("record (opcode {opcode:#04x}): {e}"))?;
+                records.push(r.into_owned());
+            }
+        }
+    }
+    Err("the reader ended inside the chunk".into())
 }

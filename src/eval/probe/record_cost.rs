@@ -1,5 +1,5 @@
 //! `shoal eval probe record-cost`: what recording a camera frame costs,
-//! stage by stage (envelope decode, PNG, base64, Foxglove JSON, raw and
+//! stage by stage (envelope decode, PNG, Foxglove protobuf, raw and
 //! Foxglove writes with zstd), on the first 60 camera frames of a log. The
 //! log is rewritten into a scratch file in the system's temporary folder,
 //! removed afterwards.
@@ -58,7 +58,7 @@ pub fn run(a: &RecordCostArgs) -> Result<(), EvalError> {
         zstd_level: a.zstd_level,
         ..WriterOptions::default()
     };
-    let (mut t_png_only, mut t_b64) = (0.0, 0.0);
+    let mut t_png_only = 0.0;
     let (mut t_decode, mut t_png, mut t_raw_write, mut t_fox_write) = (0.0, 0.0, 0.0, 0.0);
     let write = |e: shoal_record::RecordError| EvalError::Setup(e.to_string());
     let mut w = LogWriter::create(&out, &opts, &Default::default(), None, 0).map_err(write)?;
@@ -84,9 +84,6 @@ pub fn run(a: &RecordCostArgs) -> Result<(), EvalError> {
         .map_err(|e| setup(key, e))?;
         t_png_only += t.elapsed().as_secs_f64();
         let t = Instant::now();
-        let _ = foxglove::base64(&png);
-        t_b64 += t.elapsed().as_secs_f64();
-        let t = Instant::now();
         let m = foxglove::camera_image(&fleet, &f).map_err(|e| setup(key, e))?;
         t_png += t.elapsed().as_secs_f64();
         let t = Instant::now();
@@ -102,8 +99,7 @@ pub fn run(a: &RecordCostArgs) -> Result<(), EvalError> {
         t_raw_write += t.elapsed().as_secs_f64();
         let t = Instant::now();
         if !a.raw_only {
-            w.write_foxglove(&m.topic, m.schema, &m.value, i as u64, i as u64)
-                .map_err(write)?;
+            w.write_foxglove(&m, i as u64, i as u64).map_err(write)?;
             w.flush().map_err(write)?;
         }
         t_fox_write += t.elapsed().as_secs_f64();
@@ -115,13 +111,9 @@ pub fn run(a: &RecordCostArgs) -> Result<(), EvalError> {
             source,
         })?
         .len() as f64;
+    crate::outln!("PNG alone {:.1} ms", t_png_only / n * 1e3);
     crate::outln!(
-        "PNG alone {:.1} ms, base64 alone {:.1} ms",
-        t_png_only / n * 1e3,
-        t_b64 / n * 1e3
-    );
-    crate::outln!(
-        "{} frames{}, zstd level {}: per frame decode {:.1} ms, PNG+base64+JSON {:.1} ms, raw write+zstd {:.1} ms, Foxglove write+zstd {:.1} ms; {:.2} MB per frame on disk (raw + PNG)",
+        "{} frames{}, zstd level {}: per frame decode {:.1} ms, PNG+protobuf {:.1} ms, raw write+zstd {:.1} ms, Foxglove write+zstd {:.1} ms; {:.2} MB per frame on disk (raw + PNG)",
         n,
         if a.raw_only { " (raw only)" } else { "" },
         if a.zstd_level == 0 { 3 } else { a.zstd_level },
