@@ -147,5 +147,46 @@ fn bench_fusion(c: &mut Criterion) {
     });
 }
 
-criterion_group!(benches, bench_fusion);
+/// The 6×6 SPD inverse every hypothesis needs, shoal's written-out one
+/// against nalgebra's `cholesky().inverse()`, timed on alternate batches in
+/// one run (the ratio is the figure; the machine's load hits both alike).
+fn bench_spd_inverse(c: &mut Criterion) {
+    let mut rng = shoal_proto::splitmix::SplitMix64::new(11);
+    let mats: Vec<Cov6> = (0..4096)
+        .map(|_| {
+            let b = Cov6::from_fn(|_, _| rng.unit() - 0.5);
+            b * b.transpose() * 1e-4 + Cov6::identity() * 1e-6
+        })
+        .collect();
+    let (mut ours, mut theirs) = (0.0, 0.0);
+    let mut sink = 0.0;
+    for _ in 0..20 {
+        let t0 = std::time::Instant::now();
+        for m in &mats {
+            sink += shoal_fusion::linalg::spd_inverse6(m).map_or(0.0, |i| i[(0, 0)]);
+        }
+        ours += t0.elapsed().as_secs_f64();
+        let t0 = std::time::Instant::now();
+        for m in &mats {
+            sink += m.cholesky().map_or(0.0, |ch| ch.inverse()[(0, 0)]);
+        }
+        theirs += t0.elapsed().as_secs_f64();
+    }
+    let per = |t: f64| t / (20.0 * mats.len() as f64) * 1e9;
+    eprintln!(
+        "6x6 SPD inverse, alternate batches: shoal {:.0} ns, nalgebra {:.0} ns, ratio {:.2} (checksum {sink:.3e})",
+        per(ours),
+        per(theirs),
+        ours / theirs
+    );
+    c.bench_function("spd_inverse6", |b| {
+        b.iter(|| {
+            mats.iter()
+                .map(|m| shoal_fusion::linalg::spd_inverse6(m).map_or(0.0, |i| i[(0, 0)]))
+                .sum::<f64>()
+        })
+    });
+}
+
+criterion_group!(benches, bench_fusion, bench_spd_inverse);
 criterion_main!(benches);

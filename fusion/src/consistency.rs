@@ -106,7 +106,7 @@ impl Candidate {
         covariance: Cov6,
     ) -> Option<Self> {
         let covariance = (covariance + covariance.transpose()) * 0.5;
-        let information = covariance.cholesky()?.inverse();
+        let information = crate::linalg::spd_inverse6(&covariance)?;
         Some(Self {
             observation,
             hypothesis,
@@ -203,7 +203,7 @@ pub(crate) fn trace6(c: &Cov6) -> f64 {
 pub fn fuse(items: &[(Pose, Cov6)]) -> Option<(Pose, Cov6)> {
     let (first, _) = items.first()?;
     let total: Cov6 = items.iter().map(|(_, info)| info).sum();
-    let cov = total.cholesky()?.inverse();
+    let cov = crate::linalg::spd_inverse6(&total)?;
     let mut mean = *first;
     for _ in 0..2 {
         let mut acc = nalgebra::Vector6::zeros();
@@ -223,7 +223,7 @@ pub fn fuse(items: &[(Pose, Cov6)]) -> Option<(Pose, Cov6)> {
 pub fn fuse_close(items: &[(Pose, Cov6)]) -> Option<(Pose, Cov6)> {
     let (first, _) = items.first()?;
     let total: Cov6 = items.iter().map(|(_, info)| info).sum();
-    let cov = total.cholesky()?.inverse();
+    let cov = crate::linalg::spd_inverse6(&total)?;
     let mut acc = nalgebra::Vector6::zeros();
     for (p, info) in &items[1..] {
         acc += info * difference(p, first);

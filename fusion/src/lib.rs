@@ -79,6 +79,7 @@ pub mod client;
 pub mod consistency;
 pub mod export;
 pub mod formation;
+pub mod linalg;
 pub mod link;
 pub mod nav;
 mod solve;

@@ -203,9 +203,14 @@ fn fit_velocity(
     }
     let ch = a.cholesky()?;
     let sol = ch.solve(&b);
-    let cov = ch.inverse();
+    // Only the velocity block of the inverse: six of its twelve columns.
+    let mut unit = SMatrix::<f64, 12, 6>::zeros();
+    for k in 0..6 {
+        unit[(6 + k, k)] = 1.0;
+    }
+    let columns = ch.solve(&unit);
     let v: SVector<f64, 6> = sol.fixed_rows::<6>(6).into_owned();
-    let cov_v: Cov6 = cov.fixed_view::<6, 6>(6, 6).into_owned();
+    let cov_v: Cov6 = columns.fixed_view::<6, 6>(6, 0).into_owned();
     Some((v, cov_v))
 }
 
