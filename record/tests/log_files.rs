@@ -253,9 +253,14 @@ fn a_damaged_fleet_attachment_costs_the_attachment_only() {
 #[test]
 fn outputs_never_destroy_an_existing_file_or_their_input() {
     let good = paper_log("outputs.mcap");
-    let existing = scratch("existing.mcap");
+    // A folder of its own: the other tests' outputs in the shared one have
+    // temporary files of their own while they run.
+    let dir =
+        Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("log_outputs-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let existing = dir.join("existing.mcap");
     std::fs::write(&existing, b"an earlier result").unwrap();
-    let garbage = scratch("garbage.bin");
+    let garbage = dir.join("garbage.bin");
     std::fs::write(&garbage, b"this is not an MCAP file at all").unwrap();
     // An unreadable input leaves the existing output as it was, and no temporary file.
     assert!(recover(&garbage, &existing).is_err());

@@ -280,13 +280,14 @@ impl<R: Read + Seek> Framer<R> {
 
 /// Reads chunks with the `mcap` crate's own streaming reader
 /// (`sans_io::LinearReader`: its decompressors, its CRC check of the whole
-/// chunk, its record-length limit on the compressed and the declared
-/// uncompressed size, checked before anything is allocated). One reader
-/// serves every chunk of a file in turn, so its buffers are reused; after a
-/// damaged chunk a fresh one starts. shoal adds the file's decompression
-/// `budget` (a bomb spread over many chunks) and the all-or-nothing rule: a
-/// chunk whose CRC fails or whose records do not parse is lost whole, never
-/// half of it.
+/// chunk, its record-length limit on every record inside and on the
+/// compressed bytes it buffers). One reader serves every chunk of a file in
+/// turn, so its buffers are reused; after a damaged chunk a fresh one
+/// starts. shoal adds, checked on the chunk's header before anything is
+/// decompressed, the declared size against [`MAX_CHUNK_UNCOMPRESSED`] and
+/// against the file's decompression `budget` (a bomb spread over many
+/// chunks), and the all-or-nothing rule: a chunk whose CRC fails or whose
+/// records do not parse is lost whole, never half of it.
 pub struct ChunkDecoder {
     reader: Option<mcap::sans_io::LinearReader>,
     /// Decompressed bytes the file may still yield ([`decompression_budget`]).
@@ -317,6 +318,12 @@ impl ChunkDecoder {
         header: &mcap::records::ChunkHeader,
         body: &[u8],
     ) -> Result<Vec<Record<'static>>, String> {
+        if header.uncompressed_size > MAX_CHUNK_UNCOMPRESSED {
+            return Err(format!(
+                "declares {} uncompressed bytes, over the {MAX_CHUNK_UNCOMPRESSED}-byte limit",
+                header.uncompressed_size
+            ));
+        }
         if header.uncompressed_size > self.budget {
             return Err(format!(
                 "declares {} uncompressed bytes, more than the {} left of the file's decompression budget (a decompression bomb?)",
