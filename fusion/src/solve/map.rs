@@ -23,6 +23,17 @@ pub(crate) struct Verdicts {
     pub accepted: usize,
 }
 
+/// `[hypothesis 0, hypothesis 1]` flags of `n` observations, set for `keys`.
+fn hypothesis_flags(n: usize, keys: impl Iterator<Item = (usize, u8)>) -> Vec<[bool; 2]> {
+    let mut v = vec![[false; 2]; n];
+    for (i, h) in keys {
+        if let Some(f) = v.get_mut(i).and_then(|f| f.get_mut(usize::from(h))) {
+            *f = true;
+        }
+    }
+    v
+}
+
 /// Each hypothesis' verdict: failed a nav check → `Gravity` / `Depth` /
 /// `Heading` (`nav`); gated → `ChiSquare`; accepted → `None`; of a
 /// superseded group → `Superseded`; the other hypothesis of an accepted one →
@@ -43,17 +54,8 @@ pub(crate) fn verdicts(
     // Per observation and hypothesis, looked up by index (the sets are
     // keyed by it; tree lookups for every hypothesis were a twentieth of a
     // 100-vehicle solve).
-    let flags = |keys: &mut dyn Iterator<Item = (usize, u8)>| {
-        let mut v = vec![[false; 2]; entries.len()];
-        for (i, h) in keys {
-            if let Some(f) = v.get_mut(i).and_then(|f| f.get_mut(usize::from(h))) {
-                *f = true;
-            }
-        }
-        v
-    };
-    let is_gated = flags(&mut gate.gated.iter().copied());
-    let is_accepted = flags(&mut accepted.keys().copied());
+    let is_gated = hypothesis_flags(entries.len(), gate.gated.iter().copied());
+    let is_accepted = hypothesis_flags(entries.len(), accepted.keys().copied());
     for (i, (_, s)) in entries.iter().enumerate() {
         let o = &s.obs;
         let n_hyp: u8 = if o.alternative.is_some() { 2 } else { 1 };
