@@ -36,7 +36,7 @@ fn camera() -> CameraModel {
         fy: 600.0,
         cx: 319.5,
         cy: 239.5,
-        distortion: [0.0; 5],
+        distortion: shoal_proto::Distortion::NONE,
     }
 }
 

@@ -64,7 +64,7 @@ fn small_frame(vehicle: VehicleId, camera: u8, seq: u64, stamp_ns: u64) -> Camer
                 fy: 50.0,
                 cx: 32.0,
                 cy: 24.0,
-                distortion: [0.0; 5],
+                distortion: shoal_proto::Distortion::NONE,
             },
             body_from_camera: shoal_proto::Pose::identity(),
         },

@@ -124,16 +124,6 @@ pub fn estimate_pose(
     })
 }
 
-fn camera_mats(cam: &CameraModel) -> Result<(Mat, Mat), PoseError> {
-    let k = Mat::from_slice_2d(&[
-        [cam.fx, 0.0, cam.cx],
-        [0.0, cam.fy, cam.cy],
-        [0.0, 0.0, 1.0],
-    ])?;
-    let d = Mat::from_slice(&cam.distortion)?.try_clone()?;
-    Ok((k, d))
-}
-
 /// IPPE's two planar solutions (or EPnP's one for non-planar points).
 fn initial_poses(
     cam: &CameraModel,
@@ -144,8 +134,21 @@ fn initial_poses(
     use opencv::core::{Point2d, Point3d};
     let planar = obj.iter().all(|p| p.z.abs() < 1e-12);
     let o: Vector<Point3d> = obj.iter().map(|p| Point3d::new(p.x, p.y, p.z)).collect();
-    let i: Vector<Point2d> = img.iter().map(|p| Point2d::new(p[0], p[1])).collect();
-    let (k, d) = camera_mats(cam)?;
+    // OpenCV starts from the ideal pinhole image (the lens taken out by shoal's
+    // model, whichever it is); the refinement below uses the full model.
+    let i: Vector<Point2d> = img
+        .iter()
+        .map(|p| {
+            let (x, y) = cam.ray(p[0], p[1]);
+            Point2d::new(cam.fx * x + cam.cx, cam.fy * y + cam.cy)
+        })
+        .collect();
+    let k = Mat::from_slice_2d(&[
+        [cam.fx, 0.0, cam.cx],
+        [0.0, cam.fy, cam.cy],
+        [0.0, 0.0, 1.0],
+    ])?;
+    let d = Mat::default();
     let mut rvecs: Vector<Mat> = Vector::new();
     let mut tvecs: Vector<Mat> = Vector::new();
     let method = if planar {

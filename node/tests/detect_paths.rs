@@ -373,7 +373,7 @@ fn the_calibration_must_fit_the_frame() {
 
     // Absurd distortion and a negative marker side end the run before any file.
     let mut folded = cam;
-    folded.distortion = [-2.0, 0.0, 0.0, 0.0, 0.0];
+    folded.distortion = shoal_proto::Distortion::PlumbBob([-2.0, 0.0, 0.0, 0.0, 0.0]);
     let e = detect_paths(
         &[&full],
         CodeSet::Shoal,

@@ -2,7 +2,9 @@
 //! Levenberg–Marquardt in shoal's perturbation convention) with OpenCV's
 //! `cv::solvePnPRefineLM`, the reference implementation of the same
 //! least-squares problem (reprojection error through the 5-coefficient
-//! radial–tangential model).
+//! radial–tangential model and the 8-coefficient rational one). The lens
+//! models themselves are checked against OpenCV's projection, plumb-bob and
+//! rational by `cv::projectPoints`, equidistant by `cv::fisheye::projectPoints`.
 //!
 //! Both start from the same IPPE solutions (`cv::solvePnPGeneric` with
 //! `SOLVEPNP_IPPE`, exactly the starts `estimate_pose` refines) on noisy
@@ -16,7 +18,7 @@ use opencv::prelude::*;
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 use shoal_node::pose::estimate_pose;
-use shoal_proto::camera::CameraModel;
+use shoal_proto::camera::{CameraModel, Distortion};
 use shoal_proto::geometry::{difference, pose_from_xyz_rpy, Pose};
 use shoal_proto::marker::CodeSet;
 
@@ -39,8 +41,29 @@ const RMS_TOLERANCE_PX: f64 = 1e-6;
 /// coefficient of the distortion model takes part in the comparison.
 fn camera() -> CameraModel {
     CameraModel {
-        distortion: [-0.05, 0.01, 0.001, -0.0008, 0.002],
+        distortion: Distortion::PlumbBob([-0.05, 0.01, 0.001, -0.0008, 0.002]),
         ..CameraModel::vehicle_1440()
+    }
+}
+
+/// A rational lens (every one of its 8 coefficients non-zero).
+fn rational_camera() -> CameraModel {
+    CameraModel {
+        distortion: Distortion::Rational([0.9, -0.2, 0.001, -0.0008, 0.01, 1.0, 0.05, 0.002]),
+        ..CameraModel::vehicle_1440()
+    }
+}
+
+/// A fisheye lens (OpenCV's `cv::fisheye` model, ~76° off axis in the corners).
+fn fisheye_camera() -> CameraModel {
+    CameraModel {
+        width: 1280,
+        height: 960,
+        fx: 600.0,
+        fy: 600.0,
+        cx: 639.5,
+        cy: 479.5,
+        distortion: Distortion::Equidistant([-0.012, 0.006, -0.004, 0.0008]),
     }
 }
 
@@ -51,7 +74,7 @@ fn camera_mats(cam: &CameraModel) -> (Mat, Mat) {
         [0.0, 0.0, 1.0],
     ])
     .unwrap();
-    let d = Mat::from_slice(&cam.distortion)
+    let d = Mat::from_slice(cam.distortion.coefficients())
         .unwrap()
         .try_clone()
         .unwrap();
@@ -124,7 +147,15 @@ fn opencv_refined(cam: &CameraModel, obj: &[Point3<f64>], img: &[[f64; 2]]) -> (
 
 #[test]
 fn lm_refinement_matches_opencv_solve_pnp_refine_lm() {
-    let cam = camera();
+    lm_refinement_matches_opencv_with(camera());
+}
+
+#[test]
+fn lm_refinement_matches_opencv_through_the_rational_model() {
+    lm_refinement_matches_opencv_with(rational_camera());
+}
+
+fn lm_refinement_matches_opencv_with(cam: CameraModel) {
     let obj = CodeSet::Shoal.corners_3d(0.1);
     let noise = Normal::new(0.0, CORNER_SIGMA_PX).unwrap();
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(17);
@@ -165,8 +196,9 @@ fn lm_refinement_matches_opencv_solve_pnp_refine_lm() {
         }
     }
     eprintln!(
-        "shoal LM vs cv::solvePnPRefineLM over 20 frames: worst {worst_t:.2e} m / {worst_r:.2e} rad; \
-         the refinement moved IPPE's start by at least {least_moved:.2e} m"
+        "{}: shoal LM vs cv::solvePnPRefineLM over 20 frames: worst {worst_t:.2e} m / {worst_r:.2e} rad; \
+         the refinement moved IPPE's start by at least {least_moved:.2e} m",
+        cam.distortion.ros_name()
     );
     // The comparison means something only if the start was off the optimum
     // by more than the tolerance: otherwise an unrefined pose would pass.
@@ -174,4 +206,94 @@ fn lm_refinement_matches_opencv_solve_pnp_refine_lm() {
         least_moved > 10.0 * POSITION_TOLERANCE_M,
         "IPPE's start is already within {least_moved:.2e} m of the optimum"
     );
+}
+
+/// shoal's projection and its inverse against OpenCV's for each lens model:
+/// points over the whole image (to 8 px from its edges), 0.3 to 3 m away.
+#[test]
+fn every_lens_model_projects_and_unprojects_as_opencv() {
+    for cam in [camera(), rational_camera(), fisheye_camera()] {
+        let (k, d) = camera_mats(&cam);
+        let mut points = Vec::new();
+        for i in 0..15 {
+            for j in 0..11 {
+                let u = 8.0 + (f64::from(cam.width) - 16.0) * f64::from(i) / 14.0;
+                let v = 8.0 + (f64::from(cam.height) - 16.0) * f64::from(j) / 10.0;
+                let (x, y) = cam.ray(u, v);
+                let z = 0.3 + 0.2 * f64::from((i * 11 + j) % 14);
+                points.push(([u, v], Point3::new(x * z, y * z, z)));
+            }
+        }
+        let o: Vector<Point3d> = points
+            .iter()
+            .map(|(_, p)| Point3d::new(p.x, p.y, p.z))
+            .collect();
+        let zero = Mat::from_slice(&[0.0f64; 3]).unwrap().try_clone().unwrap();
+        let mut projected: Vector<Point2d> = Vector::new();
+        let mut normalized: Vector<Point2d> = Vector::new();
+        let pixels: Vector<Point2d> = points
+            .iter()
+            .map(|(u, _)| Point2d::new(u[0], u[1]))
+            .collect();
+        // OpenCV's undistortion iterates 5 (radial–tangential) or 10
+        // (fisheye) times by default; asked here to converge.
+        let converge = TermCriteria::new(
+            TermCriteria_Type::COUNT as i32 + TermCriteria_Type::EPS as i32,
+            1000,
+            1e-15,
+        )
+        .unwrap();
+        let none = Mat::default();
+        if matches!(cam.distortion, Distortion::Equidistant(_)) {
+            calib3d::fisheye_project_points_vec_def(&o, &mut projected, &zero, &zero, &k, &d)
+                .unwrap();
+            calib3d::fisheye_undistort_points(
+                &pixels,
+                &mut normalized,
+                &k,
+                &d,
+                &none,
+                &none,
+                converge,
+            )
+            .unwrap();
+        } else {
+            calib3d::project_points_def(&o, &zero, &zero, &k, &d, &mut projected).unwrap();
+            calib3d::undistort_points_iter(
+                &pixels,
+                &mut normalized,
+                &k,
+                &d,
+                &none,
+                &none,
+                converge,
+            )
+            .unwrap();
+        }
+        let (mut worst_px, mut worst_ray) = (0.0f64, 0.0f64);
+        for (n, (u, p)) in points.iter().enumerate() {
+            let ours = cam.project(p).unwrap();
+            let theirs = projected.get(n).unwrap();
+            worst_px = worst_px.max((ours.x - theirs.x).hypot(ours.y - theirs.y));
+            // The pixel came from shoal's ray: shoal's projection returns to it.
+            assert!((ours.x - u[0]).hypot(ours.y - u[1]) < 1e-7);
+            let (x, y) = cam.ray(u[0], u[1]);
+            let r = normalized.get(n).unwrap();
+            worst_ray = worst_ray.max((x - r.x).hypot(y - r.y));
+        }
+        eprintln!(
+            "{}: projection vs OpenCV worst {worst_px:.2e} px, unprojection worst {worst_ray:.2e}",
+            cam.distortion.ros_name()
+        );
+        assert!(
+            worst_px < 1e-6,
+            "{}: projection {worst_px:.2e} px off OpenCV's",
+            cam.distortion.ros_name()
+        );
+        assert!(
+            worst_ray < 1e-9,
+            "{}: unprojection {worst_ray:.2e} off OpenCV's",
+            cam.distortion.ros_name()
+        );
+    }
 }

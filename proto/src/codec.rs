@@ -16,8 +16,9 @@ use crate::messages::{MessageKind, WireMessage};
 use bincode::config::{Configuration, Fixint, Limit, LittleEndian};
 
 pub const MAGIC: [u8; 4] = *b"SHOL";
-/// Bumped on any incompatible change of a message layout.
-pub const SCHEMA_VERSION: u16 = 4;
+/// Bumped on any incompatible change of a message layout; each kind is read
+/// from the version its layout last changed at ([`MessageKind::layout_since`]).
+pub const SCHEMA_VERSION: u16 = 5;
 pub const HEADER_LEN: usize = 12;
 /// Largest payload accepted: a 4096x4096 RGB frame plus slack.
 pub const MAX_PAYLOAD: usize = 64 << 20;
@@ -38,8 +39,12 @@ pub enum DecodeError {
     Truncated { len: usize },
     #[error("bad magic {found:02x?}: not a shoal message")]
     BadMagic { found: [u8; 4] },
-    #[error("schema version {found} from peer, this build speaks {SCHEMA_VERSION}: upgrade the older side")]
-    VersionMismatch { found: u16 },
+    #[error("schema version {found} from peer, this build reads {kind:?} of versions {oldest}..={SCHEMA_VERSION}: upgrade the older side")]
+    VersionMismatch {
+        found: u16,
+        kind: MessageKind,
+        oldest: u16,
+    },
     #[error("unknown message kind {found}")]
     UnknownKind { found: u16 },
     #[error("expected a {expected:?} message, got {found:?}")]
@@ -112,12 +117,17 @@ pub fn peek_header(bytes: &[u8]) -> Result<Header, DecodeError> {
         return Err(DecodeError::BadMagic { found: magic });
     }
     let version = u16::from_le_bytes([bytes[4], bytes[5]]);
-    if version != SCHEMA_VERSION {
-        return Err(DecodeError::VersionMismatch { found: version });
-    }
     let raw_kind = u16::from_le_bytes([bytes[6], bytes[7]]);
     let kind =
         MessageKind::from_u16(raw_kind).ok_or(DecodeError::UnknownKind { found: raw_kind })?;
+    let oldest = kind.layout_since();
+    if !(oldest..=SCHEMA_VERSION).contains(&version) {
+        return Err(DecodeError::VersionMismatch {
+            found: version,
+            kind,
+            oldest,
+        });
+    }
     let declared = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize;
     if declared > MAX_PAYLOAD {
         return Err(DecodeError::Oversized { len: declared });
@@ -204,8 +214,27 @@ mod tests {
         wrong_version[4] = 9;
         assert_eq!(
             decode::<Observation>(&wrong_version),
-            Err(DecodeError::VersionMismatch { found: 9 })
+            Err(DecodeError::VersionMismatch {
+                found: 9,
+                kind: MessageKind::Observation,
+                oldest: 4
+            })
         );
+        // Version 4 Observations (logs written before the lens models) still
+        // read; a version 4 CameraFrame, whose layout changed at 5, does not.
+        let mut v4 = bytes.clone();
+        v4[4] = 4;
+        assert_eq!(decode::<Observation>(&v4), decode::<Observation>(&bytes));
+        let mut frame = encode(&samples::camera_frame()).unwrap();
+        frame[4] = 4;
+        assert!(matches!(
+            decode::<CameraFrame>(&frame),
+            Err(DecodeError::VersionMismatch {
+                found: 4,
+                oldest: 5,
+                ..
+            })
+        ));
         assert!(matches!(
             decode::<FleetMap>(&bytes),
             Err(DecodeError::WrongKind { .. })

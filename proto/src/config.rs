@@ -6,7 +6,7 @@
 //! fields and reports the file, the field and the reason. See
 //! `configs/fleets/paper.toml` for a complete, commented example.
 
-use crate::camera::CameraModel;
+use crate::camera::{CameraModel, Distortion, DISTORTION_MODELS};
 use crate::geometry::{pose_from_xyz_rpy, Pose};
 use crate::keys::Keys;
 use crate::marker::{CodeSet, MarkerId};
@@ -53,7 +53,7 @@ impl MountSpec {
 
 /// Intrinsics written inline.
 #[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(try_from = "RawIntrinsics")]
 pub struct IntrinsicsSpec {
     pub width: u32,
     pub height: u32,
@@ -61,9 +61,42 @@ pub struct IntrinsicsSpec {
     pub fy: f64,
     pub cx: f64,
     pub cy: f64,
-    /// `k1 k2 p1 p2 [k3]`; further coefficients only when zero (as in a calibration file).
-    #[serde(default, deserialize_with = "plumb_bob_coefficients")]
-    pub distortion: [f64; 5],
+    /// `distortion_model` (ROS names, default `plumb_bob`) with `distortion`:
+    /// `k1 k2 p1 p2 [k3]`, `k1 … k6` (rational) or `k1 k2 k3 k4` (equidistant);
+    /// further coefficients only when zero (as in a calibration file).
+    pub distortion: Distortion,
+}
+
+/// [`IntrinsicsSpec`] as written, before its lens model is checked.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawIntrinsics {
+    width: u32,
+    height: u32,
+    fx: f64,
+    fy: f64,
+    cx: f64,
+    cy: f64,
+    #[serde(default)]
+    distortion_model: Option<String>,
+    #[serde(default)]
+    distortion: Vec<f64>,
+}
+
+impl TryFrom<RawIntrinsics> for IntrinsicsSpec {
+    type Error = String;
+    fn try_from(r: RawIntrinsics) -> Result<Self, String> {
+        let model = r.distortion_model.as_deref().or(Some("plumb_bob"));
+        Ok(IntrinsicsSpec {
+            width: r.width,
+            height: r.height,
+            fx: r.fx,
+            fy: r.fy,
+            cx: r.cx,
+            cy: r.cy,
+            distortion: Distortion::from_ros(model, &r.distortion)?,
+        })
+    }
 }
 
 /// A fixed-length array written as a TOML array of exactly `N` numbers (a
@@ -77,38 +110,6 @@ where
     v.try_into().map_err(|_| {
         serde::de::Error::invalid_length(n, &format!("an array of exactly {N} numbers").as_str())
     })
-}
-
-fn plumb_bob_coefficients<'de, D>(d: D) -> Result<[f64; 5], D::Error>
-where
-    D: serde::Deserializer<'de>,
-{
-    let v: Vec<f64> = Vec::deserialize(d)?;
-    plumb_bob(&v).map_err(serde::de::Error::custom)
-}
-
-/// The 5 plumb-bob coefficients `k1 k2 p1 p2 k3` from a list of 4 or more
-/// (OpenCV writes 4, 5, 8, 12 or 14): the rational and thin-prism terms
-/// beyond the fifth are accepted only when zero, never dropped.
-pub fn plumb_bob(d: &[f64]) -> Result<[f64; 5], String> {
-    if d.len() < 4 && !d.is_empty() {
-        return Err(format!(
-            "{} distortion coefficients; the plumb-bob model has k1 k2 p1 p2 [k3]",
-            d.len()
-        ));
-    }
-    if let Some((i, v)) = d.iter().enumerate().skip(5).find(|(_, v)| **v != 0.0) {
-        return Err(format!(
-            "distortion coefficient {} is {v} (of {}); only the 5-parameter plumb-bob model (k1 k2 p1 p2 k3) is supported",
-            i + 1,
-            d.len()
-        ));
-    }
-    let mut out = [0.0; 5];
-    for (o, v) in out.iter_mut().zip(d) {
-        *o = *v;
-    }
-    Ok(out)
 }
 
 impl From<IntrinsicsSpec> for CameraModel {
@@ -559,7 +560,7 @@ pub enum CalibrationError {
     },
     #[error("`camera_matrix` is not an upper-triangular pinhole matrix ({what}); skew and a non-unit K[8] are not supported")]
     NotPinhole { what: String },
-    #[error("`distortion_model: {model}` is not supported (supported: plumb_bob; a calibration in another model must not be read as plumb-bob)")]
+    #[error("`distortion_model: {model}` is not supported (supported: plumb_bob, rational_polynomial, equidistant; a calibration in another model must not be read as one of those)")]
     UnsupportedModel { model: String },
     #[error("`distortion_coefficients`: {0}")]
     Coefficients(String),
@@ -625,7 +626,7 @@ pub fn parse_calibration_yaml(text: &str) -> Result<CameraModel, CalibrationErro
     };
     if let Some(model) = scalars.get("distortion_model") {
         let model = model.trim_matches(|c| c == '"' || c == '\'');
-        if model != "plumb_bob" {
+        if !DISTORTION_MODELS.contains(&model) {
             return Err(CalibrationError::UnsupportedModel {
                 model: model.to_string(),
             });
@@ -655,7 +656,11 @@ pub fn parse_calibration_yaml(text: &str) -> Result<CameraModel, CalibrationErro
         .get("distortion_coefficients")
         .cloned()
         .unwrap_or_default();
-    let dist = plumb_bob(&d).map_err(CalibrationError::Coefficients)?;
+    let named = scalars
+        .get("distortion_model")
+        .map(|m| m.trim_matches(|c| c == '"' || c == '\'').to_string());
+    let dist =
+        Distortion::from_ros(named.as_deref(), &d).map_err(CalibrationError::Coefficients)?;
     let model = CameraModel {
         width: get_u32("image_width")?,
         height: get_u32("image_height")?,
@@ -840,7 +845,7 @@ markers = [ { codes = "shoal", id = 7, side_m = 0.1, body_from_marker = { xyz_m 
         let opencv = "%YAML:1.0\n---\nimage_width: 1440\nimage_height: 1080\ncamera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ 1250., 0., 719.5, 0.,\n       1251., 539.5, 0., 0., 1. ]\ndistortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n   data: [ -0.1, 0.02, 0., 0., 0. ]\n";
         let m = parse_calibration_yaml(opencv).unwrap();
         assert_eq!((m.width, m.fx, m.fy, m.cy), (1440, 1250.0, 1251.0, 539.5));
-        assert_eq!(m.distortion[0], -0.1);
+        assert_eq!(m.distortion.coefficients()[0], -0.1);
         let ros = "image_width: 640\nimage_height: 480\ncamera_name: cam\ncamera_matrix:\n  rows: 3\n  cols: 3\n  data: [500, 0, 320, 0, 500, 240, 0, 0, 1]\ndistortion_model: plumb_bob\ndistortion_coefficients:\n  rows: 1\n  cols: 5\n  data: [0.1, 0, 0, 0, 0]\n";
         let m = parse_calibration_yaml(ros).unwrap();
         assert_eq!((m.width, m.cx), (640, 320.0));
@@ -850,10 +855,33 @@ markers = [ { codes = "shoal", id = 7, side_m = 0.1, body_from_marker = { xyz_m 
                 key: "camera_matrix"
             })
         );
+        // A fisheye calibration is read as one (5 coefficients, the fifth 0).
         let fisheye = ros.replace("plumb_bob", "equidistant");
+        let f = parse_calibration_yaml(&fisheye).unwrap();
+        assert_eq!(f.distortion, Distortion::Equidistant([0.1, 0.0, 0.0, 0.0]));
+        let rational = ros.replace("plumb_bob", "rational_polynomial").replace(
+            "cols: 5\n  data: [0.1, 0, 0, 0, 0]",
+            "cols: 8\n  data: [0.1, 0, 0, 0, 0, 0.2, 0, 0]",
+        );
+        let r = parse_calibration_yaml(&rational).unwrap();
+        assert_eq!(
+            r.distortion,
+            Distortion::Rational([0.1, 0.0, 0.0, 0.0, 0.0, 0.2, 0.0, 0.0])
+        );
+        // A model shoal does not know is refused, never read as another.
+        let unknown = ros.replace("plumb_bob", "kannala_brandt");
         assert!(matches!(
-            parse_calibration_yaml(&fisheye),
-            Err(CalibrationError::UnsupportedModel { model }) if model == "equidistant"
+            parse_calibration_yaml(&unknown),
+            Err(CalibrationError::UnsupportedModel { model }) if model == "kannala_brandt"
+        ));
+        // A plumb-bob file with rational terms is refused, not truncated.
+        let extra = ros.replace(
+            "cols: 5\n  data: [0.1, 0, 0, 0, 0]",
+            "cols: 8\n  data: [0.1, 0, 0, 0, 0, 0.2, 0, 0]",
+        );
+        assert!(matches!(
+            parse_calibration_yaml(&extra),
+            Err(CalibrationError::Coefficients(e)) if e.contains("coefficient 6")
         ));
         let skewed = ros.replace("500, 0, 320", "500, 0.5, 320");
         assert!(matches!(

@@ -43,6 +43,19 @@ impl MessageKind {
         Self::ALL.iter().copied().find(|k| *k as u16 == v)
     }
 
+    /// The oldest schema version whose layout of this kind this build reads:
+    /// the version at which the kind last changed, or the oldest version still
+    /// read (4). A message of this kind stamped with any version from there
+    /// to [`crate::codec::SCHEMA_VERSION`] decodes; logs written before an
+    /// unrelated change stay readable.
+    pub fn layout_since(self) -> u16 {
+        match self {
+            // 5: `CameraModel::distortion` became a lens model (plumb-bob, rational, equidistant).
+            MessageKind::CameraFrame => 5,
+            _ => 4,
+        }
+    }
+
     /// Schema name, as written in MCAP channel metadata.
     pub fn schema_name(self) -> &'static str {
         match self {

@@ -167,12 +167,13 @@ proptest! {
         let accepted = decode_as_every_kind(&b);
         match peek_header(&b) {
             Ok(h) => {
-                prop_assert_eq!(h.version, SCHEMA_VERSION);
+                prop_assert!((h.kind.layout_since()..=SCHEMA_VERSION).contains(&h.version));
                 prop_assert_eq!(h.payload_len, payload.len());
                 prop_assert!(accepted <= 1);
             }
-            Err(DecodeError::VersionMismatch { found }) => {
-                prop_assert_ne!(found, SCHEMA_VERSION);
+            Err(DecodeError::VersionMismatch { found, kind: k, oldest }) => {
+                prop_assert!(!(oldest..=SCHEMA_VERSION).contains(&found));
+                prop_assert_eq!(k as u16, kind);
                 prop_assert_eq!(accepted, 0);
             }
             Err(DecodeError::UnknownKind { found }) => {

@@ -43,7 +43,7 @@ pub fn run(cmd: ConfigCmd) -> anyhow::Result<()> {
                 let m = parse_calibration_yaml(&text)
                     .map_err(|e| anyhow::anyhow!("{}: {e}", file.display()))?;
                 shoal::outln!(
-                    "camera {}: {}x{}, fx {:.2} fy {:.2}, principal point ({:.2}, {:.2}), distortion {:?}",
+                    "camera {}: {}x{}, fx {:.2} fy {:.2}, principal point ({:.2}, {:.2}), distortion {} {:?}",
                     file.display(),
                     m.width,
                     m.height,
@@ -51,7 +51,8 @@ pub fn run(cmd: ConfigCmd) -> anyhow::Result<()> {
                     m.fy,
                     m.cx,
                     m.cy,
-                    m.distortion
+                    m.distortion.ros_name(),
+                    m.distortion.coefficients()
                 );
             } else {
                 let fleet = Fleet::load(&file)?;

@@ -22,9 +22,9 @@ pub struct FrameView<'a> {
 }
 
 impl<'a> FrameView<'a> {
-    /// Byte offsets in the payload (after the 12-byte envelope header).
-    const FORMAT_AT: usize = 4 + 1 + 8 + 8 + (2 * 4 + 4 * 8 + 5 * 8) + 7 * 8;
-    const DATA_AT: usize = Self::FORMAT_AT + 4 + 8;
+    /// Byte offset in the payload (after the 12-byte envelope header) of the
+    /// camera model's lens: its variant (u32), then its coefficients.
+    const LENS_AT: usize = 4 + 1 + 8 + 8 + 2 * 4 + 4 * 8;
 
     /// `None` unless `envelope` is a well-formed `CameraFrame` whose pixel count agrees with its size.
     pub fn parse(envelope: &'a [u8]) -> Option<FrameView<'a>> {
@@ -41,17 +41,26 @@ impl<'a> FrameView<'a> {
             p.get(o..o + 8)
                 .map(|b| u64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]))
         };
-        let format = match u32_at(Self::FORMAT_AT)? {
+        // `Distortion`: plumb-bob 5, rational 8, equidistant 4 coefficients.
+        let coefficients = match u32_at(Self::LENS_AT)? {
+            0 => 5,
+            1 => 8,
+            2 => 4,
+            _ => return None,
+        };
+        let format_at = Self::LENS_AT + 4 + coefficients * 8 + 7 * 8;
+        let data_at = format_at + 4 + 8;
+        let format = match u32_at(format_at)? {
             0 => PixelFormat::Mono8,
             1 => PixelFormat::Rgb8,
             _ => return None,
         };
         let (width, height) = (u32_at(21)?, u32_at(25)?);
-        let len = usize::try_from(u64_at(Self::FORMAT_AT + 4)?).ok()?;
+        let len = usize::try_from(u64_at(format_at + 4)?).ok()?;
         let want = (width as usize)
             .checked_mul(height as usize)?
             .checked_mul(format.channels())?;
-        if len != want || p.len() != Self::DATA_AT + len {
+        if len != want || p.len() != data_at + len {
             return None;
         }
         Some(FrameView {
@@ -62,7 +71,7 @@ impl<'a> FrameView<'a> {
             width,
             height,
             format,
-            data: &p[Self::DATA_AT..],
+            data: &p[data_at..],
         })
     }
 }
@@ -102,6 +111,17 @@ mod tests {
 
     #[test]
     fn frame_view_reads_what_the_codec_wrote() {
+        use proto::Distortion;
+        for lens in [
+            Distortion::PlumbBob([0.1; 5]),
+            Distortion::Rational([0.1; 8]),
+            Distortion::Equidistant([0.1; 4]),
+        ] {
+            frame_view_reads_a_frame_with(lens);
+        }
+    }
+
+    fn frame_view_reads_a_frame_with(lens: proto::Distortion) {
         let f = proto::CameraFrame {
             vehicle: 15,
             camera: 3,
@@ -115,7 +135,7 @@ mod tests {
                     fy: 5.0,
                     cx: 2.0,
                     cy: 1.0,
-                    distortion: [0.1; 5],
+                    distortion: lens,
                 },
                 body_from_camera: Pose::identity(),
             },

@@ -17,22 +17,6 @@ pub fn ambient_shading(normal: &Vector3<f64>, up: &Vector3<f64>) -> f64 {
     0.75 + 0.25 * normal.dot(up)
 }
 
-/// Distortion and its 2x2 Jacobian at normalized undistorted `(x, y)`.
-#[inline]
-fn distort_with_jacobian(d: &[f64; 5], x: f64, y: f64) -> (f64, f64, [f64; 4]) {
-    let [k1, k2, p1, p2, k3] = *d;
-    let r2 = x * x + y * y;
-    let rad = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
-    let drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2);
-    let xd = x * rad + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
-    let yd = y * rad + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
-    let j00 = rad + 2.0 * x * x * drad + 2.0 * p1 * y + 6.0 * p2 * x;
-    let j01 = 2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y;
-    let j10 = 2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y;
-    let j11 = rad + 2.0 * y * y * drad + 6.0 * p1 * y + 2.0 * p2 * x;
-    (xd, yd, [j00, j01, j10, j11])
-}
-
 /// The viewing ray `(x, y, 1)` through pixel `(u, v)` by Newton's method from
 /// `guess` (a nearby pixel's ray): exact to ~1e-13 in normalized units.
 #[inline]
@@ -41,7 +25,7 @@ pub fn ray_from(cam: &CameraModel, u: f64, v: f64, guess: (f64, f64)) -> (f64, f
     let ty = (v - cam.cy) / cam.fy;
     let (mut x, mut y) = guess;
     for _ in 0..8 {
-        let (xd, yd, j) = distort_with_jacobian(&cam.distortion, x, y);
+        let (xd, yd, j) = cam.distortion.apply(x, y);
         let (ex, ey) = (tx - xd, ty - yd);
         if ex.abs() + ey.abs() < 1e-13 {
             break;
