@@ -43,6 +43,11 @@ enum Command {
     /// Printable markers.
     #[command(subcommand)]
     Marker(cmd::tools::MarkerCmd),
+    /// Printable calibration boards (ChArUco, or a grid of shoal markers).
+    #[command(subcommand)]
+    Board(cmd::calib::BoardCmd),
+    /// Calibrate a camera from views of a board: OpenCV and ROS YAML, per-view errors, coverage.
+    Calibrate(cmd::calib::CalibrateArgs),
     /// Find markers in images or videos; one JSON line per detection (with pose given --camera and --size-mm).
     Detect(cmd::tools::DetectArgs),
     /// Restore an underwater image (HOIRM or a baseline).
@@ -87,6 +92,8 @@ fn main() -> std::process::ExitCode {
         Command::Link(a) => cmd::services::run_link(a),
         Command::Sim(a) => cmd::services::run_sim(a),
         Command::Marker(c) => cmd::tools::run_marker(c),
+        Command::Board(c) => cmd::calib::run_board(c),
+        Command::Calibrate(a) => cmd::calib::run_calibrate(a),
         Command::Detect(a) => cmd::tools::run_detect(a),
         Command::Restore(a) => cmd::tools::run_restore(a),
         Command::Record(a) => cmd::log::run_record(a),

@@ -20,6 +20,8 @@
 #![warn(clippy::unwrap_used)]
 
 pub mod baseline;
+pub mod board;
+pub mod calibrate;
 pub mod detect;
 pub mod image_file;
 pub mod mat;

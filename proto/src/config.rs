@@ -676,6 +676,80 @@ pub fn parse_calibration_yaml(text: &str) -> Result<CameraModel, CalibrationErro
     }
 }
 
+/// Which YAML a calibration is written as.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CalibrationFormat {
+    /// OpenCV `cv::FileStorage` (`!!opencv-matrix`), as OpenCV's own
+    /// calibration samples write it, plus `distortion_model` (ROS's name,
+    /// which OpenCV's reader ignores and shoal's reads).
+    OpenCv,
+    /// ROS `camera_info` (`camera_calibration_parsers`), with the identity
+    /// rectification and the projection `[fx 0 cx 0; 0 fy cy 0; 0 0 1 0]`
+    /// of a monocular camera.
+    Ros,
+}
+
+/// A calibration as YAML that [`parse_calibration_yaml`] (and OpenCV's or
+/// ROS's reader) reads back to the same numbers: every value is written in
+/// Rust's shortest round-trip form. `name` is ROS's `camera_name`; `rms_px`,
+/// when given, is recorded as `avg_reprojection_error`.
+pub fn write_calibration_yaml(
+    model: &CameraModel,
+    format: CalibrationFormat,
+    name: &str,
+    rms_px: Option<f64>,
+) -> String {
+    let list = |v: &[f64]| {
+        v.iter()
+            .map(|x| format!("{x:?}"))
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    let k = [
+        model.fx, 0.0, model.cx, 0.0, model.fy, model.cy, 0.0, 0.0, 1.0,
+    ];
+    let d = model.distortion.coefficients();
+    let kind = model.distortion.ros_name();
+    let (w, h) = (model.width, model.height);
+    let mut out = String::new();
+    match format {
+        CalibrationFormat::OpenCv => {
+            out.push_str(&format!(
+                "%YAML:1.0\n---\nimage_width: {w}\nimage_height: {h}\ncamera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ {} ]\ndistortion_model: \"{kind}\"\ndistortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: {}\n   dt: d\n   data: [ {} ]\n",
+                list(&k),
+                d.len(),
+                list(d)
+            ));
+            if let Some(r) = rms_px {
+                out.push_str(&format!("avg_reprojection_error: {r:?}\n"));
+            }
+        }
+        CalibrationFormat::Ros => {
+            let name: String = name
+                .chars()
+                .map(|c| {
+                    if c.is_ascii_alphanumeric() || c == '_' {
+                        c
+                    } else {
+                        '_'
+                    }
+                })
+                .collect();
+            let p = [
+                model.fx, 0.0, model.cx, 0.0, 0.0, model.fy, model.cy, 0.0, 0.0, 0.0, 1.0, 0.0,
+            ];
+            out.push_str(&format!(
+                "image_width: {w}\nimage_height: {h}\ncamera_name: {name}\ncamera_matrix:\n  rows: 3\n  cols: 3\n  data: [{}]\ndistortion_model: {kind}\ndistortion_coefficients:\n  rows: 1\n  cols: {}\n  data: [{}]\nrectification_matrix:\n  rows: 3\n  cols: 3\n  data: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]\nprojection_matrix:\n  rows: 3\n  cols: 4\n  data: [{}]\n",
+                list(&k),
+                d.len(),
+                list(d),
+                list(&p)
+            ));
+        }
+    }
+    out
+}
+
 fn parse_list(s: &str, key: &str) -> Result<Vec<f64>, CalibrationError> {
     let inner = s
         .trim()
@@ -883,6 +957,30 @@ markers = [ { codes = "shoal", id = 7, side_m = 0.1, body_from_marker = { xyz_m 
             parse_calibration_yaml(&extra),
             Err(CalibrationError::Coefficients(e)) if e.contains("coefficient 6")
         ));
+        // Our writer's files read back to the same numbers, in both formats and every model.
+        for distortion in [
+            Distortion::PlumbBob([-0.1, 0.02, 0.001, -0.002, 0.003]),
+            Distortion::Rational([0.5, -0.1, 0.001, 0.0, 0.01, 0.6, 0.02, 0.001]),
+            Distortion::Equidistant([-0.01, 0.004, -0.002, 0.0005]),
+        ] {
+            let cam = CameraModel {
+                width: 1280,
+                height: 960,
+                fx: 1200.123456789,
+                fy: 1201.987654321,
+                cx: 639.25,
+                cy: 481.0625,
+                distortion,
+            };
+            for format in [CalibrationFormat::OpenCv, CalibrationFormat::Ros] {
+                let text = write_calibration_yaml(&cam, format, "port cam", Some(0.25));
+                assert_eq!(
+                    parse_calibration_yaml(&text),
+                    Ok(cam),
+                    "{format:?}:\n{text}"
+                );
+            }
+        }
         let skewed = ros.replace("500, 0, 320", "500, 0.5, 320");
         assert!(matches!(
             parse_calibration_yaml(&skewed),

@@ -1,6 +1,7 @@
 //! One module per subcommand: argument types and a `run` that calls the libraries.
 
 pub mod args;
+pub mod calib;
 pub mod config;
 pub mod demo;
 pub mod eval;
