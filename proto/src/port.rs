@@ -120,7 +120,8 @@ impl FlatPort {
     pub fn air_ray(&self, p: &Point3<f64>) -> Option<(f64, f64)> {
         let (d, t) = (self.distance_m, self.glass_m);
         let l = p.z - self.outer_z();
-        if !(l > 0.0) || !p.x.is_finite() || !p.y.is_finite() {
+        // Beyond the outer surface (NaN fails too).
+        if l.is_nan() || l <= 0.0 || !p.x.is_finite() || !p.y.is_finite() {
             return None;
         }
         let big_r = p.x.hypot(p.y);
