@@ -532,7 +532,18 @@ impl Fleet {
             let cams: Vec<String> = v
                 .cameras
                 .iter()
-                .map(|c| format!("{} {}x{}", c.name, c.model.width, c.model.height))
+                .map(|c| {
+                    let port = c.port.map_or(String::new(), |p| {
+                        format!(
+                            " behind a port ({:.1} mm air, {:.1} mm glass n {}, water n {})",
+                            p.distance_m * 1e3,
+                            p.glass_m * 1e3,
+                            p.n_glass,
+                            p.n_water
+                        )
+                    });
+                    format!("{} {}x{}{port}", c.name, c.model.width, c.model.height)
+                })
                 .collect();
             s += &format!(
                 "  vehicle {:>3} {:<12} hull {:.3} m x {:.2} m  markers [{}]  cameras [{}]\n",
@@ -794,6 +805,13 @@ markers = [ { codes = "shoal", id = 7, side_m = 0.1, body_from_marker = { xyz_m 
         };
         let f = Fleet::parse(&with("distance_mm = 10, glass_mm = 8"), Path::new("m.toml")).unwrap();
         let port = f.vehicle(1).unwrap().cameras[0].port.unwrap();
+        assert!(
+            f.summary().contains(
+                "fwd 1440x1080 behind a port (10.0 mm air, 8.0 mm glass n 1.49, water n 1.34)"
+            ),
+            "{}",
+            f.summary()
+        );
         assert_eq!(
             port,
             FlatPort {
