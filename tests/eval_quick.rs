@@ -539,3 +539,45 @@ fn nav_quick_settles_every_planar_flip_and_refuses_no_true_hypothesis() {
     }
     assert!(num(&r["one-track"]["tilt_depth_heading"]["false_rejected_by_nav"]) > 0.0);
 }
+
+/// Measured (quick, seed 1, 2 frames per condition): median position error
+/// of the lab's in-water pinhole 3.48 / 3.50 mm at 1 m (0° / 20° off axis)
+/// and 5.19 / 3.24 mm at 4 m; of the refractive model 0.40 / 0.45 and
+/// 0.87 / 0.44 mm. The lab calibration: fx 1250.7 (the lens's 932.8 × 1.34 =
+/// 1250.0), k1 +0.30 (the port's pincushion), RMS 0.067 px on corners with
+/// 0.05 px of noise (the pinhole cannot fit the port exactly).
+#[test]
+fn refraction_quick_the_port_model_beats_the_lab_pinhole_off_axis_and_far() {
+    let (dir, s) = run_quick(Experiment::Refraction);
+    assert_files(
+        &dir,
+        &[
+            "summary.json",
+            "refraction.csv",
+            "refraction_position.png",
+            "refraction_position.svg",
+        ],
+    );
+    let r = &s["results"];
+    let lab = &r["lab_calibration"];
+    // The calibration finds the in-water focal length (lens fx × n_water)...
+    let fx_wet = 1250.0;
+    assert!((num(&lab["fx"]) / fx_wet - 1.0).abs() < 0.005, "{lab}");
+    // ... absorbs the port's pincushion in k1 (the lens alone has -0.05) ...
+    assert!(num(&lab["distortion"][0]) > 0.1, "{lab}");
+    // ... and leaves a misfit above the corners' 0.05 px noise, which alone
+    // would give ~0.049 px.
+    assert!(num(&lab["rms_px"]) > 0.055, "{lab}");
+    let c = &r["conditions"];
+    let pos = |m: &str, key: &str| num(&c[m][key]["position_mm"]["median"]);
+    for key in ["r1.0_a0", "r1.0_a20", "r4.0_a0", "r4.0_a20"] {
+        let (p, q) = (pos("pinhole", key), pos("refractive", key));
+        println!("{key}: pinhole {p:.2} mm, refractive {q:.2} mm");
+        // Measured 6-8x apart; half would already be a regression.
+        assert!(q < 0.5 * p, "{key}: refractive {q} vs pinhole {p}");
+        assert!(q < 2.0, "{key}: refractive {q} mm");
+        assert_eq!(num(&c["pinhole"][key]["solved"]), 2.0, "{key}");
+    }
+    // On the axis the pinhole's error grows with the range (measured 3.5 → 5.2 mm).
+    assert!(pos("pinhole", "r4.0_a0") > pos("pinhole", "r1.0_a0"));
+}

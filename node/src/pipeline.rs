@@ -8,7 +8,7 @@
 use crate::detect::{
     CornerFitCounts, DetectError, DetectParams, Detection, MarkerDetector, ShoalDetector,
 };
-use crate::pose::{estimate_pose, Hypothesis, PoseError};
+use crate::pose::{estimate_pose_with, Hypothesis, PoseError};
 use crate::restore::{restorer, Method, RestoreError, RestoreParams, Restorer};
 use crate::track::{Track, TrackParams};
 use opencv::core::Mat;
@@ -218,8 +218,11 @@ impl CameraPipeline {
                 det.codes, det.id
             )
         })?;
-        let solution = estimate_pose(
+        // Through the camera's flat port when the fleet file gives one;
+        // otherwise its calibration is taken as an in-water pinhole.
+        let solution = estimate_pose_with(
             &self.camera.model,
+            self.camera.port.as_ref(),
             &det.object_points(side_m),
             &det.corners_px,
             self.params.corner_sigma_px,

@@ -10,6 +10,10 @@
 //!    (`t = t̂ + δt, R = Exp(δθ)·R̂`, see `proto::geometry`), so the
 //!    Jacobian at the optimum gives the covariance in that convention without
 //!    any conversion from OpenCV's rvec parameterization.
+//!    With a flat port ([`estimate_pose_with`]) the residual is through the
+//!    port's refraction ([`FlatPort::project`]) and the starts come from the
+//!    in-water directions of the corners' rays (the paraxial in-water
+//!    pinhole: the lens's focal length times n_water).
 //! 3. **Covariance** `Σ = σ² (JᵀJ)⁻¹` with the corner noise σ given, or
 //!    estimated from the residuals (`σ̂² = SSR / (2n − 6)`).
 //!
@@ -19,7 +23,7 @@
 use nalgebra::{DMatrix, DVector, Matrix6, Point3, Vector6};
 use opencv::core::{Mat, Vector};
 use opencv::prelude::*;
-use shoal_proto::camera::CameraModel;
+use shoal_proto::camera::{CameraModel, FlatPort};
 use shoal_proto::geometry::{difference, perturb, Cov6, Pose};
 
 /// Errors of pose estimation.
@@ -62,9 +66,38 @@ pub struct PoseSolution {
 /// perfect fit must not claim infinite precision.
 const MIN_ESTIMATED_SIGMA_PX: f64 = 0.05;
 
-/// Estimate `camera_from_marker` from ≥ 4 correspondences.
+/// Estimate `camera_from_marker` from ≥ 4 correspondences, `cam` taken as
+/// the camera's in-water calibration (a pinhole with its lens model).
 pub fn estimate_pose(
     cam: &CameraModel,
+    object_pts: &[Point3<f64>],
+    image_pts: &[[f64; 2]],
+    corner_sigma_px: Option<f64>,
+) -> Result<PoseSolution, PoseError> {
+    estimate_pose_with(cam, None, object_pts, image_pts, corner_sigma_px)
+}
+
+/// The camera a PnP projects through: the lens alone, or the lens behind a
+/// flat port.
+#[derive(Debug, Clone, Copy)]
+struct Lens<'a> {
+    cam: &'a CameraModel,
+    port: Option<&'a FlatPort>,
+}
+
+impl Lens<'_> {
+    #[inline]
+    fn project(&self, p: &Point3<f64>) -> Option<nalgebra::Point2<f64>> {
+        shoal_proto::port::project(self.cam, self.port, p)
+    }
+}
+
+/// [`estimate_pose`] through a flat port when `port` is given: `cam` is then
+/// the lens's in-air calibration and every residual is through the port's
+/// refraction ([`FlatPort::project`]).
+pub fn estimate_pose_with(
+    cam: &CameraModel,
+    port: Option<&FlatPort>,
     object_pts: &[Point3<f64>],
     image_pts: &[[f64; 2]],
     corner_sigma_px: Option<f64>,
@@ -95,14 +128,18 @@ pub fn estimate_pose(
     if let Some(problem) = cam.parameter_problem() {
         return Err(PoseError::Camera(problem));
     }
+    if let Some(problem) = port.and_then(FlatPort::problem) {
+        return Err(PoseError::Camera(problem));
+    }
     if let Some(s) = corner_sigma_px {
         if !(s.is_finite() && s > 0.0) {
             return Err(PoseError::BadSigma(s));
         }
     }
+    let lens = Lens { cam, port };
     let mut hyps: Vec<Hypothesis> = Vec::new();
-    for init in initial_poses(cam, object_pts, image_pts)? {
-        let Some(pose) = refine_lm(cam, object_pts, image_pts, init) else {
+    for init in initial_poses(cam, port, object_pts, image_pts)? {
+        let Some(pose) = refine_lm(lens, object_pts, image_pts, init) else {
             continue;
         };
         if hyps
@@ -111,7 +148,7 @@ pub fn estimate_pose(
         {
             continue;
         }
-        if let Some(h) = hypothesis(cam, object_pts, image_pts, pose, corner_sigma_px) {
+        if let Some(h) = hypothesis(lens, object_pts, image_pts, pose, corner_sigma_px) {
             hyps.push(h);
         }
     }
@@ -124,9 +161,12 @@ pub fn estimate_pose(
     })
 }
 
-/// IPPE's two planar solutions (or EPnP's one for non-planar points).
+/// IPPE's two planar solutions (or EPnP's one for non-planar points). With
+/// a port, from the corners' in-water ray directions (their origins on the
+/// port, a centimetre or two off the lens centre, are left to the refinement).
 fn initial_poses(
     cam: &CameraModel,
+    port: Option<&FlatPort>,
     obj: &[Point3<f64>],
     img: &[[f64; 2]],
 ) -> Result<Vec<Pose>, PoseError> {
@@ -139,7 +179,10 @@ fn initial_poses(
     let i: Vector<Point2d> = img
         .iter()
         .map(|p| {
-            let (x, y) = cam.ray(p[0], p[1]);
+            let (mut x, mut y) = cam.ray(p[0], p[1]);
+            if let Some(port) = port {
+                (_, (x, y)) = port.refract(x, y);
+            }
             Point2d::new(cam.fx * x + cam.cx, cam.fy * y + cam.cy)
         })
         .collect();
@@ -190,14 +233,14 @@ fn initial_poses(
 
 /// Residuals `project(pose · X) − u` (2n), `None` if a point is behind the camera.
 fn residuals(
-    cam: &CameraModel,
+    lens: Lens<'_>,
     obj: &[Point3<f64>],
     img: &[[f64; 2]],
     pose: &Pose,
 ) -> Option<DVector<f64>> {
     let mut r = DVector::zeros(2 * obj.len());
     for (k, (p, u)) in obj.iter().zip(img).enumerate() {
-        let q = cam.project(&(pose * p))?;
+        let q = lens.project(&(pose * p))?;
         r[2 * k] = q.x - u[0];
         r[2 * k + 1] = q.y - u[1];
     }
@@ -206,7 +249,7 @@ fn residuals(
 
 /// Jacobian of the residuals w.r.t. the perturbation ξ = (δt, δθ) (central differences).
 fn jacobian(
-    cam: &CameraModel,
+    lens: Lens<'_>,
     obj: &[Point3<f64>],
     img: &[[f64; 2]],
     pose: &Pose,
@@ -218,9 +261,9 @@ fn jacobian(
         let h = if c < 3 { 1e-6 * scale } else { 1e-6 };
         let mut d = Vector6::zeros();
         d[c] = h;
-        let rp = residuals(cam, obj, img, &perturb(pose, &d))?;
+        let rp = residuals(lens, obj, img, &perturb(pose, &d))?;
         d[c] = -h;
-        let rm = residuals(cam, obj, img, &perturb(pose, &d))?;
+        let rm = residuals(lens, obj, img, &perturb(pose, &d))?;
         j.set_column(c, &((rp - rm) / (2.0 * h)));
     }
     Some(j)
@@ -228,13 +271,13 @@ fn jacobian(
 
 /// Levenberg–Marquardt on the reprojection error (our own, so that the
 /// parameterization is shoal's perturbation and the full distortion is used).
-fn refine_lm(cam: &CameraModel, obj: &[Point3<f64>], img: &[[f64; 2]], init: Pose) -> Option<Pose> {
+fn refine_lm(lens: Lens<'_>, obj: &[Point3<f64>], img: &[[f64; 2]], init: Pose) -> Option<Pose> {
     let mut pose = init;
-    let mut r = residuals(cam, obj, img, &pose)?;
+    let mut r = residuals(lens, obj, img, &pose)?;
     let mut cost = r.norm_squared();
     let mut lambda = 1e-3;
     for _ in 0..50 {
-        let j = jacobian(cam, obj, img, &pose)?;
+        let j = jacobian(lens, obj, img, &pose)?;
         let jtj = j.transpose() * &j;
         let g = j.transpose() * &r;
         let mut improved = false;
@@ -249,7 +292,7 @@ fn refine_lm(cam: &CameraModel, obj: &[Point3<f64>], img: &[[f64; 2]], init: Pos
             };
             let xi = Vector6::from_iterator(step.iter().copied());
             let cand = perturb(&pose, &xi);
-            if let Some(rc) = residuals(cam, obj, img, &cand) {
+            if let Some(rc) = residuals(lens, obj, img, &cand) {
                 let c = rc.norm_squared();
                 if c < cost {
                     let rel = (cost - c) / cost.max(1e-300);
@@ -275,13 +318,13 @@ fn refine_lm(cam: &CameraModel, obj: &[Point3<f64>], img: &[[f64; 2]], init: Pos
 }
 
 fn hypothesis(
-    cam: &CameraModel,
+    lens: Lens<'_>,
     obj: &[Point3<f64>],
     img: &[[f64; 2]],
     pose: Pose,
     sigma: Option<f64>,
 ) -> Option<Hypothesis> {
-    let r = residuals(cam, obj, img, &pose)?;
+    let r = residuals(lens, obj, img, &pose)?;
     let n = r.len();
     let ssr = r.norm_squared();
     let rms_px = (ssr / n as f64).sqrt();
@@ -290,7 +333,7 @@ fn hypothesis(
         None if n > 6 => (ssr / (n - 6) as f64).sqrt().max(MIN_ESTIMATED_SIGMA_PX),
         None => rms_px.max(MIN_ESTIMATED_SIGMA_PX),
     };
-    let j = jacobian(cam, obj, img, &pose)?;
+    let j = jacobian(lens, obj, img, &pose)?;
     let jtj: Matrix6<f64> = Matrix6::from_iterator((j.transpose() * &j).iter().copied());
     let inv = jtj.try_inverse()?;
     let mut covariance = inv * (sigma * sigma);

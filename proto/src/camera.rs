@@ -10,6 +10,8 @@
 use nalgebra::{Point2, Point3};
 use serde::{Deserialize, Serialize};
 
+pub use crate::port::FlatPort;
+
 /// A lens model and its coefficients (OpenCV's order).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub enum Distortion {

@@ -11,6 +11,7 @@ use crate::geometry::{pose_from_xyz_rpy, Pose};
 use crate::keys::Keys;
 use crate::marker::{CodeSet, MarkerId};
 use crate::messages::VehicleId;
+use crate::port::FlatPort;
 use serde::Deserialize;
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
@@ -137,6 +138,52 @@ pub struct CameraSpec {
     pub calibration: Option<PathBuf>,
     pub intrinsics: Option<IntrinsicsSpec>,
     pub body_from_camera: MountSpec,
+    /// The flat window the camera looks through, if the node's PnP should
+    /// model its refraction (`docs/water-model.md`). Without it the
+    /// calibration is taken as the in-water pinhole a lab would measure.
+    #[serde(default)]
+    pub port: Option<PortSpec>,
+}
+
+/// A flat port as written in a fleet file: air inside, then the glass,
+/// then the water; the window perpendicular to the optical axis.
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PortSpec {
+    /// From the lens centre (entrance pupil) to the inner glass surface, mm.
+    pub distance_mm: f64,
+    /// Glass thickness, mm.
+    pub glass_mm: f64,
+    /// Refractive index of the glass; default acrylic, 1.49.
+    #[serde(default = "default_n_glass")]
+    pub n_glass: f64,
+    /// Refractive index of the water; default sea water, 1.34 (fresh: 1.333).
+    #[serde(default = "default_n_water")]
+    pub n_water: f64,
+}
+
+fn default_n_glass() -> f64 {
+    FlatPort::N_ACRYLIC
+}
+
+fn default_n_water() -> f64 {
+    FlatPort::N_SEA_WATER
+}
+
+impl PortSpec {
+    /// The port in SI units, validated; the error names the bad value.
+    pub fn port(&self) -> Result<FlatPort, String> {
+        let port = FlatPort {
+            distance_m: self.distance_mm * 1e-3,
+            glass_m: self.glass_mm * 1e-3,
+            n_glass: self.n_glass,
+            n_water: self.n_water,
+        };
+        match port.problem() {
+            Some(p) => Err(p),
+            None => Ok(port),
+        }
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -205,6 +252,10 @@ pub struct Camera {
     pub name: String,
     pub model: CameraModel,
     pub body_from_camera: Pose,
+    /// The flat port in front of the lens, when the fleet file gives one:
+    /// PnP then models its refraction instead of taking `model` as an
+    /// in-water pinhole.
+    pub port: Option<FlatPort>,
 }
 
 /// A resolved marker mounted on a vehicle.
@@ -271,11 +322,17 @@ fn parse_rigs<'a>(
             }
             check_mount(&c.body_from_camera)
                 .map_err(|r| invalid(format!("{field}.body_from_camera"), r))?;
+            let port = c
+                .port
+                .map(|p| p.port())
+                .transpose()
+                .map_err(|r| invalid(format!("{field}.port"), r))?;
             cams.push(Camera {
                 index: i as u8,
                 name: c.name.clone(),
                 model,
                 body_from_camera: c.body_from_camera.pose(),
+                port,
             });
         }
         rigs.insert(rig_name.as_str(), cams);
@@ -475,7 +532,18 @@ impl Fleet {
             let cams: Vec<String> = v
                 .cameras
                 .iter()
-                .map(|c| format!("{} {}x{}", c.name, c.model.width, c.model.height))
+                .map(|c| {
+                    let port = c.port.map_or(String::new(), |p| {
+                        format!(
+                            " behind a port ({:.1} mm air, {:.1} mm glass n {}, water n {})",
+                            p.distance_m * 1e3,
+                            p.glass_m * 1e3,
+                            p.n_glass,
+                            p.n_water
+                        )
+                    });
+                    format!("{} {}x{}{port}", c.name, c.model.width, c.model.height)
+                })
                 .collect();
             s += &format!(
                 "  vehicle {:>3} {:<12} hull {:.3} m x {:.2} m  markers [{}]  cameras [{}]\n",
@@ -799,6 +867,70 @@ markers = [ { codes = "shoal", id = 7, side_m = 0.1, body_from_marker = { xyz_m 
         assert_eq!(f.marker_owner(CodeSet::Shoal, 7), MarkerOwner::Vehicle(2));
         assert_eq!(f.marker_owner(CodeSet::Shoal, 8), MarkerOwner::Unknown);
         assert_eq!(f.vehicle(1).unwrap().cameras[0].model.width, 1440);
+    }
+
+    #[test]
+    fn a_port_is_read_in_millimetres_with_default_indices_and_bad_ones_are_named() {
+        let with = |port: &str| {
+            MINI.replace(
+                "rpy_deg = [90, 0, 90] } }",
+                &format!("rpy_deg = [90, 0, 90] }}, port = {{ {port} }} }}"),
+            )
+        };
+        let f = Fleet::parse(&with("distance_mm = 10, glass_mm = 8"), Path::new("m.toml")).unwrap();
+        let port = f.vehicle(1).unwrap().cameras[0].port.unwrap();
+        assert!(
+            f.summary().contains(
+                "fwd 1440x1080 behind a port (10.0 mm air, 8.0 mm glass n 1.49, water n 1.34)"
+            ),
+            "{}",
+            f.summary()
+        );
+        assert_eq!(
+            port,
+            FlatPort {
+                distance_m: 0.010,
+                glass_m: 0.008,
+                n_glass: 1.49,
+                n_water: 1.34
+            }
+        );
+        assert_eq!(
+            Fleet::parse(MINI, Path::new("m.toml")).unwrap().vehicles[0].cameras[0].port,
+            None
+        );
+        for (bad, says) in [
+            ("distance_mm = -1, glass_mm = 8", "port distance -1.0 mm"),
+            (
+                "distance_mm = 10, glass_mm = nan",
+                "port glass is not finite",
+            ),
+            (
+                "distance_mm = 10, glass_mm = 8, n_glass = 0.5",
+                "n_glass 0.5",
+            ),
+            (
+                "distance_mm = 10, glass_mm = 8, n_water = 0.99",
+                "n_water 0.99",
+            ),
+        ] {
+            let e = Fleet::parse(&with(bad), Path::new("m.toml"))
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("rigs.one.cameras[0].port") && e.contains(says),
+                "{bad}: {e}"
+            );
+        }
+        for (bad, says) in [
+            ("distance_mm = 10", "glass_mm"),
+            ("distance_mm = 10, glass_mm = 8, n_air = 1", "n_air"),
+        ] {
+            let e = Fleet::parse(&with(bad), Path::new("m.toml"))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(says), "{bad}: {e}");
+        }
     }
 
     #[test]

@@ -2,7 +2,7 @@
 //! camera in the paper fleet's line abreast (2 m), vehicle 17 (the far one)
 //! moved 0.5 m deeper so it shows below vehicle 15; water 0.5 /m, with noise.
 //!
-//! Also single markers at 600 mm (0.5 and 8.22 /m), the water alone with and
+//! Also single markers at 600 mm (0.5 and 8.22 /m; 0.5 /m through a flat port too), the water alone with and
 //! without noise, and the paper's 2448x2048 Eq. (3) camera.
 //!
 //! Run: `cargo bench -p shoal-sim-bridge --bench render`.
@@ -73,6 +73,34 @@ fn bench(c: &mut Criterion) {
         b.iter(|| {
             renderer
                 .render(&cam, &Pose::identity(), &scene, &water, 0.0, 1)
+                .expect("render")
+        })
+    });
+    // The same marker through a flat port (10 mm air, 8 mm acrylic; the lens
+    // in air with the focal length / 1.34, so the view matches).
+    let port = shoal_proto::FlatPort {
+        distance_m: 0.010,
+        glass_m: 0.008,
+        n_glass: shoal_proto::FlatPort::N_ACRYLIC,
+        n_water: shoal_proto::FlatPort::N_SEA_WATER,
+    };
+    let lens = CameraModel {
+        fx: cam.fx / port.n_water,
+        fy: cam.fy / port.n_water,
+        ..cam
+    };
+    c.bench_function("render_1440x1080_marker_600mm_c0.5_port", |b| {
+        b.iter(|| {
+            renderer
+                .render_with_port(
+                    &lens,
+                    Some(&port),
+                    &Pose::identity(),
+                    &scene,
+                    &water,
+                    0.0,
+                    1,
+                )
                 .expect("render")
         })
     });

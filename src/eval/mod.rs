@@ -20,6 +20,7 @@
 //! | `links`           | (acoustic-rate links)  | [`links`]       |
 //! | `nav`             | (vehicles' own nav)    | [`nav`]         |
 //! | `real`            | (real recordings)      | [`real`]        |
+//! | `refraction`      | (flat-port refraction) | [`refraction`]  |
 //!
 //! `quick` runs a reduced version of each (seconds in a debug build) for CI.
 //! The development probes (`shoal eval probe <name>`) are in [`probe`].
@@ -35,6 +36,7 @@ pub mod noise;
 pub mod plot;
 pub mod probe;
 pub mod real;
+pub mod refraction;
 pub mod restoration;
 pub mod restore_params;
 pub mod scene;
@@ -62,10 +64,11 @@ pub enum Experiment {
     Links,
     Nav,
     Real,
+    Refraction,
 }
 
 impl Experiment {
-    pub const ALL: [Experiment; 13] = [
+    pub const ALL: [Experiment; 14] = [
         Experiment::Features,
         Experiment::Accuracy,
         Experiment::AccuracyYaw,
@@ -79,6 +82,7 @@ impl Experiment {
         Experiment::Links,
         Experiment::Nav,
         Experiment::Real,
+        Experiment::Refraction,
     ];
 
     pub fn name(self) -> &'static str {
@@ -96,6 +100,7 @@ impl Experiment {
             Experiment::Links => "links",
             Experiment::Nav => "nav",
             Experiment::Real => "real",
+            Experiment::Refraction => "refraction",
         }
     }
 }
@@ -257,6 +262,7 @@ pub fn run(experiment: Experiment, opts: &EvalOptions) -> Result<serde_json::Val
         Experiment::Links => links::run(opts)?,
         Experiment::Nav => nav::run(opts)?,
         Experiment::Real => real::run(opts)?,
+        Experiment::Refraction => refraction::run(opts)?,
     };
     if let Some(obj) = summary.as_object_mut() {
         obj.insert("experiment".into(), experiment.name().into());

@@ -87,6 +87,27 @@ pub fn boxes(
     render_both(stem, &Boxes { spec, samples })
 }
 
+/// Lines over a numeric x axis: `series[k]` is `(name, points)`, each
+/// point `(x, y)` (non-finite ones are skipped). Writes `<stem>.png` and
+/// `<stem>.svg`; returns their paths.
+pub fn lines(
+    stem: &Path,
+    title: &str,
+    x_label: &str,
+    y_label: &str,
+    series: &[(String, Vec<(f64, f64)>)],
+) -> Result<Vec<PathBuf>, EvalError> {
+    render_both(
+        stem,
+        &Lines {
+            title,
+            x_label,
+            y_label,
+            series,
+        },
+    )
+}
+
 type DrawResult = Result<(), String>;
 
 /// An x axis of `n` categories: category `i` spans `i..i+1`, labelled at its centre.
@@ -137,6 +158,67 @@ struct Boxes<'a> {
 impl Chart for Boxes<'_> {
     fn draw<DB: DrawingBackend>(&self, root: DrawingArea<DB, Shift>) -> DrawResult {
         draw_boxes(root, self.spec, self.samples)
+    }
+}
+
+struct Lines<'a> {
+    title: &'a str,
+    x_label: &'a str,
+    y_label: &'a str,
+    series: &'a [(String, Vec<(f64, f64)>)],
+}
+
+impl Chart for Lines<'_> {
+    fn draw<DB: DrawingBackend>(&self, root: DrawingArea<DB, Shift>) -> DrawResult {
+        root.fill(&WHITE).map_err(s)?;
+        let finite = |p: &&(f64, f64)| p.0.is_finite() && p.1.is_finite();
+        let pts = || {
+            self.series
+                .iter()
+                .flat_map(|(_, v)| v.iter().filter(finite))
+        };
+        let x0 = pts().map(|p| p.0).fold(f64::INFINITY, f64::min);
+        let x1 = pts().map(|p| p.0).fold(f64::NEG_INFINITY, f64::max);
+        let (x0, x1) = if x0 < x1 { (x0, x1) } else { (0.0, 1.0) };
+        let pad = 0.04 * (x1 - x0);
+        let top = y_top(pts().map(|p| p.1).fold(0.0, f64::max));
+        let mut chart = ChartBuilder::on(&root)
+            .caption(self.title, ("sans-serif", 24))
+            .margin(14)
+            .x_label_area_size(46)
+            .y_label_area_size(80)
+            .build_cartesian_2d(x0 - pad..x1 + pad, 0f64..top)
+            .map_err(s)?;
+        chart
+            .configure_mesh()
+            .x_desc(self.x_label)
+            .y_desc(self.y_label)
+            .label_style(("sans-serif", 15))
+            .draw()
+            .map_err(s)?;
+        for (k, (name, v)) in self.series.iter().enumerate() {
+            let color = PALETTE[k % PALETTE.len()];
+            let v: Vec<(f64, f64)> = v.iter().filter(finite).copied().collect();
+            chart
+                .draw_series(LineSeries::new(v.clone(), color.stroke_width(2)))
+                .map_err(s)?
+                .label(name.as_str())
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2))
+                });
+            chart
+                .draw_series(v.into_iter().map(|p| Circle::new(p, 4, color.filled())))
+                .map_err(s)?;
+        }
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .label_font(("sans-serif", 15))
+            .position(SeriesLabelPosition::UpperLeft)
+            .draw()
+            .map_err(s)?;
+        root.present().map_err(s)
     }
 }
 

@@ -30,7 +30,7 @@ pub(super) struct Medium {
 
 impl Medium {
     #[inline]
-    fn sample(&self, hit: Option<Hit>, x: f64, y: f64) -> Sample {
+    fn sample(&self, hit: Option<Hit>) -> Sample {
         match hit {
             None => Sample {
                 clean: 0.0,
@@ -40,7 +40,7 @@ impl Medium {
                 lamp: 1.0,
             },
             Some(h) => {
-                let r = h.t * (x * x + y * y + 1.0).sqrt();
+                let r = h.range;
                 let tr = (-self.c * r).exp();
                 let lamp_in = if self.lamp_power > 0.0 {
                     self.lamp_power * h.lamp_geom * tr / (r * r).max(1e-4)
@@ -209,7 +209,7 @@ impl Renderer {
     ) -> Sample {
         let nsamples = self.offsets.len() as f64;
         if let PixelKind::Uniform = kind {
-            medium.sample(hit_c, centre.0, centre.1)
+            medium.sample(hit_c)
         } else if let (PixelKind::PlateEdge(white), Some(h)) = (kind, hit_c) {
             // Exact area coverage of the modules under the pixel.
             let plate = &objects.plates[h.object as usize];
@@ -225,12 +225,12 @@ impl Renderer {
                 lamp_geom: cos_i * mix(trace::ALBEDO_WHITE, trace::ALBEDO_BLACK),
                 ..h
             };
-            medium.sample(Some(hit), centre.0, centre.1)
+            medium.sample(Some(hit))
         } else {
             let mut acc = Sample::default();
             for &(du, dv) in &self.offsets {
                 let r = trace::ray_from(cam, u + du, v + dv, centre);
-                let s = medium.sample(objects.trace_in(ids, r.0, r.1), r.0, r.1);
+                let s = medium.sample(objects.trace_in(ids, r.0, r.1));
                 acc.clean += s.clean;
                 acc.direct += s.direct;
                 acc.scatter += s.scatter;

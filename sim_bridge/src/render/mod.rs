@@ -7,6 +7,11 @@
 //! x and in y), so edges can be measured to a few hundredths of a pixel.
 //! Pixel centres are at integer coordinates (OpenCV).
 //!
+//! With a flat port (`render_with_port`) each in-air ray refracts at the
+//! window's two surfaces and continues in the water from the outer one; the
+//! regions of interest and the ground-truth corners are projected through
+//! the port (`FlatPort::project`), so they stay exact too.
+//!
 //! Only pixels whose region of interest (the projected bounds of a marker
 //! plate or a hull) is on screen are ray-cast; the water background, the
 //! veil, vignetting and noise are analytic. The water model and its sources
@@ -24,7 +29,7 @@ mod visibility;
 
 pub use frame_files::{clean_twin_path, write_frame_pair, write_png};
 pub use scene::{facing_camera, Scene, SceneHull, SceneMarker};
-pub use visibility::{all_corners_in_frame, visible_in_view};
+pub use visibility::{all_corners_in_frame, visible_in_view, visible_in_view_with_port};
 
 use crate::error::SimError;
 use crate::water::WaterParams;
@@ -34,7 +39,7 @@ use optics::{blur_add, quantize_with_noise, Ambient, LampIntegral, Psf};
 use roi::{hull_roi, plate_roi, psf_groups, Roi};
 use shoal_proto::config::Fleet;
 use shoal_proto::geometry::pose_is_finite;
-use shoal_proto::{CameraModel, GrayImage, Pose, VehicleId, VehicleTruth, VisibleMarker};
+use shoal_proto::{CameraModel, FlatPort, GrayImage, Pose, VehicleId, VehicleTruth, VisibleMarker};
 use visibility::{build_objects, visible_markers};
 
 /// One rendered frame: the underwater image, its clean twin (same view, no
@@ -98,7 +103,26 @@ impl Renderer {
         time_s: f64,
         seed: u64,
     ) -> Result<RenderOutput, SimError> {
+        self.render_with_port(cam, None, world_from_camera, scene, water, time_s, seed)
+    }
+
+    /// [`Renderer::render`] with the camera behind `port` when given: `cam`
+    /// is then the lens in air, and every ray refracts through the window.
+    #[allow(clippy::too_many_arguments)]
+    pub fn render_with_port(
+        &mut self,
+        cam: &CameraModel,
+        port: Option<&FlatPort>,
+        world_from_camera: &Pose,
+        scene: &Scene,
+        water: &WaterParams,
+        time_s: f64,
+        seed: u64,
+    ) -> Result<RenderOutput, SimError> {
         if let Some(p) = cam.problem() {
+            return Err(SimError::Camera(p));
+        }
+        if let Some(p) = port.and_then(FlatPort::problem) {
             return Err(SimError::Camera(p));
         }
         if !pose_is_finite(world_from_camera) {
@@ -124,7 +148,8 @@ impl Renderer {
         let camera_from_world = world_from_camera.inverse();
         let up = camera_from_world.rotation * scene.up_world;
 
-        let objects = build_objects(scene, &camera_from_world, true)?;
+        let mut objects = build_objects(scene, &camera_from_world, true)?;
+        objects.port = port.copied();
 
         let ambient = Ambient::new(water, time_s);
         let medium = Medium {
@@ -153,8 +178,8 @@ impl Renderer {
         let rois: Vec<Option<Roi>> = objects
             .plates
             .iter()
-            .map(|p| plate_roi(cam, p))
-            .chain(objects.hulls.iter().map(|hl| hull_roi(cam, hl)))
+            .map(|p| plate_roi(cam, port, p))
+            .chain(objects.hulls.iter().map(|hl| hull_roi(cam, port, hl)))
             .collect();
         self.cast(cam, &objects, &rois, &medium);
 
@@ -174,7 +199,7 @@ impl Renderer {
         }
 
         // Compose: veil, vignetting, exposure (docs/water-model.md, Eq. (W1)).
-        self.compose(cam, water, &ambient, &medium, &up);
+        self.compose(cam, port, water, &ambient, &medium, &up);
         let mut image = vec![0u8; n];
         quantize_with_noise(&self.dn, w, water, seed, &mut image);
         let clean: Vec<u8> = self
@@ -208,6 +233,7 @@ impl Renderer {
     fn compose(
         &mut self,
         cam: &CameraModel,
+        port: Option<&FlatPort>,
         water: &WaterParams,
         ambient: &Ambient,
         medium: &Medium,
@@ -226,7 +252,15 @@ impl Renderer {
                 let (x, y) = cam.ray(u, v);
                 let d = Vector3::new(x, y, 1.0);
                 let norm = d.norm();
-                let cos_zenith = d.dot(up) / norm;
+                // The veil comes along the in-water ray; vignetting is the lens's.
+                let cos_zenith = match port {
+                    None => d.dot(up) / norm,
+                    Some(port) => {
+                        let (_, (a, b)) = port.refract(x, y);
+                        let dw = Vector3::new(a, b, 1.0);
+                        dw.dot(up) / dw.norm()
+                    }
+                };
                 let dir_gain = (1.0 + water.backscatter_up_gain * cos_zenith).max(0.1);
                 let spatial = ambient.spatial(u / w as f64, v / h as f64);
                 veil_grid[gy * gw + gx] = (water.backscatter_inf
@@ -305,7 +339,15 @@ pub fn render_fleet_view(
         })?;
     let scene = Scene::from_fleet(fleet, truth);
     let world_from_camera = me.world_from_body * cam.body_from_camera;
-    let mut out = renderer.render(&cam.model, &world_from_camera, &scene, water, time_s, seed)?;
+    let mut out = renderer.render_with_port(
+        &cam.model,
+        cam.port.as_ref(),
+        &world_from_camera,
+        &scene,
+        water,
+        time_s,
+        seed,
+    )?;
     for vm in &mut out.visible {
         vm.observer = vehicle;
         vm.camera = camera_index;

@@ -6,7 +6,7 @@ use super::optics::{Psf, Rect};
 use super::trace::{Hull, Plate};
 use crate::water::WaterParams;
 use nalgebra::{Point3, Vector3};
-use shoal_proto::CameraModel;
+use shoal_proto::{CameraModel, FlatPort};
 
 /// Everything known about one object before ray casting.
 #[derive(Debug, Clone)]
@@ -26,6 +26,7 @@ pub(super) const ROI_NEAR_M: f64 = 1e-3;
 /// out, extending the ROI to the image border on its side).
 fn roi_of(
     cam: &CameraModel,
+    port: Option<&FlatPort>,
     pts: &[Point3<f64>],
     segments: &[(usize, usize)],
     margin_frac: f64,
@@ -37,9 +38,16 @@ fn roi_of(
         f64::NEG_INFINITY,
         f64::NEG_INFINITY,
     );
+    // Behind a port nothing nearer than its outer surface is seen.
+    let near = ROI_NEAR_M + port.map_or(0.0, FlatPort::outer_z);
     let mut add = |p: &Point3<f64>| {
+        // The in-air ray's slope (through the port when there is one).
+        let (xn, yn) = match port {
+            None => (p.x / p.z, p.y / p.z),
+            // No ray reaches it (past a bare port's critical angle): far off-screen.
+            Some(port) => port.air_ray(p).unwrap_or((p.x * 1e9, p.y * 1e9)),
+        };
         // Outside the lens model's sane range, clamp the direction to far off-screen.
-        let (xn, yn) = (p.x / p.z, p.y / p.z);
         let lim = 4.0;
         let (u, v) = if xn.abs() > lim || yn.abs() > lim {
             (
@@ -59,9 +67,11 @@ fn roi_of(
                 },
             )
         } else {
-            let q = cam
-                .project(p)
-                .unwrap_or(Point3::new(cam.cx, cam.cy, 1.0).xy());
+            let q = match port {
+                None => cam.project(p),
+                Some(_) => cam.project(&Point3::new(xn, yn, 1.0)),
+            }
+            .unwrap_or(Point3::new(cam.cx, cam.cy, 1.0).xy());
             (q.x, q.y)
         };
         u0 = u0.min(u);
@@ -69,13 +79,13 @@ fn roi_of(
         u1 = u1.max(u);
         v1 = v1.max(v);
     };
-    for p in pts.iter().filter(|p| p.z > ROI_NEAR_M) {
+    for p in pts.iter().filter(|p| p.z > near) {
         add(p);
     }
     for &(a, b) in segments {
         let (pa, pb) = (pts[a], pts[b]);
-        if (pa.z > ROI_NEAR_M) != (pb.z > ROI_NEAR_M) {
-            let t = (ROI_NEAR_M * 1.0001 - pa.z) / (pb.z - pa.z);
+        if (pa.z > near) != (pb.z > near) {
+            let t = (near * 1.0001 - pa.z) / (pb.z - pa.z);
             add(&(pa + (pb - pa) * t));
         }
     }
@@ -96,7 +106,7 @@ fn roi_of(
 }
 
 /// A grid of points over the plate and its mesh segments.
-pub(super) fn plate_roi(cam: &CameraModel, p: &Plate) -> Option<Roi> {
+pub(super) fn plate_roi(cam: &CameraModel, port: Option<&FlatPort>, p: &Plate) -> Option<Roi> {
     let k = 16usize;
     let mut pts = Vec::with_capacity((k + 1) * (k + 1));
     let mut segs = Vec::new();
@@ -114,7 +124,7 @@ pub(super) fn plate_roi(cam: &CameraModel, p: &Plate) -> Option<Roi> {
             }
         }
     }
-    let rect = roi_of(cam, &pts, &segs, 0.01)?;
+    let rect = roi_of(cam, port, &pts, &segs, 0.01)?;
     let depth = p.origin.z.max(ROI_NEAR_M);
     let module_px = cam.fx.min(cam.fy) * p.module_m / depth;
     Some(Roi {
@@ -125,7 +135,7 @@ pub(super) fn plate_roi(cam: &CameraModel, p: &Plate) -> Option<Roi> {
 }
 
 /// Rings of points along the hull (48 around, 17 along) and its mesh segments.
-pub(super) fn hull_roi(cam: &CameraModel, hl: &Hull) -> Option<Roi> {
+pub(super) fn hull_roi(cam: &CameraModel, port: Option<&FlatPort>, hl: &Hull) -> Option<Roi> {
     let (na, nl) = (48usize, 16usize);
     let e1 = hl
         .axis
@@ -153,7 +163,7 @@ pub(super) fn hull_roi(cam: &CameraModel, hl: &Hull) -> Option<Roi> {
             }
         }
     }
-    let rect = roi_of(cam, &pts, &segs, 0.02)?;
+    let rect = roi_of(cam, port, &pts, &segs, 0.02)?;
     // Range for the PSF: nearest point of the axis segment, at least a radius.
     let s = (-hl.center).dot(&hl.axis).clamp(-hl.half_len, hl.half_len);
     let range_m = (hl.center + hl.axis * s).norm().max(hl.radius);

@@ -1,8 +1,15 @@
 //! Ray casting in the camera frame: exact inverse lens distortion per
-//! sample, and ray intersections with marker plates and hull cylinders.
+//! sample, refraction through the flat port when there is one, and ray
+//! intersections with marker plates and hull cylinders.
+//!
+//! A sample ray is given by its in-air direction `(x, y, 1)` from the lens
+//! centre. Without a port that is the ray; with one ([`Objects::port`]) it
+//! continues in the water from a point `o` on the port's outer surface
+//! along `(a, b, 1)` (`FlatPort::refract`), and a hit's `t` is measured
+//! along z from `o`.
 
 use nalgebra::{Isometry3, Point3, Vector3};
-use shoal_proto::CameraModel;
+use shoal_proto::{CameraModel, FlatPort};
 
 /// Albedos of the printed marker and the vehicles (clean radiance is
 /// `albedo · shading`, see `docs/water-model.md`).
@@ -43,8 +50,11 @@ pub fn ray_from(cam: &CameraModel, u: f64, v: f64, guess: (f64, f64)) -> (f64, f
 /// What a sample ray hit.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Hit {
-    /// Ray parameter along `(x, y, 1)`: the hit's camera-frame depth `z`.
+    /// Ray parameter along the in-water `(a, b, 1)`: the hit's depth `z`
+    /// beyond the ray's origin (the lens centre without a port).
     pub t: f64,
+    /// Path length in the water from the ray's origin to the hit (m).
+    pub range: f64,
     /// Index into the traced objects (plates first, then hulls).
     pub object: u32,
     /// Which uniform patch: for plates the module index `row·(m+2)+col` in
@@ -93,6 +103,8 @@ pub struct Objects {
     pub hulls: Vec<Hull>,
     /// The world's up direction in the camera frame.
     pub up: Vector3<f64>,
+    /// The flat port the camera looks through, if any.
+    pub port: Option<FlatPort>,
 }
 
 /// Hits closer than this (m along z) are ignored: cameras sit on hull surfaces.
@@ -201,17 +213,25 @@ impl Plate {
 
     #[inline]
     #[allow(clippy::type_complexity)]
-    fn intersect(&self, x: f64, y: f64, t_max: f64) -> Option<(f64, u32, f64, f64, (f64, f64))> {
+    fn intersect(
+        &self,
+        o: &Vector3<f64>,
+        x: f64,
+        y: f64,
+        t_max: f64,
+    ) -> Option<(f64, u32, f64, f64, (f64, f64))> {
         let d = Vector3::new(x, y, 1.0);
         let denom = self.normal.dot(&d);
         if denom.abs() < 1e-15 {
             return None;
         }
-        let t = self.normal.dot(&self.origin) / denom;
+        // The plate's origin from the ray's (exactly `self.origin` when `o` is 0).
+        let from_o = self.origin - o;
+        let t = self.normal.dot(&from_o) / denom;
         if !(t > NEAR_M && t < t_max) {
             return None;
         }
-        let rel = d * t - self.origin;
+        let rel = d * t - from_o;
         let px = rel.dot(&self.ex);
         let py = rel.dot(&self.ey);
         if px.abs() > self.half_m || py.abs() > self.half_m {
@@ -295,9 +315,16 @@ impl Hull {
 
     /// Nearest intersection `(t, outward normal)` with the closed cylinder.
     #[inline]
-    fn intersect(&self, x: f64, y: f64, t_max: f64) -> Option<(f64, Vector3<f64>)> {
+    fn intersect(
+        &self,
+        o: &Vector3<f64>,
+        x: f64,
+        y: f64,
+        t_max: f64,
+    ) -> Option<(f64, Vector3<f64>)> {
         let d = Vector3::new(x, y, 1.0);
-        let oc = -self.center;
+        // The ray's origin from the centre (exactly `-self.center` when `o` is 0).
+        let oc = -(self.center - o);
         let da = d.dot(&self.axis);
         let oa = oc.dot(&self.axis);
         let dp = d - self.axis * da;
@@ -337,13 +364,15 @@ impl Hull {
 }
 
 impl Objects {
-    /// The nearest hit along `(x, y, 1)`, if any.
+    /// The nearest hit of the in-air ray `(x, y, 1)` (refracted by the port
+    /// when there is one), if any.
     #[inline]
     pub fn trace(&self, x: f64, y: f64) -> Option<Hit> {
+        let (o, (x, y)) = self.in_water(x, y);
         let mut best: Option<Hit> = None;
         for i in 0..self.object_count() as u32 {
             let t_max = best.map_or(f64::INFINITY, |h| h.t);
-            if let Some(h) = self.hit_object(i, x, y, t_max) {
+            if let Some(h) = self.hit_object(i, &o, x, y, t_max) {
                 best = Some(h);
             }
         }
@@ -354,25 +383,43 @@ impl Objects {
     /// regions of interest contain the pixel).
     #[inline]
     pub fn trace_in(&self, ids: &[u32], x: f64, y: f64) -> Option<Hit> {
+        let (o, (x, y)) = self.in_water(x, y);
         let mut best: Option<Hit> = None;
         for &i in ids {
             let t_max = best.map_or(f64::INFINITY, |h| h.t);
-            if let Some(h) = self.hit_object(i, x, y, t_max) {
+            if let Some(h) = self.hit_object(i, &o, x, y, t_max) {
                 best = Some(h);
             }
         }
         best
     }
 
-    /// The hit on object `i` (plates first, then hulls) nearer than `t_max`.
+    /// The in-water ray of the in-air ray `(x, y, 1)`: its origin and slope.
     #[inline]
-    fn hit_object(&self, i: u32, x: f64, y: f64, t_max: f64) -> Option<Hit> {
+    fn in_water(&self, x: f64, y: f64) -> (Vector3<f64>, (f64, f64)) {
+        match &self.port {
+            None => (Vector3::zeros(), (x, y)),
+            Some(port) => port.refract(x, y),
+        }
+    }
+
+    /// The camera-frame point `p`'s pixel through the port and the lens (the
+    /// lens alone without a port).
+    pub fn project(&self, cam: &CameraModel, p: &Point3<f64>) -> Option<nalgebra::Point2<f64>> {
+        shoal_proto::port::project(cam, self.port.as_ref(), p)
+    }
+
+    /// The hit on object `i` (plates first, then hulls) nearer than `t_max`
+    /// along the ray from `o` along `(x, y, 1)`.
+    #[inline]
+    fn hit_object(&self, i: u32, o: &Vector3<f64>, x: f64, y: f64, t_max: f64) -> Option<Hit> {
         let np = self.plates.len() as u32;
         if i < np {
             let (t, patch, radiance, lamp_geom, plane) =
-                self.plates[i as usize].intersect(x, y, t_max)?;
+                self.plates[i as usize].intersect(o, x, y, t_max)?;
             Some(Hit {
                 t,
+                range: t * (x * x + y * y + 1.0).sqrt(),
                 object: i,
                 patch,
                 plane,
@@ -380,11 +427,15 @@ impl Objects {
                 lamp_geom,
             })
         } else {
-            let (t, n) = self.hulls.get((i - np) as usize)?.intersect(x, y, t_max)?;
+            let (t, n) = self
+                .hulls
+                .get((i - np) as usize)?
+                .intersect(o, x, y, t_max)?;
             let d = Vector3::new(x, y, 1.0);
             let cos_i = (-n.dot(&d) / d.norm()).clamp(0.0, 1.0);
             Some(Hit {
                 t,
+                range: t * (x * x + y * y + 1.0).sqrt(),
                 object: i,
                 patch: 0,
                 plane: (0.0, 0.0),
@@ -397,11 +448,18 @@ impl Objects {
     /// Whether the point `p` (camera frame) is the first thing its ray hits
     /// (within 1e-6 relative depth), i.e. not occluded.
     pub fn sees(&self, p: &Point3<f64>) -> bool {
-        if p.z <= NEAR_M {
+        let (x, y, depth) = match &self.port {
+            None => (p.x / p.z, p.y / p.z, p.z),
+            Some(port) => match port.air_ray(p) {
+                Some((x, y)) => (x, y, p.z - port.outer_z()),
+                None => return false,
+            },
+        };
+        if depth <= NEAR_M {
             return false;
         }
-        match self.trace(p.x / p.z, p.y / p.z) {
-            Some(h) => h.t >= p.z * (1.0 - 1e-6),
+        match self.trace(x, y) {
+            Some(h) => h.t >= depth * (1.0 - 1e-6),
             None => true,
         }
     }
@@ -462,6 +520,7 @@ mod tests {
             plates: vec![],
             hulls: vec![h],
             up: -Vector3::y(),
+            port: None,
         };
         let hit = objs.trace(0.0, 0.0).unwrap();
         assert!((hit.t - 1.9).abs() < 1e-12);
@@ -481,6 +540,7 @@ mod tests {
                 1.0,
             )],
             up: -Vector3::y(),
+            port: None,
         };
         let hit = side.trace(0.0, 0.0).unwrap();
         assert!((hit.t - 2.5).abs() < 1e-12, "{}", hit.t);

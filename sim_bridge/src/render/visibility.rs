@@ -7,7 +7,7 @@ use super::Scene;
 use crate::error::SimError;
 use nalgebra::Point3;
 use shoal_proto::geometry::pose_is_finite;
-use shoal_proto::{CameraModel, CodeSet, MarkerId, Pose, VisibleMarker};
+use shoal_proto::{CameraModel, CodeSet, FlatPort, MarkerId, Pose, VisibleMarker};
 
 /// The module grid of a marker (see `CodeSet::module_grid`).
 pub(super) fn grid_of(codes: CodeSet, id: MarkerId) -> Result<Vec<bool>, SimError> {
@@ -33,6 +33,7 @@ pub(super) fn build_objects(
         plates: Vec::with_capacity(scene.markers.len()),
         hulls: Vec::with_capacity(scene.hulls.len()),
         up,
+        port: None,
     };
     for m in &scene.markers {
         let grid = if grids {
@@ -66,7 +67,21 @@ pub fn visible_in_view(
     world_from_camera: &Pose,
     scene: &Scene,
 ) -> Result<Vec<VisibleMarker>, SimError> {
+    visible_in_view_with_port(cam, None, world_from_camera, scene)
+}
+
+/// [`visible_in_view`] for a camera behind a flat port (corners projected
+/// through it, as [`super::Renderer::render_with_port`] draws them).
+pub fn visible_in_view_with_port(
+    cam: &CameraModel,
+    port: Option<&FlatPort>,
+    world_from_camera: &Pose,
+    scene: &Scene,
+) -> Result<Vec<VisibleMarker>, SimError> {
     if let Some(p) = cam.problem() {
+        return Err(SimError::Camera(p));
+    }
+    if let Some(p) = port.and_then(FlatPort::problem) {
         return Err(SimError::Camera(p));
     }
     if !pose_is_finite(world_from_camera) {
@@ -85,7 +100,8 @@ pub fn visible_in_view(
             });
         }
     }
-    let objects = build_objects(scene, &world_from_camera.inverse(), false)?;
+    let mut objects = build_objects(scene, &world_from_camera.inverse(), false)?;
+    objects.port = port.copied();
     Ok(visible_markers(cam, scene, &objects))
 }
 
@@ -121,7 +137,7 @@ pub(super) fn visible_markers(
                 let a = m.side_m * ((i as f64 + 0.5) / k as f64 - 0.5);
                 let b = m.side_m * ((j as f64 + 0.5) / k as f64 - 0.5);
                 let p = Point3::from(plate.origin + plate.ex * a + plate.ey * b);
-                let in_frame = cam.project(&p).is_some_and(|q| {
+                let in_frame = objects.project(cam, &p).is_some_and(|q| {
                     q.x >= -0.5
                         && q.y >= -0.5
                         && q.x <= cam.width as f64 - 0.5
@@ -137,7 +153,7 @@ pub(super) fn visible_markers(
         }
         let corners_px = corners
             .iter()
-            .filter_map(|c| cam.project(c))
+            .filter_map(|c| objects.project(cam, c))
             .map(|q| [q.x, q.y])
             .collect();
         out.push(VisibleMarker {
