@@ -168,7 +168,6 @@ pub fn spawn_reader(
         Files(Vec<PathBuf>, f64),
         /// The video and the frame count the file declares.
         Video(opencv::videoio::VideoCapture, u64),
-        Live(live::LiveCapture),
     }
     let opened = match &source {
         LocalSource::Images { dir, rate_hz, .. } => Opened::Files(image_files(dir)?, *rate_hz),
@@ -178,17 +177,71 @@ pub fn spawn_reader(
             Opened::Video(cap, declared)
         }
         LocalSource::Live { .. } | LocalSource::V4l2 { .. } | LocalSource::Gst { .. } => {
-            Opened::Live(live::LiveCapture::open(source.clone())?)
+            return spawn_live(name, source, feed, stop);
         }
     };
     Ok(std::thread::Builder::new().name(name).spawn(move || {
         match opened {
             Opened::Files(files, rate_hz) => play_files(&feed, &files, rate_hz, &stop),
             Opened::Video(cap, declared) => play_video(&feed, cap, declared, &stop),
-            Opened::Live(cap) => live::run(&feed, cap, &stop),
         }
         tracing::info!("source of vehicle {vehicle} camera {camera} finished");
     })?)
+}
+
+/// How long starting a live source waits for its first opening: one that
+/// fails within it is an error of [`spawn_reader`]; one still opening after
+/// it (OpenCV's GStreamer backend waits for a live pipeline's first buffer:
+/// a network stream not sending yet) goes on opening on its thread.
+pub const LIVE_OPEN_WAIT: Duration = Duration::from_secs(5);
+
+/// A live source's thread: it opens the capture itself, since OpenCV's open
+/// can block until the stream sends (see [`LIVE_OPEN_WAIT`]).
+fn spawn_live(
+    name: String,
+    source: LocalSource,
+    feed: Feed,
+    stop: Arc<AtomicBool>,
+) -> Result<JoinHandle<()>, SourceError> {
+    let (opened_tx, opened_rx) = std::sync::mpsc::sync_channel::<Result<(), SourceError>>(1);
+    let what = source.describe();
+    let thread = std::thread::Builder::new().name(name).spawn(move || {
+        let cap = match live::LiveCapture::open(source) {
+            Ok(cap) => {
+                let _ = opened_tx.send(Ok(()));
+                cap
+            }
+            Err(e) => {
+                let _ = opened_tx.send(Err(e));
+                return;
+            }
+        };
+        live::run(&feed, cap, &stop);
+        tracing::info!(
+            "source of vehicle {} camera {} finished",
+            feed.vehicle,
+            feed.camera
+        );
+    })?;
+    match opened_rx.recv_timeout(LIVE_OPEN_WAIT) {
+        Ok(Ok(())) => Ok(thread),
+        Ok(Err(e)) => {
+            let _ = thread.join();
+            Err(e)
+        }
+        Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {
+            tracing::warn!(
+                "{what}: still opening after {:.0} s: a stream that is not sending yet, \
+                 or a pipeline GStreamer cannot run (OpenCV's warnings above say which; \
+                 without gst-inspect-1.0 an unknown element is not caught before)",
+                LIVE_OPEN_WAIT.as_secs_f64()
+            );
+            Ok(thread)
+        }
+        Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => {
+            Err(source_error(what, "the source thread ended while opening"))
+        }
+    }
 }
 
 /// Join `thread` if it finishes within `wait`; otherwise leave it (a read

@@ -166,7 +166,8 @@ pub fn gst_pipeline_problem(pipeline: &str) -> Option<String> {
 }
 
 /// The pipeline's elements that GStreamer does not have, as
-/// `gst-inspect-1.0 --exists` says (`None`: it could not be asked).
+/// `gst-inspect-1.0 --exists` says (`None`: it could not be asked, as
+/// without Debian's gstreamer1.0-tools).
 fn missing_gst_elements(pipeline: &str) -> Option<Vec<String>> {
     let mut missing = Vec::new();
     for segment in pipeline.split('!') {
@@ -254,26 +255,32 @@ fn open_gst(pipeline: &str, what: &str) -> Result<VideoCapture, SourceError> {
             "this OpenCV has no GStreamer backend (Debian's libopencv-videoio406 has one)",
         ));
     }
+    // Asked before OpenCV tries: OpenCV 4.6 runs what GStreamer could parse
+    // of a pipeline with an unknown element, and its open then waits forever
+    // for a first frame.
+    if let Some(missing) = missing_gst_elements(pipeline).filter(|m| !m.is_empty()) {
+        return Err(source_error(
+            what,
+            format!(
+                "GStreamer could not open the pipeline: it has no element {} \
+                 (install the GStreamer plugin package that provides it: \
+                 gstreamer1.0-plugins-base, -good, -bad, -ugly or gstreamer1.0-libav)",
+                missing
+                    .iter()
+                    .map(|e| format!("`{e}`"))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ),
+        ));
+    }
     let cap = VideoCapture::from_file(pipeline, videoio::CAP_GSTREAMER)
         .map_err(|e| source_error(what, format!("GStreamer could not open the pipeline: {e}")))?;
-    if cap.is_opened().unwrap_or(false) {
-        return Ok(cap);
-    }
-    let why = match missing_gst_elements(pipeline) {
-        Some(m) if !m.is_empty() => format!(
-            "GStreamer could not open the pipeline: it has no element {} \
-             (install the GStreamer plugin package that provides it: \
-             gstreamer1.0-plugins-base, -good, -bad, -ugly or gstreamer1.0-libav)",
-            m.iter()
-                .map(|e| format!("`{e}`"))
-                .collect::<Vec<_>>()
-                .join(", ")
-        ),
-        _ => "GStreamer could not open the pipeline (a bad property, caps that do not \
-              link, or a device or address it cannot open: OpenCV's warning above says which)"
-            .to_string(),
-    };
-    Err(source_error(what, why))
+    opened(
+        cap,
+        what,
+        "GStreamer could not open the pipeline (a bad property, caps that do not \
+         link, or a device or address it cannot open: OpenCV's warning above says which)",
+    )
 }
 
 /// Sleep `wait` unless `stop` is raised first; false if it was.
