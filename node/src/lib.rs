@@ -14,7 +14,8 @@
 //! - [`pipeline`]: one camera's chain, restore → detect → PnP → body-frame observations;
 //! - [`track`]: constant-velocity SE(3) tracking that bridges short occlusions;
 //! - [`vehicle`]: the vehicle's camera threads, fed from any [`vehicle::FrameInput`], and their counters;
-//! - [`source`]: local frame sources (a folder of images, a video, a live camera).
+//! - [`source`]: local frame sources (a folder of images, a video, a camera: V4L2, a GStreamer pipeline), with capture stamps, missed frames and reconnection;
+//! - [`clock`]: the machine's clocks as capture stamps and the status need them (wall, monotonic offset, the kernel's NTP/PTP state).
 
 // A library reports failures as errors; an `unwrap()` that cannot fail says why with `expect`.
 #![warn(clippy::unwrap_used)]
@@ -22,6 +23,7 @@
 pub mod baseline;
 pub mod board;
 pub mod calibrate;
+pub mod clock;
 pub mod detect;
 pub mod image_file;
 pub mod mat;

@@ -14,10 +14,10 @@ use opencv::prelude::*;
 use shoal_proto::config::Camera;
 use shoal_proto::image::GrayImage;
 use shoal_proto::messages::{
-    CameraFrame, CameraStatus, NodeStatus, Observation, PixelFormat, VehicleId,
+    CameraFrame, CameraStatus, NodeStatus, Observation, PixelFormat, StampSource, VehicleId,
 };
 use shoal_proto::queue::DropOldestQueue;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicU8, Ordering};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
@@ -34,13 +34,63 @@ pub trait FrameInput: Send {
     /// Envelopes that failed decoding or validation (counted in the node's
     /// `messages_rejected`); 0 for inputs that do not receive envelopes.
     fn messages_rejected(&self) -> u64;
+    /// Where the stamps of the frames it gives come from (default: the
+    /// stamp each frame arrived with).
+    fn stamp_source(&self) -> StampSource {
+        StampSource::Sender
+    }
+    /// Frames the source's own timing shows it never delivered (default 0:
+    /// the input cannot tell).
+    fn frames_missed(&self) -> u64 {
+        0
+    }
+    /// Times the source was reopened after its stream ended or failed.
+    fn reconnects(&self) -> u64 {
+        0
+    }
 }
 
-/// A local source's queue and its count of frames it could not decode.
+/// What a local source's reader thread reports besides its frames.
+#[derive(Debug, Default)]
+pub struct SourceCounters {
+    /// Images or video frames it could not decode.
+    pub unreadable: AtomicU64,
+    /// Frames its timing shows the device or pipeline never delivered.
+    pub missed: AtomicU64,
+    /// Reopenings after the stream ended or failed.
+    pub reconnects: AtomicU64,
+    /// The [`StampSource`] of the newest frame (its `as u8`).
+    stamp_source: AtomicU8,
+}
+
+impl SourceCounters {
+    pub fn set_stamp_source(&self, source: StampSource) {
+        self.stamp_source.store(source as u8, Ordering::Relaxed);
+    }
+    pub fn stamp_source(&self) -> StampSource {
+        stamp_source_from_u8(self.stamp_source.load(Ordering::Relaxed))
+    }
+}
+
+fn stamp_source_from_u8(v: u8) -> StampSource {
+    [
+        StampSource::Unknown,
+        StampSource::Sender,
+        StampSource::Driver,
+        StampSource::Pipeline,
+        StampSource::Arrival,
+        StampSource::Playback,
+    ]
+    .into_iter()
+    .find(|s| *s as u8 == v)
+    .unwrap_or(StampSource::Unknown)
+}
+
+/// A local source's queue and its counters.
 #[derive(Debug, Clone)]
 pub struct LocalInput {
     pub queue: DropOldestQueue<CameraFrame>,
-    pub unreadable: Arc<AtomicU64>,
+    pub counters: Arc<SourceCounters>,
 }
 
 impl LocalInput {
@@ -48,7 +98,7 @@ impl LocalInput {
     pub fn new(capacity: usize) -> LocalInput {
         LocalInput {
             queue: DropOldestQueue::new(capacity),
-            unreadable: Arc::default(),
+            counters: Arc::default(),
         }
     }
 }
@@ -61,10 +111,19 @@ impl FrameInput for LocalInput {
         self.queue.dropped()
     }
     fn rejected(&self) -> u64 {
-        self.unreadable.load(Ordering::Relaxed)
+        self.counters.unreadable.load(Ordering::Relaxed)
     }
     fn messages_rejected(&self) -> u64 {
         0
+    }
+    fn stamp_source(&self) -> StampSource {
+        self.counters.stamp_source()
+    }
+    fn frames_missed(&self) -> u64 {
+        self.counters.missed.load(Ordering::Relaxed)
+    }
+    fn reconnects(&self) -> u64 {
+        self.counters.reconnects.load(Ordering::Relaxed)
     }
 }
 
@@ -74,6 +133,10 @@ struct CameraCounters {
     frames_dropped: AtomicU64,
     frames_invalid: AtomicU64,
     detections: AtomicU64,
+    /// The input's [`StampSource`] (`as u8`), once it gave a frame.
+    stamp_source: AtomicU8,
+    frames_missed: AtomicU64,
+    reconnects: AtomicU64,
     /// Detections since start by the corner fit that ran.
     corner_fits: Mutex<CornerFitCounts>,
     /// Sums over the current status period: (frames, restore, detect, pose ms).
@@ -166,6 +229,9 @@ impl NodeStats {
                                 .collect()
                         })
                         .unwrap_or_default(),
+                    stamp_source: stamp_source_from_u8(c.stamp_source.load(Ordering::Relaxed)),
+                    frames_missed: c.frames_missed.load(Ordering::Relaxed),
+                    reconnects: c.reconnects.load(Ordering::Relaxed),
                 }
             })
             .collect();
@@ -176,6 +242,7 @@ impl NodeStats {
             cameras,
             observations_sent: self.observations_sent.load(Ordering::Relaxed),
             messages_rejected: self.messages_rejected.load(Ordering::Relaxed),
+            clock: None,
         }
     }
 }
@@ -214,6 +281,12 @@ pub fn spawn_camera<E: std::fmt::Display>(
             counters
                 .frames_invalid
                 .store(refused_here + input.rejected(), Ordering::Relaxed);
+            counters
+                .frames_missed
+                .store(input.frames_missed(), Ordering::Relaxed);
+            counters
+                .reconnects
+                .store(input.reconnects(), Ordering::Relaxed);
             let rejected = input.messages_rejected();
             if rejected > rejected_seen {
                 stats
@@ -225,6 +298,9 @@ pub fn spawn_camera<E: std::fmt::Display>(
                 continue;
             };
             counters.frames_in.fetch_add(1, Ordering::Relaxed);
+            counters
+                .stamp_source
+                .store(input.stamp_source() as u8, Ordering::Relaxed);
             stats
                 .newest_stamp_ns
                 .fetch_max(frame.stamp_ns, Ordering::Relaxed);
@@ -351,7 +427,7 @@ mod tests {
             CameraPipeline::new(fleet.clone(), 17, 0, PipelineParams::default()).unwrap();
         let input = LocalInput::new(4);
         // What a local reader could not decode before the thread started.
-        input.unreadable.store(3, Ordering::Relaxed);
+        input.counters.unreadable.store(3, Ordering::Relaxed);
         // 8x4, not camera 0's size.
         let wrong_size = samples::camera_frame();
         // Camera 0's size, but addressed to camera 1.

@@ -14,11 +14,11 @@ use opencv::prelude::*;
 use proptest::prelude::*;
 use proptest::test_runner::Config as ProptestConfig;
 use shoal_node::source::{read_image_gray, spawn_reader, LocalSource};
-use shoal_proto::messages::{CameraInfo, WireMessage};
+use shoal_proto::messages::{CameraInfo, StampSource, WireMessage};
 use shoal_proto::queue::DropOldestQueue;
 use shoal_proto::CameraModel;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, OnceLock};
 
 /// Failures print the minimal input; no regression files in the source tree.
@@ -118,7 +118,7 @@ fn the_folder_source_skips_and_counts_unreadable_files() {
     std::fs::write(dir.join("d_text.jpg"), b"not an image at all").unwrap();
     std::fs::write(dir.join("e_good.bmp"), &encoded()[1]).unwrap();
     let queue = DropOldestQueue::new(16);
-    let unreadable = Arc::new(AtomicU64::new(0));
+    let counters = Arc::new(shoal_node::vehicle::SourceCounters::default());
     let info = CameraInfo {
         model: CameraModel::vehicle_1440(),
         body_from_camera: shoal_proto::Pose::identity(),
@@ -132,14 +132,15 @@ fn the_folder_source_skips_and_counts_unreadable_files() {
         10,
         info,
         queue.clone(),
-        unreadable.clone(),
+        counters.clone(),
         Arc::new(AtomicBool::new(false)),
     )
     .unwrap();
     thread.join().expect("the reader thread does not panic");
     let frames = queue.drain();
-    assert_eq!(unreadable.load(Ordering::Relaxed), 3);
+    assert_eq!(counters.unreadable.load(Ordering::Relaxed), 3);
     assert_eq!(frames.len(), 2);
+    assert_eq!(counters.stamp_source(), StampSource::Playback);
     for f in &frames {
         assert_eq!(
             (f.info.model.width, f.info.model.height),

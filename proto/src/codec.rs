@@ -16,9 +16,13 @@ use crate::messages::{MessageKind, WireMessage};
 use bincode::config::{Configuration, Fixint, Limit, LittleEndian};
 
 pub const MAGIC: [u8; 4] = *b"SHOL";
-/// Bumped on any incompatible change of a message layout; each kind is read
-/// from the version its layout last changed at ([`MessageKind::layout_since`]).
+/// Bumped on any incompatible change of a message layout.
 pub const SCHEMA_VERSION: u16 = 5;
+/// Oldest schema version still decoded, so logs written by older builds stay
+/// readable: a message whose layout changed since is read through its old
+/// layout ([`WireMessage::decode_older`]); today's builds only write
+/// [`SCHEMA_VERSION`]. Version 5 changed `NodeStatus` and `CameraFrame` (its camera's lens model).
+pub const OLDEST_READABLE_VERSION: u16 = 4;
 pub const HEADER_LEN: usize = 12;
 /// Largest payload accepted: a 4096x4096 RGB frame plus slack.
 pub const MAX_PAYLOAD: usize = 64 << 20;
@@ -39,12 +43,8 @@ pub enum DecodeError {
     Truncated { len: usize },
     #[error("bad magic {found:02x?}: not a shoal message")]
     BadMagic { found: [u8; 4] },
-    #[error("schema version {found} from peer, this build reads {kind:?} of versions {oldest}..={SCHEMA_VERSION}: upgrade the older side")]
-    VersionMismatch {
-        found: u16,
-        kind: MessageKind,
-        oldest: u16,
-    },
+    #[error("schema version {found} from peer, this build speaks {SCHEMA_VERSION} (and reads back to {OLDEST_READABLE_VERSION}): upgrade the older side")]
+    VersionMismatch { found: u16 },
     #[error("unknown message kind {found}")]
     UnknownKind { found: u16 },
     #[error("expected a {expected:?} message, got {found:?}")]
@@ -117,17 +117,12 @@ pub fn peek_header(bytes: &[u8]) -> Result<Header, DecodeError> {
         return Err(DecodeError::BadMagic { found: magic });
     }
     let version = u16::from_le_bytes([bytes[4], bytes[5]]);
+    if !(OLDEST_READABLE_VERSION..=SCHEMA_VERSION).contains(&version) {
+        return Err(DecodeError::VersionMismatch { found: version });
+    }
     let raw_kind = u16::from_le_bytes([bytes[6], bytes[7]]);
     let kind =
         MessageKind::from_u16(raw_kind).ok_or(DecodeError::UnknownKind { found: raw_kind })?;
-    let oldest = kind.layout_since();
-    if !(oldest..=SCHEMA_VERSION).contains(&version) {
-        return Err(DecodeError::VersionMismatch {
-            found: version,
-            kind,
-            oldest,
-        });
-    }
     let declared = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize;
     if declared > MAX_PAYLOAD {
         return Err(DecodeError::Oversized { len: declared });
@@ -153,25 +148,44 @@ pub fn decode<M: WireMessage>(bytes: &[u8]) -> Result<M, DecodeError> {
         });
     }
     let payload = &bytes[HEADER_LEN..];
-    let (msg, used): (M, usize) =
-        bincode::serde::decode_from_slice(payload, config()).map_err(|e| {
-            DecodeError::Malformed {
-                kind: M::KIND,
-                reason: e.to_string(),
-            }
-        })?;
-    if used != payload.len() {
-        return Err(DecodeError::TrailingBytes {
-            kind: M::KIND,
-            extra: payload.len() - used,
-        });
-    }
+    let older = if header.version < SCHEMA_VERSION {
+        M::decode_older(header.version, payload)
+    } else {
+        None
+    };
+    let msg = match older {
+        Some(decoded) => decoded?,
+        None => decode_payload::<M>(M::KIND, payload)?,
+    };
     msg.validate()
         .map_err(|(field, reason)| DecodeError::Invalid {
             kind: M::KIND,
             field,
             reason,
         })?;
+    Ok(msg)
+}
+
+/// Decode a bincode payload of a `kind` message that must end exactly at the
+/// end of `payload` (today's layout, or an older one's in
+/// [`WireMessage::decode_older`]).
+pub fn decode_payload<T: serde::de::DeserializeOwned>(
+    kind: MessageKind,
+    payload: &[u8],
+) -> Result<T, DecodeError> {
+    let (msg, used): (T, usize) =
+        bincode::serde::decode_from_slice(payload, config()).map_err(|e| {
+            DecodeError::Malformed {
+                kind,
+                reason: e.to_string(),
+            }
+        })?;
+    if used != payload.len() {
+        return Err(DecodeError::TrailingBytes {
+            kind,
+            extra: payload.len() - used,
+        });
+    }
     Ok(msg)
 }
 
@@ -214,27 +228,8 @@ mod tests {
         wrong_version[4] = 9;
         assert_eq!(
             decode::<Observation>(&wrong_version),
-            Err(DecodeError::VersionMismatch {
-                found: 9,
-                kind: MessageKind::Observation,
-                oldest: 4
-            })
+            Err(DecodeError::VersionMismatch { found: 9 })
         );
-        // Version 4 Observations (logs written before the lens models) still
-        // read; a version 4 CameraFrame, whose layout changed at 5, does not.
-        let mut v4 = bytes.clone();
-        v4[4] = 4;
-        assert_eq!(decode::<Observation>(&v4), decode::<Observation>(&bytes));
-        let mut frame = encode(&samples::camera_frame()).unwrap();
-        frame[4] = 4;
-        assert!(matches!(
-            decode::<CameraFrame>(&frame),
-            Err(DecodeError::VersionMismatch {
-                found: 4,
-                oldest: 5,
-                ..
-            })
-        ));
         assert!(matches!(
             decode::<FleetMap>(&bytes),
             Err(DecodeError::WrongKind { .. })
@@ -243,6 +238,63 @@ mod tests {
             decode::<Observation>(&bytes[..bytes.len() - 1]),
             Err(DecodeError::LengthMismatch { .. })
         ));
+    }
+
+    /// A version-4 envelope: `bytes` with the version field set to 4 and the
+    /// payload replaced by `payload`.
+    fn as_version_4(bytes: &[u8], payload: &[u8]) -> Vec<u8> {
+        let mut b = bytes[..HEADER_LEN].to_vec();
+        b[4..6].copy_from_slice(&4u16.to_le_bytes());
+        b[8..12].copy_from_slice(&(payload.len() as u32).to_le_bytes());
+        b.extend_from_slice(payload);
+        b
+    }
+
+    #[test]
+    fn version_4_messages_still_decode() {
+        // Unchanged layouts decode as today's.
+        let obs = samples::observation();
+        let bytes = encode(&obs).unwrap();
+        let old = as_version_4(&bytes, &bytes[HEADER_LEN..]);
+        assert_eq!(decode::<Observation>(&old), Ok(obs));
+        // A version-4 NodeStatus lacks each camera's stamp source, missed
+        // frames and reconnects (4 + 8 + 8 bytes at the end of the one
+        // camera) and the clock (1 byte, None, at the very end).
+        let mut status = samples::node_status();
+        status.clock = None;
+        let bytes = encode(&status).unwrap();
+        let p = &bytes[HEADER_LEN..bytes.len() - 1];
+        let tail = p.len() - 16; // observations_sent, messages_rejected
+        let v4: Vec<u8> = [&p[..tail - 20], &p[tail..]].concat();
+        let back = decode::<NodeStatus>(&as_version_4(&bytes, &v4)).unwrap();
+        let mut expected = status.clone();
+        expected.cameras[0].stamp_source = StampSource::Unknown;
+        expected.cameras[0].frames_missed = 0;
+        expected.cameras[0].reconnects = 0;
+        assert_eq!(back, expected);
+        // A version-4 CameraFrame: its lens is 5 plumb-bob coefficients with
+        // no variant tag (the u32 after width, height, fx, fy, cx, cy).
+        let frame = samples::camera_frame();
+        assert!(matches!(
+            frame.info.model.distortion,
+            crate::camera::Distortion::PlumbBob(_)
+        ));
+        let bytes = encode(&frame).unwrap();
+        let p = &bytes[HEADER_LEN..];
+        let tag = 4 + 1 + 8 + 8 + 2 * 4 + 4 * 8;
+        let v4: Vec<u8> = [&p[..tag], &p[tag + 4..]].concat();
+        assert_eq!(decode::<CameraFrame>(&as_version_4(&bytes, &v4)), Ok(frame));
+        // Today's NodeStatus under a version-4 header is refused, not misread.
+        assert!(matches!(
+            decode::<NodeStatus>(&as_version_4(&bytes, &bytes[HEADER_LEN..])),
+            Err(DecodeError::TrailingBytes { .. } | DecodeError::Malformed { .. })
+        ));
+        let mut v3 = bytes.clone();
+        v3[4] = 3;
+        assert_eq!(
+            decode::<NodeStatus>(&v3),
+            Err(DecodeError::VersionMismatch { found: 3 })
+        );
     }
 
     #[test]

@@ -7,6 +7,7 @@
 //! a vehicle.
 
 use crate::camera::CameraModel;
+use crate::codec::DecodeError;
 use crate::geometry::{covariance_problem, pose_is_finite, Cov6, Pose};
 use crate::marker::{CodeSet, MarkerId};
 use serde::{Deserialize, Serialize};
@@ -43,19 +44,6 @@ impl MessageKind {
         Self::ALL.iter().copied().find(|k| *k as u16 == v)
     }
 
-    /// The oldest schema version whose layout of this kind this build reads:
-    /// the version at which the kind last changed, or the oldest version still
-    /// read (4). A message of this kind stamped with any version from there
-    /// to [`crate::codec::SCHEMA_VERSION`] decodes; logs written before an
-    /// unrelated change stay readable.
-    pub fn layout_since(self) -> u16 {
-        match self {
-            // 5: `CameraModel::distortion` became a lens model (plumb-bob, rational, equidistant).
-            MessageKind::CameraFrame => 5,
-            _ => 4,
-        }
-    }
-
     /// Schema name, as written in MCAP channel metadata.
     pub fn schema_name(self) -> &'static str {
         match self {
@@ -78,6 +66,14 @@ pub trait WireMessage: Serialize + for<'de> Deserialize<'de> {
     /// agree); `Err` names the field and the reason.
     fn validate(&self) -> Result<(), (&'static str, String)> {
         Ok(())
+    }
+    /// Decode a payload of an older schema `version` (one of
+    /// [`crate::codec::OLDEST_READABLE_VERSION`] up to today's) whose layout
+    /// differs from today's; `None`: the layout has not changed since
+    /// `version`, and the payload decodes as today's.
+    fn decode_older(version: u16, payload: &[u8]) -> Option<Result<Self, DecodeError>> {
+        let _ = (version, payload);
+        None
     }
 }
 
@@ -372,6 +368,12 @@ pub struct CameraFrame {
 
 impl WireMessage for CameraFrame {
     const KIND: MessageKind = MessageKind::CameraFrame;
+    fn decode_older(version: u16, payload: &[u8]) -> Option<Result<Self, DecodeError>> {
+        (version == 4).then(|| {
+            crate::codec::decode_payload::<legacy::CameraFrameV4>(Self::KIND, payload)
+                .map(CameraFrame::from)
+        })
+    }
     fn validate(&self) -> Result<(), (&'static str, String)> {
         if let Some(p) = self.info.model.problem() {
             return Err(("info.model", p));
@@ -472,6 +474,70 @@ pub struct CameraStatus {
     /// the names `shoal detect` prints as `corner_fit` (`pattern`,
     /// `raw_sides`, …); fits that never ran are left out.
     pub corner_fits: Vec<(String, u64)>,
+    /// Where the capture stamps of the camera's newest frame came from.
+    pub stamp_source: StampSource,
+    /// Frames the source's own timing shows were never delivered, since
+    /// start: a gap of k frame periods between successive capture stamps
+    /// counts k − 1 (lost in the driver, the pipeline or the network, before
+    /// the node's queue; `frames_dropped` counts the queue's own drops).
+    pub frames_missed: u64,
+    /// Times a live source was reopened after its stream ended or failed.
+    pub reconnects: u64,
+}
+
+/// Where a camera's capture stamps come from (`docs/time.md`). Every stamp
+/// is on the capturing machine's wall clock (UNIX time) except `Playback`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub enum StampSource {
+    /// No frame yet (or a status from before schema version 5).
+    #[default]
+    Unknown,
+    /// The stamp the frame arrived with: a `CameraFrame` on Zenoh, a ROS 2
+    /// image header; its sender chose the clock.
+    Sender,
+    /// The camera driver's buffer time (V4L2: `CLOCK_MONOTONIC`, moved to the
+    /// wall clock by the offset between the two clocks when it is read).
+    Driver,
+    /// The GStreamer pipeline's buffer time, placed on the wall clock at the
+    /// earliest arrival seen (so a stamp is never after its frame's arrival).
+    Pipeline,
+    /// The wall clock when the node read the frame: the source gave no time
+    /// of its own, or gave one too far from the arrival to be believed.
+    Arrival,
+    /// The frame's place in a file or folder, from 0 (a video's own time,
+    /// or frame number / rate for an image folder): not a wall clock.
+    Playback,
+}
+
+impl StampSource {
+    /// The name the status and the docs use.
+    pub fn name(self) -> &'static str {
+        match self {
+            StampSource::Unknown => "unknown",
+            StampSource::Sender => "sender",
+            StampSource::Driver => "driver",
+            StampSource::Pipeline => "pipeline",
+            StampSource::Arrival => "arrival",
+            StampSource::Playback => "playback",
+        }
+    }
+}
+
+/// What the kernel says of the node's clock discipline (`adjtimex(2)`), as
+/// NTP or PTP daemons maintain it (`docs/time.md`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct ClockSync {
+    /// The kernel considers the clock synchronised (`STA_UNSYNC` clear and
+    /// the clock state not `TIME_ERROR`).
+    pub synchronised: bool,
+    /// Offset the discipline is still correcting (the daemon's last measured
+    /// offset, being slewed away), nanoseconds.
+    pub offset_ns: i64,
+    /// Estimated error of the clock, nanoseconds (`esterror`).
+    pub est_error_ns: u64,
+    /// Maximum error of the clock, nanoseconds (`maxerror`: grows by 500 ppm
+    /// of elapsed time until the daemon next sets it).
+    pub max_error_ns: u64,
 }
 
 /// Periodic health report of a vehicle node.
@@ -485,10 +551,137 @@ pub struct NodeStatus {
     pub observations_sent: u64,
     /// Messages received that failed decoding or validation.
     pub messages_rejected: u64,
+    /// The node's clock discipline when the status was made (None: not
+    /// known, e.g. not Linux, or a status from before schema version 5).
+    pub clock: Option<ClockSync>,
 }
 
 impl WireMessage for NodeStatus {
     const KIND: MessageKind = MessageKind::NodeStatus;
+    fn decode_older(version: u16, payload: &[u8]) -> Option<Result<Self, DecodeError>> {
+        (version == 4).then(|| {
+            crate::codec::decode_payload::<legacy::NodeStatusV4>(Self::KIND, payload)
+                .map(NodeStatus::from)
+        })
+    }
+}
+
+/// Layouts of schema versions before today's that are still decoded, so
+/// older logs stay readable (`docs/wire.md`).
+mod legacy {
+    use super::{CameraFrame, CameraInfo, CameraStatus, NodeStatus, PixelFormat, VehicleId};
+    use crate::camera::{CameraModel, Distortion};
+    use crate::geometry::Pose;
+    use serde::Deserialize;
+
+    /// `CameraModel` of schema version 4: always plumb-bob, 5 coefficients.
+    #[derive(Deserialize)]
+    pub struct CameraModelV4 {
+        width: u32,
+        height: u32,
+        fx: f64,
+        fy: f64,
+        cx: f64,
+        cy: f64,
+        distortion: [f64; 5],
+    }
+
+    /// `CameraFrame` of schema version 4 (its camera's lens always plumb-bob).
+    #[derive(Deserialize)]
+    pub struct CameraFrameV4 {
+        vehicle: VehicleId,
+        camera: u8,
+        seq: u64,
+        stamp_ns: u64,
+        model: CameraModelV4,
+        body_from_camera: Pose,
+        format: PixelFormat,
+        data: Vec<u8>,
+    }
+
+    impl From<CameraFrameV4> for CameraFrame {
+        fn from(f: CameraFrameV4) -> CameraFrame {
+            let m = f.model;
+            CameraFrame {
+                vehicle: f.vehicle,
+                camera: f.camera,
+                seq: f.seq,
+                stamp_ns: f.stamp_ns,
+                info: CameraInfo {
+                    model: CameraModel {
+                        width: m.width,
+                        height: m.height,
+                        fx: m.fx,
+                        fy: m.fy,
+                        cx: m.cx,
+                        cy: m.cy,
+                        distortion: Distortion::PlumbBob(m.distortion),
+                    },
+                    body_from_camera: f.body_from_camera,
+                },
+                format: f.format,
+                data: f.data,
+            }
+        }
+    }
+
+    /// `CameraStatus` of schema version 4 (no stamp source, missed frames, reconnects).
+    #[derive(Deserialize)]
+    pub struct CameraStatusV4 {
+        camera: u8,
+        name: String,
+        frames_in: u64,
+        frames_dropped: u64,
+        frames_invalid: u64,
+        detections: u64,
+        frame_rate_hz: f32,
+        restore_ms: f32,
+        detect_ms: f32,
+        pose_ms: f32,
+        corner_fits: Vec<(String, u64)>,
+    }
+
+    /// `NodeStatus` of schema version 4 (no clock).
+    #[derive(Deserialize)]
+    pub struct NodeStatusV4 {
+        vehicle: VehicleId,
+        stamp_ns: u64,
+        uptime_s: f64,
+        cameras: Vec<CameraStatusV4>,
+        observations_sent: u64,
+        messages_rejected: u64,
+    }
+
+    impl From<NodeStatusV4> for NodeStatus {
+        fn from(s: NodeStatusV4) -> NodeStatus {
+            NodeStatus {
+                vehicle: s.vehicle,
+                stamp_ns: s.stamp_ns,
+                uptime_s: s.uptime_s,
+                cameras: s
+                    .cameras
+                    .into_iter()
+                    .map(|c| CameraStatus {
+                        camera: c.camera,
+                        name: c.name,
+                        frames_in: c.frames_in,
+                        frames_dropped: c.frames_dropped,
+                        frames_invalid: c.frames_invalid,
+                        detections: c.detections,
+                        frame_rate_hz: c.frame_rate_hz,
+                        restore_ms: c.restore_ms,
+                        detect_ms: c.detect_ms,
+                        pose_ms: c.pose_ms,
+                        corner_fits: c.corner_fits,
+                        ..Default::default()
+                    })
+                    .collect(),
+                observations_sent: s.observations_sent,
+                messages_rejected: s.messages_rejected,
+                clock: None,
+            }
+        }
+    }
 }
 
 /// A velocity command for a (simulated) vehicle, body frame FRD.

@@ -127,10 +127,19 @@ pub fn node_status() -> NodeStatus {
             name: "forward".into(),
             frames_in: 10,
             corner_fits: vec![("raw_sides".into(), 7), ("pattern".into(), 2)],
+            stamp_source: StampSource::Pipeline,
+            frames_missed: 2,
+            reconnects: 1,
             ..Default::default()
         }],
         observations_sent: 3,
         messages_rejected: 1,
+        clock: Some(ClockSync {
+            synchronised: true,
+            offset_ns: -1_500,
+            est_error_ns: 20_000,
+            max_error_ns: 150_000,
+        }),
     }
 }
 

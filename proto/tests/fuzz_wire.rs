@@ -12,7 +12,8 @@
 use proptest::prelude::*;
 use proptest::test_runner::Config as ProptestConfig;
 use shoal_proto::codec::{
-    decode, encode, peek_header, DecodeError, HEADER_LEN, MAX_PAYLOAD, SCHEMA_VERSION,
+    decode, encode, peek_header, DecodeError, HEADER_LEN, MAX_PAYLOAD, OLDEST_READABLE_VERSION,
+    SCHEMA_VERSION,
 };
 use shoal_proto::compact::LinkPacket;
 use shoal_proto::messages::*;
@@ -38,7 +39,20 @@ fn accepted_means_canonical<M: WireMessage + std::fmt::Debug>(
         "decoder accepted an invalid {:?}: {msg:?}",
         M::KIND
     );
-    let again = encode(&msg).expect("an accepted message re-encodes");
+    let mut again = encode(&msg).expect("an accepted message re-encodes");
+    // An older version's message is re-encoded in today's version; a layout
+    // that changed since is pinned by the codec's own tests.
+    if bytes.len() >= HEADER_LEN && bytes[4..6] != SCHEMA_VERSION.to_le_bytes() {
+        if M::decode_older(
+            u16::from_le_bytes([bytes[4], bytes[5]]),
+            &bytes[HEADER_LEN..],
+        )
+        .is_some()
+        {
+            return Ok(());
+        }
+        again[4..6].copy_from_slice(&bytes[4..6]);
+    }
     assert_eq!(
         again,
         bytes,
@@ -167,13 +181,12 @@ proptest! {
         let accepted = decode_as_every_kind(&b);
         match peek_header(&b) {
             Ok(h) => {
-                prop_assert!((h.kind.layout_since()..=SCHEMA_VERSION).contains(&h.version));
+                prop_assert!((OLDEST_READABLE_VERSION..=SCHEMA_VERSION).contains(&h.version));
                 prop_assert_eq!(h.payload_len, payload.len());
                 prop_assert!(accepted <= 1);
             }
-            Err(DecodeError::VersionMismatch { found, kind: k, oldest }) => {
-                prop_assert!(!(oldest..=SCHEMA_VERSION).contains(&found));
-                prop_assert_eq!(k as u16, kind);
+            Err(DecodeError::VersionMismatch { found }) => {
+                prop_assert!(!(OLDEST_READABLE_VERSION..=SCHEMA_VERSION).contains(&found));
                 prop_assert_eq!(accepted, 0);
             }
             Err(DecodeError::UnknownKind { found }) => {

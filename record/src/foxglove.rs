@@ -490,16 +490,19 @@ pub fn node_status(s: &NodeStatus) -> Vec<FoxgloveMessage> {
         .iter()
         .map(|c| {
             format!(
-                "{} {:.1} Hz in {} drop {} bad {} det {} ({:.0}/{:.0}/{:.0} ms)",
+                "{} {:.1} Hz in {} drop {} missed {} bad {} det {} ({:.0}/{:.0}/{:.0} ms), {} stamps, {} reconnects",
                 c.name,
                 c.frame_rate_hz,
                 c.frames_in,
                 c.frames_dropped,
+                c.frames_missed,
                 c.frames_invalid,
                 c.detections,
                 c.restore_ms,
                 c.detect_ms,
-                c.pose_ms
+                c.pose_ms,
+                c.stamp_source.name(),
+                c.reconnects
             )
         })
         .collect();

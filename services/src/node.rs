@@ -60,10 +60,17 @@ pub enum NodeError {
     Thread(#[from] std::io::Error),
 }
 
+/// How long a node's stop waits for a local source's thread, which may be
+/// blocked in a read of a stream gone silent (OpenCV 4.6's GStreamer
+/// backend has no read timeout): it is then left to end with the process.
+pub const SOURCE_STOP_WAIT: Duration = Duration::from_secs(2);
+
 /// A running node; stops its threads when dropped or on [`NodeHandle::stop`].
 pub struct NodeHandle {
     stop: Arc<AtomicBool>,
     threads: Vec<JoinHandle<()>>,
+    /// A local source's reader, joined within [`SOURCE_STOP_WAIT`].
+    source_thread: Option<JoinHandle<()>>,
     stats: Arc<NodeStats>,
 }
 
@@ -89,6 +96,9 @@ impl NodeHandle {
         self.stop.store(true, Ordering::Relaxed);
         for t in self.threads.drain(..) {
             shoal_bus::join_reporting(t);
+        }
+        if let Some(t) = self.source_thread.take() {
+            shoal_node::source::join_within(t, SOURCE_STOP_WAIT);
         }
     }
 }
@@ -185,12 +195,13 @@ pub fn spawn(bus: &Bus, cfg: NodeConfig) -> Result<NodeHandle, NodeError> {
     let publisher: Arc<Publisher<Observation>> =
         Arc::new(bus.publisher(keys.observations(cfg.vehicle))?);
     let mut threads = Vec::new();
+    let mut source_thread = None;
 
     let (inputs, local_feed) = camera_inputs(bus, &cfg, &vehicle)?;
     if let Source::Local(local) = &cfg.source {
         let Some((feed, i)) = local_feed else {
             return Err(NodeError::NoSuchCamera {
-                what: format!("{local:?}"),
+                what: local.describe(),
                 vehicle: cfg.vehicle,
                 camera: local.camera(),
             });
@@ -200,12 +211,12 @@ pub fn spawn(bus: &Bus, cfg: NodeConfig) -> Result<NodeHandle, NodeError> {
             model: cam.model,
             body_from_camera: cam.body_from_camera,
         };
-        threads.push(shoal_node::source::spawn_reader(
+        source_thread = Some(shoal_node::source::spawn_reader(
             local.clone(),
             cfg.vehicle,
             info,
             feed.queue,
-            feed.unreadable,
+            feed.counters,
             stop.clone(),
         )?);
     }
@@ -249,7 +260,8 @@ pub fn spawn(bus: &Bus, cfg: NodeConfig) -> Result<NodeHandle, NodeError> {
                         }
                         let secs = last.elapsed().as_secs_f64();
                         last = Instant::now();
-                        let status = stats.status_report(vehicle_id, started, secs);
+                        let mut status = stats.status_report(vehicle_id, started, secs);
+                        status.clock = shoal_node::clock::kernel_clock_sync();
                         if let Err(e) = status_pub.put(&status) {
                             tracing::warn!("publishing status: {e}");
                         }
@@ -260,6 +272,7 @@ pub fn spawn(bus: &Bus, cfg: NodeConfig) -> Result<NodeHandle, NodeError> {
     Ok(NodeHandle {
         stop,
         threads,
+        source_thread,
         stats,
     })
 }

@@ -33,11 +33,15 @@ pub struct NodeArgs {
     #[arg(long)]
     vehicle: u32,
     /// Frames from: `zenoh` (simulator or camera drivers), `images:DIR`,
-    /// `video:FILE`, `camera:DEVICE`, `ros2:TOPIC` (a ROS 2
+    /// `video:FILE`, `camera:N` (OpenCV device index), `v4l2:/dev/videoN`
+    /// (stamped with the driver's buffer time), `gst:PIPELINE` (a GStreamer
+    /// pipeline ending in `appsink`, stamped with its buffer times; RTSP,
+    /// UDP/RTP, files, cameras), `ros2:TOPIC` (a ROS 2
     /// `sensor_msgs/msg/Image` or `CompressedImage` topic over rmw_zenoh,
     /// domain as --ros2-domain), or `mcap:FILE` — re-run detection on
     /// this vehicle's frames of a recorded trial (`shoal record --frames`)
-    /// and exit when they are done.
+    /// and exit when they are done. Live sources (camera, v4l2, gst) are
+    /// reopened when their stream ends or fails.
     #[arg(long, default_value = "zenoh")]
     source: String,
     /// Pace of an `mcap:FILE` source: 1 = as recorded, 4 = four times faster.
@@ -92,18 +96,36 @@ pub fn run_node(a: NodeArgs) -> anyhow::Result<()> {
             camera: a.camera_index,
         }),
         Some(("camera", dev)) => Source::Local(LocalSource::Live {
-            device: dev
-                .parse()
-                .with_context(|| format!("camera device {dev:?} is not a number"))?,
+            device: dev.parse().with_context(|| {
+                format!("--source camera:{dev}: the device is not a number (for a device path use v4l2:{dev})")
+            })?,
             camera: a.camera_index,
         }),
+        Some(("v4l2", dev)) => {
+            if !dev.starts_with("/dev/") {
+                bail!("--source v4l2:{dev}: expected a device path such as /dev/video0");
+            }
+            Source::Local(LocalSource::V4l2 {
+                device: dev.into(),
+                camera: a.camera_index,
+            })
+        }
+        Some(("gst", pipeline)) => {
+            if let Some(problem) = shoal_node::source::gst_pipeline_problem(pipeline) {
+                bail!("--source gst:{pipeline}: {problem}");
+            }
+            Source::Local(LocalSource::Gst {
+                pipeline: pipeline.trim().to_string(),
+                camera: a.camera_index,
+            })
+        }
         Some(("ros2", topic)) => Source::Ros2(shoal_services::ros2::Ros2ImageSource {
             domain: super::net::ros2_domain(a.ros2_domain, &fleet)?,
             topic: topic.to_string(),
             camera: a.camera_index,
         }),
         _ => bail!(
-            "--source {:?}: expected zenoh, images:DIR, video:FILE, camera:DEVICE, ros2:TOPIC or mcap:FILE",
+            "--source {:?}: expected zenoh, images:DIR, video:FILE, camera:N, v4l2:/dev/videoN, gst:PIPELINE, ros2:TOPIC or mcap:FILE",
             a.source
         ),
     };

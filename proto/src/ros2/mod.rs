@@ -191,6 +191,15 @@ pub fn node_diagnostics(status: &NodeStatus) -> DiagnosticArray {
         kv("observations_sent", status.observations_sent),
         kv("messages_rejected", status.messages_rejected),
     ];
+    match &status.clock {
+        Some(c) => values.extend([
+            kv("clock.synchronised", c.synchronised),
+            kv("clock.offset_ns", c.offset_ns),
+            kv("clock.est_error_ns", c.est_error_ns),
+            kv("clock.max_error_ns", c.max_error_ns),
+        ]),
+        None => values.push(kv("clock.synchronised", "unknown")),
+    }
     let mut problems = Vec::new();
     for c in &status.cameras {
         let p = format!("camera{}.", c.camera);
@@ -207,6 +216,9 @@ pub fn node_diagnostics(status: &NodeStatus) -> DiagnosticArray {
             kv(format!("{p}restore_ms"), format!("{:.2}", c.restore_ms)),
             kv(format!("{p}detect_ms"), format!("{:.2}", c.detect_ms)),
             kv(format!("{p}pose_ms"), format!("{:.2}", c.pose_ms)),
+            kv(format!("{p}stamp_source"), c.stamp_source.name()),
+            kv(format!("{p}frames_missed"), c.frames_missed),
+            kv(format!("{p}reconnects"), c.reconnects),
         ]);
         if c.frame_rate_hz <= 0.0 {
             problems.push(format!("camera {} ({}) has no frames", c.camera, c.name));

@@ -41,14 +41,19 @@ impl<'a> FrameView<'a> {
             p.get(o..o + 8)
                 .map(|b| u64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]))
         };
-        // `Distortion`: plumb-bob 5, rational 8, equidistant 4 coefficients.
-        let coefficients = match u32_at(Self::LENS_AT)? {
-            0 => 5,
-            1 => 8,
-            2 => 4,
-            _ => return None,
+        // `Distortion`: a u32 variant, then plumb-bob 5, rational 8 or
+        // equidistant 4 coefficients; schema 4 had 5 coefficients, no variant.
+        let lens_len = if header.version == 4 {
+            5 * 8
+        } else {
+            4 + 8 * match u32_at(Self::LENS_AT)? {
+                0 => 5,
+                1 => 8,
+                2 => 4,
+                _ => return None,
+            }
         };
-        let format_at = Self::LENS_AT + 4 + coefficients * 8 + 7 * 8;
+        let format_at = Self::LENS_AT + lens_len + 7 * 8;
         let data_at = format_at + 4 + 8;
         let format = match u32_at(format_at)? {
             0 => PixelFormat::Mono8,

@@ -52,6 +52,7 @@ pub(super) fn status(uptime_s: f64, frames_in: u64, detections: u64) -> NodeStat
         }],
         observations_sent: detections,
         messages_rejected: 0,
+        clock: None,
     }
 }
 
