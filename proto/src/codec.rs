@@ -279,11 +279,14 @@ mod tests {
             frame.info.model.distortion,
             crate::camera::Distortion::PlumbBob(_)
         ));
-        let bytes = encode(&frame).unwrap();
-        let p = &bytes[HEADER_LEN..];
+        let frame_bytes = encode(&frame).unwrap();
+        let fp = &frame_bytes[HEADER_LEN..];
         let tag = 4 + 1 + 8 + 8 + 2 * 4 + 4 * 8;
-        let v4: Vec<u8> = [&p[..tag], &p[tag + 4..]].concat();
-        assert_eq!(decode::<CameraFrame>(&as_version_4(&bytes, &v4)), Ok(frame));
+        let frame_v4: Vec<u8> = [&fp[..tag], &fp[tag + 4..]].concat();
+        assert_eq!(
+            decode::<CameraFrame>(&as_version_4(&frame_bytes, &frame_v4)),
+            Ok(frame)
+        );
         // Today's NodeStatus under a version-4 header is refused, not misread.
         assert!(matches!(
             decode::<NodeStatus>(&as_version_4(&bytes, &bytes[HEADER_LEN..])),

@@ -155,6 +155,17 @@ mod tests {
         );
         assert_eq!(v.data, &f.data[..]);
         assert!(FrameView::parse(&bytes[..bytes.len() - 1]).is_none());
+        if let proto::Distortion::PlumbBob(_) = lens {
+            // Schema 4 (older logs): 5 coefficients and no variant tag.
+            let h = proto::codec::HEADER_LEN;
+            let tag = h + FrameView::LENS_AT;
+            let mut v4 = [&bytes[..tag], &bytes[tag + 4..]].concat();
+            v4[4..6].copy_from_slice(&4u16.to_le_bytes());
+            let len = (v4.len() - h) as u32;
+            v4[8..12].copy_from_slice(&len.to_le_bytes());
+            let old = FrameView::parse(&v4).expect("a schema-4 frame");
+            assert_eq!((old.seq, old.width, old.data), (9, 4, &f.data[..]));
+        }
         let obs_like = proto::encode(&proto::VehicleCommand {
             vehicle: 1,
             stamp_ns: 2,
