@@ -275,6 +275,9 @@ pub enum CalibrateError {
     },
     #[error("the fit gives no usable camera: {0}")]
     Implausible(String),
+    /// An input (folder, video, camera) that cannot be read at all.
+    #[error("{0}")]
+    Input(String),
     #[error("OpenCV: {0}")]
     OpenCv(#[from] opencv::Error),
 }
@@ -703,7 +706,7 @@ pub fn gather_views(
         match input {
             CalibrationInput::Path(p) if p.is_dir() => {
                 let files = crate::source::image_files(p)
-                    .map_err(|e| CalibrateError::Implausible(e.to_string()))?;
+                    .map_err(|e| CalibrateError::Input(e.to_string()))?;
                 for f in files {
                     let frame =
                         crate::image_file::read_gray(&f, crate::image_file::MAX_IMAGE_PIXELS)
@@ -715,7 +718,7 @@ pub fn gather_views(
             CalibrationInput::Path(p) if is_video(p) => {
                 let (mut cap, _) =
                     crate::image_file::open_video(p, crate::image_file::MAX_IMAGE_PIXELS)
-                        .map_err(|e| CalibrateError::Implausible(e.to_string()))?;
+                        .map_err(|e| CalibrateError::Input(e.to_string()))?;
                 let mut k = 0u64;
                 loop {
                     let mut frame = Mat::default();
@@ -743,7 +746,7 @@ pub fn gather_views(
                 let mut cap =
                     opencv::videoio::VideoCapture::new(*device, opencv::videoio::CAP_ANY)?;
                 if !cap.is_opened().unwrap_or(false) {
-                    return Err(CalibrateError::Implausible(format!(
+                    return Err(CalibrateError::Input(format!(
                         "camera {device} does not open"
                     )));
                 }
