@@ -53,9 +53,14 @@ fn typed_messages_arrive_and_garbage_is_counted() {
         shoal_proto::KeyKind::Command { vehicle: 15 }
     );
 
-    publ.put_bytes(b"definitely not a shoal message".to_vec())
-        .unwrap();
-    assert!(wait_until(|| sub.stats().rejected() >= 1));
+    // Best-effort delivery may drop one sample on a loaded machine (it did
+    // once in CI): publish until one is counted.
+    assert!(wait_until(|| {
+        publ.put_bytes(b"definitely not a shoal message".to_vec())
+            .unwrap();
+        std::thread::sleep(Duration::from_millis(20));
+        sub.stats().rejected() >= 1
+    }));
     assert!(sub.stats().last_error().unwrap().contains("magic"));
 }
 
