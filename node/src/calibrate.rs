@@ -715,7 +715,7 @@ pub fn gather_views(
                     one(f.display().to_string(), frame, &mut views);
                 }
             }
-            CalibrationInput::Path(p) if is_video(p) => {
+            CalibrationInput::Path(p) if crate::detect::paths::is_video(p) => {
                 let (mut cap, _) =
                     crate::image_file::open_video(p, crate::image_file::MAX_IMAGE_PIXELS)
                         .map_err(|e| CalibrateError::Input(e.to_string()))?;
@@ -730,7 +730,7 @@ pub fn gather_views(
                     }
                     one(
                         format!("{} frame {k}", p.display()),
-                        grey(&frame).map_err(|e| e.to_string()),
+                        crate::source::to_gray(&frame).map_err(|e| e.to_string()),
                         &mut views,
                     );
                     k += 1;
@@ -764,7 +764,7 @@ pub fn gather_views(
                     }
                     one(
                         format!("camera {device} frame {k}"),
-                        grey(&frame).map_err(|e| e.to_string()),
+                        crate::source::to_gray(&frame).map_err(|e| e.to_string()),
                         &mut views,
                     );
                 }
@@ -772,25 +772,6 @@ pub fn gather_views(
         }
     }
     Ok((views, size))
-}
-
-fn is_video(p: &std::path::Path) -> bool {
-    matches!(
-        p.extension()
-            .and_then(|e| e.to_str())
-            .map(str::to_ascii_lowercase)
-            .as_deref(),
-        Some("mp4" | "avi" | "mkv" | "mov" | "webm" | "m4v" | "mjpeg" | "h264")
-    )
-}
-
-fn grey(frame: &Mat) -> opencv::Result<Mat> {
-    if frame.channels() == 1 {
-        return frame.try_clone();
-    }
-    let mut g = Mat::default();
-    imgproc::cvt_color_def(frame, &mut g, imgproc::COLOR_BGR2GRAY)?;
-    Ok(g)
 }
 
 #[cfg(test)]

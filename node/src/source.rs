@@ -122,7 +122,8 @@ pub fn read_image_gray(path: &Path) -> Result<GrayImage, SourceError> {
     mat_to_gray(&file.gray).map_err(|e| source_error(name, e.to_string()))
 }
 
-fn to_gray(mat: &Mat) -> opencv::Result<Mat> {
+/// An 8-bit BGR, BGRA or grey frame as grey.
+pub(crate) fn to_gray(mat: &Mat) -> opencv::Result<Mat> {
     if mat.channels() == 1 {
         return mat.try_clone();
     }

@@ -24,9 +24,10 @@ pub struct DetectSummary {
     pub warnings: usize,
 }
 
-const VIDEO_EXTENSIONS: [&str; 6] = ["mp4", "avi", "mkv", "mov", "webm", "mjpeg"];
+const VIDEO_EXTENSIONS: [&str; 7] = ["mp4", "m4v", "avi", "mkv", "mov", "webm", "mjpeg"];
 
-fn is_video(path: &Path) -> bool {
+/// A file OpenCV is asked to open as a video (by its extension), not an image.
+pub(crate) fn is_video(path: &Path) -> bool {
     path.extension()
         .and_then(|e| e.to_str())
         .is_some_and(|e| VIDEO_EXTENSIONS.iter().any(|v| v.eq_ignore_ascii_case(e)))
