@@ -581,3 +581,28 @@ fn refraction_quick_the_port_model_beats_the_lab_pinhole_off_axis_and_far() {
     // On the axis the pinhole's error grows with the range (measured 3.5 → 5.2 mm).
     assert!(pos("pinhole", "r4.0_a0") > pos("pinhole", "r1.0_a0"));
 }
+
+#[test]
+fn node_rate_quick_accounts_for_every_frame_offered_and_reads_markers() {
+    let (dir, s) = run_quick(Experiment::NodeRate);
+    assert_files(&dir, &["node-rate.md", "summary.json"]);
+    let runs = s["runs"].as_array().expect("runs");
+    assert_eq!(runs.len(), 2, "{s}");
+    for r in runs {
+        let offered = num(&r["offered"]);
+        let accounted =
+            num(&r["processed"]) + num(&r["dropped"]) + num(&r["invalid"]) + num(&r["queued"]);
+        assert_eq!(
+            offered, accounted,
+            "every frame offered is processed, dropped or queued: {r}"
+        );
+        assert_eq!(num(&r["invalid"]), 0.0, "{r}");
+        assert!(num(&r["processed"]) > 0.0, "{r}");
+        let cpu = num(&r["cpu_ms_per_frame"]);
+        assert!(cpu > 0.5 && cpu < 5000.0, "{r}");
+        assert_eq!(num(&r["cameras"]), 5.0);
+    }
+    // At 0.5 /m the neighbours' markers read on most side-camera frames (at
+    // 8.22 /m on about a quarter of the port camera's: not asserted).
+    assert!(num(&runs[0]["observations"]) > 0.0, "{}", runs[0]);
+}

@@ -13,7 +13,7 @@ use std::path::PathBuf;
 pub struct EvalArgs {
     #[command(subcommand)]
     command: Option<EvalCmd>,
-    /// features | accuracy | accuracy-yaw | accuracy-rmse | detection | restoration | calibrate-water | fit-noise | fusion | swarm | real
+    /// features | accuracy | accuracy-yaw | accuracy-rmse | detection | restoration | calibrate-water | fit-noise | fusion | swarm | links | nav | real | refraction | node-rate
     #[arg(required = true)]
     experiment: Option<String>,
     /// Output directory: CSV of every trial, plots (PNG, SVG), summary.json.
@@ -56,11 +56,24 @@ enum EvalCmd {
     /// Diagnostics kept from development: one stage questioned on simulated (or recorded) data, printed as text.
     #[command(subcommand)]
     Probe(shoal::eval::probe::Probe),
+    /// Copy the public recordings' frames (each manifest's `fetch` block under configs/real/) into the data folder, checked against their SHA-256.
+    StageReal {
+        /// The data folder (default: $SHOAL_REAL_DATA, else ../shared/data/real).
+        #[arg(long)]
+        data: Option<PathBuf>,
+        /// Take the repositories from local mirrors (`DIR/<owner>+<name>/repo` or `DIR/<owner>+<name>.git`) instead of cloning from GitHub.
+        #[arg(long)]
+        mirrors: Option<PathBuf>,
+    },
 }
 
 pub fn run_eval(a: EvalArgs) -> anyhow::Result<()> {
-    if let Some(EvalCmd::Probe(p)) = &a.command {
-        return Ok(shoal::eval::probe::run(p)?);
+    match &a.command {
+        Some(EvalCmd::Probe(p)) => return Ok(shoal::eval::probe::run(p)?),
+        Some(EvalCmd::StageReal { data, mirrors }) => {
+            return stage_real(data.as_deref(), mirrors.as_deref())
+        }
+        None => {}
     }
     let (Some(name), Some(out)) = (&a.experiment, &a.out) else {
         anyhow::bail!("shoal eval needs an experiment and --out (or `probe <name>`)");
@@ -83,5 +96,29 @@ pub fn run_eval(a: EvalArgs) -> anyhow::Result<()> {
     let summary = eval::run(experiment, &opts).with_context(|| format!("eval {experiment}"))?;
     shoal::outln!("{}", serde_json::to_string_pretty(&summary)?);
     shoal::outln!("wrote {}", out.join("summary.json").display());
+    Ok(())
+}
+
+/// `shoal eval stage-real`.
+fn stage_real(
+    data: Option<&std::path::Path>,
+    mirrors: Option<&std::path::Path>,
+) -> anyhow::Result<()> {
+    let root = match (data, std::env::var_os("SHOAL_REAL_DATA")) {
+        (Some(d), _) => d.to_path_buf(),
+        (None, Some(d)) => PathBuf::from(d),
+        (None, None) => PathBuf::from(eval::real::DEFAULT_DATA_DIRS[0]),
+    };
+    let staged = eval::real::stage_all(&root, eval::real::manifest_dir(), mirrors, &mut |line| {
+        eprintln!("{line}");
+    })
+    .with_context(|| format!("staging the real recordings into {}", root.display()))?;
+    let written: usize = staged.iter().map(|s| s.written).sum();
+    let present: usize = staged.iter().map(|s| s.present).sum();
+    println!(
+        "{} recordings under {}: {written} files written, {present} already staged",
+        staged.len(),
+        root.display()
+    );
     Ok(())
 }

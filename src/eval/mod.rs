@@ -32,6 +32,7 @@ pub mod features;
 pub mod fusion;
 pub mod links;
 pub mod nav;
+pub mod node_rate;
 pub mod noise;
 pub mod plot;
 pub mod probe;
@@ -65,10 +66,12 @@ pub enum Experiment {
     Nav,
     Real,
     Refraction,
+    /// Issue #18: one vehicle's node fed its five cameras at 10 frames/s.
+    NodeRate,
 }
 
 impl Experiment {
-    pub const ALL: [Experiment; 14] = [
+    pub const ALL: [Experiment; 15] = [
         Experiment::Features,
         Experiment::Accuracy,
         Experiment::AccuracyYaw,
@@ -83,6 +86,7 @@ impl Experiment {
         Experiment::Nav,
         Experiment::Real,
         Experiment::Refraction,
+        Experiment::NodeRate,
     ];
 
     pub fn name(self) -> &'static str {
@@ -101,6 +105,7 @@ impl Experiment {
             Experiment::Nav => "nav",
             Experiment::Real => "real",
             Experiment::Refraction => "refraction",
+            Experiment::NodeRate => "node-rate",
         }
     }
 }
@@ -263,6 +268,7 @@ pub fn run(experiment: Experiment, opts: &EvalOptions) -> Result<serde_json::Val
         Experiment::Nav => nav::run(opts)?,
         Experiment::Real => real::run(opts)?,
         Experiment::Refraction => refraction::run(opts)?,
+        Experiment::NodeRate => node_rate::run(opts)?,
     };
     if let Some(obj) = summary.as_object_mut() {
         obj.insert("experiment".into(), experiment.name().into());

@@ -27,11 +27,13 @@
 
 mod manifest;
 mod score;
+mod stage;
 
 pub use manifest::{
     data_root, find_recordings, load_manifest, Manifest, Recording, ReferenceMarker, Truth,
     DEFAULT_DATA_DIRS, MANIFEST_DIR,
 };
+pub use stage::{manifest_dir, sha256_hex, stage_all, verify_staged, Staged};
 
 use super::plot::{self, Grouped};
 use super::table::Csv;
@@ -326,6 +328,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     let mut recall: BTreeMap<String, Vec<Option<f64>>> = BTreeMap::new();
     for rec in &recordings {
         let (dir, m) = (&rec.dir, load_manifest(&rec.manifest)?);
+        verify_staged(&m, dir)?;
         let mut per_split = serde_json::Map::new();
         for (split, range) in &m.splits {
             if opts.split.as_ref().is_some_and(|only| only != split) {

@@ -53,6 +53,85 @@ pub struct Manifest {
     /// does not give: their reads are neither scored nor false.
     #[serde(default)]
     pub unlisted_ids: Vec<u32>,
+    /// Where each frame file comes from, pinned: `shoal eval stage-real`
+    /// copies them into the data root, and `shoal eval real` checks the
+    /// staged files against their SHA-256 before measuring.
+    #[serde(default)]
+    pub fetch: Option<Fetch>,
+}
+
+/// The pinned upstream of a recording's files.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Fetch {
+    /// GitHub `owner/name`.
+    pub repo: String,
+    /// The commit the files are taken from (40 hex digits).
+    pub commit: String,
+    pub files: Vec<FetchFile>,
+}
+
+/// One staged file: its name in the recording's folder, its path in the
+/// upstream repository, and its SHA-256.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FetchFile {
+    pub file: String,
+    pub path: String,
+    pub sha256: String,
+}
+
+impl Fetch {
+    /// What is wrong with this block, if anything.
+    pub fn problem(&self) -> Option<String> {
+        let hex = |s: &str, n: usize| s.len() == n && s.bytes().all(|b| b.is_ascii_hexdigit());
+        let mut parts = self.repo.split('/');
+        let repo_ok = matches!((parts.next(), parts.next(), parts.next()), (Some(o), Some(n), None)
+            if !o.is_empty() && !n.is_empty()
+                && self.repo.bytes().all(|b| b.is_ascii_alphanumeric() || b"-_./".contains(&b))
+                && !self.repo.contains(".."));
+        if !repo_ok {
+            return Some(format!(
+                "fetch.repo {:?} is not a GitHub owner/name",
+                self.repo
+            ));
+        }
+        if !hex(&self.commit, 40) {
+            return Some(format!(
+                "fetch.commit {:?} is not a 40-digit commit",
+                self.commit
+            ));
+        }
+        if self.files.is_empty() {
+            return Some("fetch.files is empty".into());
+        }
+        for f in &self.files {
+            let plain = !f.file.is_empty()
+                && !f.file.contains(['/', '\\'])
+                && f.file != "."
+                && f.file != "..";
+            if !plain {
+                return Some(format!(
+                    "fetch.files: {:?} must be a plain file name",
+                    f.file
+                ));
+            }
+            if f.path.is_empty() || f.path.starts_with('/') || f.path.split('/').any(|c| c == "..")
+            {
+                return Some(format!(
+                    "fetch.files: path {:?} must be relative to the repository",
+                    f.path
+                ));
+            }
+            if !hex(&f.sha256, 64) {
+                return Some(format!(
+                    "fetch.files: sha256 of {:?} is not 64 hex digits",
+                    f.file
+                ));
+            }
+        }
+        None
+    }
 }
 
 /// The ground truth a recording allows.
@@ -206,6 +285,9 @@ pub fn load_manifest(path: &Path) -> Result<Manifest, EvalError> {
         if let Some(p) = CameraModel::from(c).problem() {
             return Err(bad(format!("camera: {p}")));
         }
+    }
+    if let Some(p) = m.fetch.as_ref().and_then(Fetch::problem) {
+        return Err(bad(p));
     }
     Ok(m)
 }
