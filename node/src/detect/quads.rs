@@ -8,6 +8,15 @@
 //! [`DetectParams::full_res_max_width`] are searched at half size; small
 //! quads that read no code there are searched again at full resolution in a
 //! window around them ([`full_res_quads`], the per-marker pyramid level).
+//!
+//! A frame's outermost row or column is sometimes not image at all: video
+//! encoders and sensors leave a line of another level at the edge (the
+//! public tank video's last column is ~240 DN beside ~50). The threshold's
+//! local mean takes that line in, a dark band runs along the edge and merges
+//! with the black border of any marker near it, and the marker's contour is
+//! no longer a quad. [`edge_line_artefacts`] finds such lines (far from
+//! their neighbour where the neighbour is close to the next) and the search
+//! thresholds a copy with each replaced by its neighbour.
 
 use super::geom::{mean_side, min_side, signed_area2, Px};
 use super::{DetectError, DetectParams};
@@ -40,7 +49,22 @@ pub fn find_quads(
     params: &DetectParams,
     gray: &(impl MatTraitConst + ToInputArray),
 ) -> Result<Vec<Quad>, DetectError> {
-    let (level, scale) = if gray.cols() > params.full_res_max_width {
+    let (level, scale) = match without_edge_artefacts(gray)? {
+        Some(cleaned) => search_level(params, &cleaned)?,
+        None => search_level(params, gray)?,
+    };
+    let mut quads: Vec<Quad> = Vec::new();
+    quads_of_level(params, &level, scale, [0.0, 0.0], &mut quads)?;
+    Ok(quads)
+}
+
+/// The image the quads are searched in: `gray`, or half of it when wider
+/// than [`DetectParams::full_res_max_width`]; and its scale.
+fn search_level(
+    params: &DetectParams,
+    gray: &(impl MatTraitConst + ToInputArray),
+) -> Result<(Mat, f64), DetectError> {
+    Ok(if gray.cols() > params.full_res_max_width {
         let mut half = Mat::default();
         imgproc::resize(
             gray,
@@ -53,10 +77,92 @@ pub fn find_quads(
         (half, 2.0)
     } else {
         (gray.try_clone()?, 1.0)
+    })
+}
+
+/// An edge line at least this far (mean |difference|, grey levels) from
+/// its neighbour…
+const EDGE_LINE_MIN_STEP_DN: f64 = 12.0;
+/// …and this many times farther than the neighbour is from the next line
+/// (plus [`EDGE_LINE_SLACK_DN`]) is not image.
+const EDGE_LINE_RATIO: f64 = 4.0;
+const EDGE_LINE_SLACK_DN: f64 = 2.0;
+
+/// Which of the frame's edge lines (top row, bottom row, left column,
+/// right column) are artefacts: far from their neighbour line where the
+/// neighbour is close to the next one. Image content that reaches the edge
+/// continues into the neighbour lines and does not qualify; nor does a
+/// frame smaller than 8 pixels either way.
+pub fn edge_line_artefacts(gray: &impl MatTraitConst) -> Result<[bool; 4], DetectError> {
+    let (w, h) = (gray.cols(), gray.rows());
+    if w < 8 || h < 8 || gray.typ() != opencv::core::CV_8UC1 {
+        return Ok([false; 4]);
+    }
+    let px =
+        |x: i32, y: i32| -> Result<f64, DetectError> { Ok(f64::from(*gray.at_2d::<u8>(y, x)?)) };
+    // Mean |a − b| between lines `a` and `b` (rows when `rows`, else columns).
+    let diff = |rows: bool, a: i32, b: i32| -> Result<f64, DetectError> {
+        let n = if rows { w } else { h };
+        let mut sum = 0.0;
+        for i in 0..n {
+            let (pa, pb) = if rows {
+                (px(i, a)?, px(i, b)?)
+            } else {
+                (px(a, i)?, px(b, i)?)
+            };
+            sum += (pa - pb).abs();
+        }
+        Ok(sum / f64::from(n))
     };
-    let mut quads: Vec<Quad> = Vec::new();
-    quads_of_level(params, &level, scale, [0.0, 0.0], &mut quads)?;
-    Ok(quads)
+    let mut out = [false; 4];
+    for (k, (rows, edge, n1, n2)) in [
+        (true, 0, 1, 2),
+        (true, h - 1, h - 2, h - 3),
+        (false, 0, 1, 2),
+        (false, w - 1, w - 2, w - 3),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let (d01, d12) = (diff(rows, edge, n1)?, diff(rows, n1, n2)?);
+        out[k] = d01 >= EDGE_LINE_MIN_STEP_DN && d01 > EDGE_LINE_RATIO * d12 + EDGE_LINE_SLACK_DN;
+    }
+    Ok(out)
+}
+
+/// A copy of `gray` with each artefact edge line ([`edge_line_artefacts`])
+/// replaced by its neighbour; `None` when there is none.
+fn without_edge_artefacts(gray: &impl MatTraitConst) -> Result<Option<Mat>, DetectError> {
+    let bad = edge_line_artefacts(gray)?;
+    if !bad.contains(&true) {
+        return Ok(None);
+    }
+    let mut c = gray.try_clone()?;
+    let (w, h) = (c.cols(), c.rows());
+    for (k, (rows, edge, n1)) in [
+        (true, 0, 1),
+        (true, h - 1, h - 2),
+        (false, 0, 1),
+        (false, w - 1, w - 2),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        if !bad[k] {
+            continue;
+        }
+        let n = if rows { w } else { h };
+        for i in 0..n {
+            let (from, to) = if rows {
+                ((i, n1), (i, edge))
+            } else {
+                ((n1, i), (edge, i))
+            };
+            let v = *c.at_2d::<u8>(from.1, from.0)?;
+            *c.at_2d_mut::<u8>(to.1, to.0)? = v;
+        }
+    }
+    Ok(Some(c))
 }
 
 /// The quads of one image (`level`, `scale` full-resolution pixels per
@@ -262,6 +368,97 @@ mod tests {
             "no quad of traced side {} in {quads:?}",
             side - 1
         );
+    }
+
+    /// A tag-like dark square 4 px from the right edge of a frame whose last
+    /// column is a bright encoder line: the line is found, and with it
+    /// replaced the square is a quad; thresholding the frame as it is merges
+    /// the square with the dark band the line makes (the public tank video's
+    /// case), so the test fails without the guard.
+    #[test]
+    fn a_bright_edge_column_does_not_hide_a_square_beside_it() {
+        use opencv::core::{Rect, Scalar, CV_8UC1};
+        let params = DetectParams::default();
+        let mut img =
+            Mat::new_rows_cols_with_default(120, 160, CV_8UC1, Scalar::all(60.0)).unwrap();
+        // White quiet zone to the edge, the black square 7 px from it.
+        let sq = Rect::new(112, 40, 40, 40);
+        imgproc::rectangle(
+            &mut img,
+            Rect::new(104, 32, 56, 56),
+            Scalar::all(90.0),
+            -1,
+            imgproc::LINE_8,
+            0,
+        )
+        .unwrap();
+        imgproc::rectangle(&mut img, sq, Scalar::all(30.0), -1, imgproc::LINE_8, 0).unwrap();
+        imgproc::rectangle(
+            &mut img,
+            Rect::new(159, 0, 1, 120),
+            Scalar::all(240.0),
+            -1,
+            imgproc::LINE_8,
+            0,
+        )
+        .unwrap();
+        assert_eq!(
+            edge_line_artefacts(&img).unwrap(),
+            [false, false, false, true]
+        );
+        // The square's outer edge (its inner one, around the part of the
+        // square the threshold leaves light, is another, smaller quad).
+        let found = |quads: &[Quad]| {
+            quads.iter().any(|q| {
+                let c = super::super::geom::centre(&q.pts);
+                (c[0] - 131.5).abs() < 1.5 && (c[1] - 59.5).abs() < 1.5 && min_side(&q.pts) > 36.0
+            })
+        };
+        assert!(
+            found(&find_quads(&params, &img).unwrap()),
+            "the square beside the line"
+        );
+        // Without the guard (the same search on the frame as it is).
+        let mut unguarded = Vec::new();
+        quads_of_level(&params, &img, 1.0, [0.0, 0.0], &mut unguarded).unwrap();
+        assert!(
+            !found(&unguarded),
+            "the line's dark band merges with the square"
+        );
+    }
+
+    /// Content that reaches the edge (a dark object cut by the border, a
+    /// gradient, noise) is image, not an artefact line.
+    #[test]
+    fn image_content_at_the_edge_is_not_an_artefact() {
+        use opencv::core::{Rect, Scalar, CV_8UC1};
+        let mut img = Mat::new_rows_cols_with_default(60, 80, CV_8UC1, Scalar::all(150.0)).unwrap();
+        imgproc::rectangle(
+            &mut img,
+            Rect::new(60, 10, 20, 30),
+            Scalar::all(20.0),
+            -1,
+            imgproc::LINE_8,
+            0,
+        )
+        .unwrap();
+        imgproc::rectangle(
+            &mut img,
+            Rect::new(0, 50, 80, 10),
+            Scalar::all(40.0),
+            -1,
+            imgproc::LINE_8,
+            0,
+        )
+        .unwrap();
+        for y in 0..60 {
+            for x in 0..80 {
+                let v = img.at_2d_mut::<u8>(y, x).unwrap();
+                *v = v.saturating_add(((x * 7 + y * 13) % 9) as u8);
+            }
+        }
+        assert_eq!(edge_line_artefacts(&img).unwrap(), [false; 4]);
+        assert!(without_edge_artefacts(&img).unwrap().is_none());
     }
 
     #[test]
