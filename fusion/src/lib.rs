@@ -84,6 +84,7 @@ pub mod link;
 pub mod nav;
 mod solve;
 pub mod solver;
+mod sparse;
 mod window;
 
 pub use client::{LatestMap, MapView, RelativePose};

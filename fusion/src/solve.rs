@@ -129,25 +129,7 @@ impl Fusion {
             map_us: 0,
         };
         let edges = map::merge_pending(verdicts.edges, std::mem::take(&mut self.pending));
-        let mut ids: Vec<VehicleId> = self.fleet.vehicles.iter().map(|v| v.id).collect();
-        ids.sort_unstable();
-        let evidence = map::Evidence {
-            reference,
-            alive: &self.alive,
-            last_seen: &self.last_seen,
-            in_window: &in_window,
-            inflation: &self.params.age_inflation,
-            now_ns,
-            predictor: (self.params.nav.enabled && self.params.nav.max_predict_s > 0.0).then(
-                || map::Predictor {
-                    odometry: &self.odometry,
-                    max_predict_ns: seconds_to_ns(self.params.nav.max_predict_s),
-                    max_gap_ns: seconds_to_ns(self.params.nav.max_gap_s),
-                },
-            ),
-        };
-        let vehicles =
-            map::vehicle_estimates(&ids, &evidence, &gated.solution, &mut self.last_estimate);
+        let vehicles = self.estimates(now_ns, &in_window, &gated.solution);
 
         self.seq += 1;
         self.stats.solves += 1;
@@ -165,5 +147,32 @@ impl Fusion {
             edges,
             solve_time_us: elapsed_us(started),
         }
+    }
+
+    /// Every fleet vehicle's estimate and state from `solution` (step 7).
+    fn estimates(
+        &mut self,
+        now_ns: u64,
+        in_window: &BTreeSet<VehicleId>,
+        solution: &gate::Poses,
+    ) -> Vec<proto::VehicleEstimate> {
+        let mut ids: Vec<VehicleId> = self.fleet.vehicles.iter().map(|v| v.id).collect();
+        ids.sort_unstable();
+        let evidence = map::Evidence {
+            reference: self.fleet.reference_vehicle,
+            alive: &self.alive,
+            last_seen: &self.last_seen,
+            in_window,
+            inflation: &self.params.age_inflation,
+            now_ns,
+            predictor: (self.params.nav.enabled && self.params.nav.max_predict_s > 0.0).then(
+                || map::Predictor {
+                    odometry: &self.odometry,
+                    max_predict_ns: seconds_to_ns(self.params.nav.max_predict_s),
+                    max_gap_ns: seconds_to_ns(self.params.nav.max_gap_s),
+                },
+            ),
+        };
+        map::vehicle_estimates(&ids, &evidence, solution, &mut self.last_estimate)
     }
 }
