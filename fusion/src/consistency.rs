@@ -172,13 +172,7 @@ impl PairCandidates {
 /// Squared Mahalanobis distance between two poses with independent covariances.
 pub fn mahalanobis2(x: &Pose, cov_x: &Cov6, y: &Pose, cov_y: &Cov6) -> f64 {
     let r = difference(x, y);
-    match (cov_x + cov_y).cholesky() {
-        Some(ch) => {
-            let z = ch.solve(&r);
-            r.dot(&z)
-        }
-        None => f64::INFINITY,
-    }
+    crate::linalg::spd_quadratic6(&(cov_x + cov_y), &r).unwrap_or(f64::INFINITY)
 }
 
 /// Upper bound of the largest eigenvalue of the covariance of `x·y`

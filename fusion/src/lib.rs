@@ -84,6 +84,7 @@ pub mod link;
 pub mod nav;
 mod solve;
 pub mod solver;
+mod sparse;
 mod window;
 
 pub use client::{LatestMap, MapView, RelativePose};
@@ -229,6 +230,14 @@ pub struct SolveStats {
     /// rounds), µs; 0 unless [`FusionParams::record_solve_time`].
     pub consistency_us: u64,
     pub lm_us: u64,
+    /// The consistency checks' time by step, µs (same condition): frames and
+    /// nav checks; track groups and motion fits; pair candidates, clusters,
+    /// triangle votes and the spanning-tree selection. Then the map (verdicts
+    /// and vehicle estimates) after the LM.
+    pub frames_us: u64,
+    pub groups_us: u64,
+    pub hypotheses_us: u64,
+    pub map_us: u64,
 }
 
 /// Running counters of a [`Fusion`].

@@ -61,6 +61,45 @@ pub fn spd_inverse6(a: &Cov6) -> Option<Cov6> {
     out.iter().all(|v| v.is_finite()).then_some(out)
 }
 
+/// `rᵀ·A⁻¹·r` for a symmetric positive-definite 6×6 `A` (lower triangle
+/// read), through its Cholesky factor: `|L⁻¹·r|²`. `None` when `A` is not
+/// positive definite. Every squared Mahalanobis distance under summed
+/// covariances (clusters, triangle votes, the spanning tree) is one; the
+/// generic `cholesky().solve()` it replaces allocates nothing either but
+/// runs column by column through nalgebra's general code.
+pub fn spd_quadratic6(a: &Cov6, r: &nalgebra::Vector6<f64>) -> Option<f64> {
+    let mut l = [[0.0f64; 6]; 6];
+    let mut z = [0.0f64; 6];
+    let mut sum = 0.0;
+    for j in 0..6 {
+        let mut d = a[(j, j)];
+        for k in 0..j {
+            d -= l[j][k] * l[j][k];
+        }
+        if !(d > 0.0 && d.is_finite()) {
+            return None;
+        }
+        let ljj = d.sqrt();
+        l[j][j] = ljj;
+        let inv = 1.0 / ljj;
+        for i in j + 1..6 {
+            let mut s = a[(i, j)];
+            for k in 0..j {
+                s -= l[i][k] * l[j][k];
+            }
+            l[i][j] = s * inv;
+        }
+        // Forward substitution, row j: z_j = (r_j − Σ L_jk z_k) / L_jj.
+        let mut s = r[j];
+        for k in 0..j {
+            s -= l[j][k] * z[k];
+        }
+        z[j] = s * inv;
+        sum += z[j] * z[j];
+    }
+    sum.is_finite().then_some(sum)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -93,5 +132,24 @@ mod tests {
         let mut nan = Cov6::identity();
         nan[(2, 1)] = f64::NAN;
         assert!(spd_inverse6(&nan).is_none());
+        assert!(spd_quadratic6(&nan, &nalgebra::Vector6::repeat(1.0)).is_none());
+        assert!(spd_quadratic6(&indefinite, &nalgebra::Vector6::repeat(1.0)).is_none());
+    }
+
+    #[test]
+    fn the_quadratic_form_matches_nalgebras_solve() {
+        let mut rng = SplitMix64::new(5);
+        for scale in [1e-8, 1e-4, 1.0, 1e3] {
+            for _ in 0..200 {
+                let a = random_spd(&mut rng, scale);
+                let r = nalgebra::Vector6::from_fn(|_, _| rng.unit() - 0.5);
+                let want = r.dot(&a.cholesky().unwrap().solve(&r));
+                let got = spd_quadratic6(&a, &r).unwrap();
+                assert!(
+                    (got - want).abs() <= 1e-9 * want,
+                    "{got} vs {want} at scale {scale}"
+                );
+            }
+        }
     }
 }

@@ -47,6 +47,7 @@ impl Fusion {
 
         let mut frames = frames::measured(&entries, now_ns, &self.params.age_inflation);
         let (nav_verdicts, nav_stats) = nav::check(&mut frames, &self.nav, &self.params.nav);
+        let frames_us = elapsed_us(started);
         let mut groups =
             groups::group_tracks(&frames, consistency.gate_chi2, consistency.fuse_tracks);
         // Once pairs are seen to move, older frames describe the past to within
@@ -60,6 +61,7 @@ impl Fusion {
         }
         let superseded = groups.superseded_frames(frames.len());
         let moving_groups = motion::compensate(&mut frames, &groups, &fits);
+        let groups_us = elapsed_us(started).saturating_sub(frames_us);
         let pairs = hypotheses::pair_candidates(&frames, &groups, consistency);
         let prior = hypotheses::attitude_prior(&self.last_estimate, &pairs, now_ns, window_ns);
         let hyps = hypotheses::choose(
@@ -71,6 +73,7 @@ impl Fusion {
             &prior,
         );
         let consistency_us = elapsed_us(started);
+        let hypotheses_us = consistency_us.saturating_sub(frames_us + groups_us);
 
         let lm_started = self.params.record_solve_time.then(Instant::now);
         let gate_params = gate::GateParams {
@@ -84,6 +87,7 @@ impl Fusion {
         };
         let mut gated = gate::solve_and_gate(&frames, &groups, &hyps, reference, &gate_params);
         let lm_us = elapsed_us(lm_started);
+        let map_started = self.params.record_solve_time.then(Instant::now);
 
         let graph = std::mem::take(&mut gated.graph);
         self.last_graph = (!graph.constraints.is_empty()).then_some(crate::export::PoseGraph {
@@ -119,31 +123,20 @@ impl Fusion {
             solver_failed: gated.solver_failed,
             consistency_us,
             lm_us,
+            frames_us,
+            groups_us,
+            hypotheses_us,
+            map_us: 0,
         };
         let edges = map::merge_pending(verdicts.edges, std::mem::take(&mut self.pending));
-        let mut ids: Vec<VehicleId> = self.fleet.vehicles.iter().map(|v| v.id).collect();
-        ids.sort_unstable();
-        let evidence = map::Evidence {
-            reference,
-            alive: &self.alive,
-            last_seen: &self.last_seen,
-            in_window: &in_window,
-            inflation: &self.params.age_inflation,
-            now_ns,
-            predictor: (self.params.nav.enabled && self.params.nav.max_predict_s > 0.0).then(
-                || map::Predictor {
-                    odometry: &self.odometry,
-                    max_predict_ns: seconds_to_ns(self.params.nav.max_predict_s),
-                    max_gap_ns: seconds_to_ns(self.params.nav.max_gap_s),
-                },
-            ),
-        };
-        let vehicles =
-            map::vehicle_estimates(&ids, &evidence, &gated.solution, &mut self.last_estimate);
+        let vehicles = self.estimates(now_ns, &in_window, &gated.solution);
 
         self.seq += 1;
         self.stats.solves += 1;
-        self.stats.last_solve = solve_stats;
+        self.stats.last_solve = SolveStats {
+            map_us: elapsed_us(map_started),
+            ..solve_stats
+        };
         FleetMap {
             fleet: self.fleet.name.clone(),
             producer: self.producer.clone(),
@@ -154,5 +147,32 @@ impl Fusion {
             edges,
             solve_time_us: elapsed_us(started),
         }
+    }
+
+    /// Every fleet vehicle's estimate and state from `solution` (step 7).
+    fn estimates(
+        &mut self,
+        now_ns: u64,
+        in_window: &BTreeSet<VehicleId>,
+        solution: &gate::Poses,
+    ) -> Vec<proto::VehicleEstimate> {
+        let mut ids: Vec<VehicleId> = self.fleet.vehicles.iter().map(|v| v.id).collect();
+        ids.sort_unstable();
+        let evidence = map::Evidence {
+            reference: self.fleet.reference_vehicle,
+            alive: &self.alive,
+            last_seen: &self.last_seen,
+            in_window,
+            inflation: &self.params.age_inflation,
+            now_ns,
+            predictor: (self.params.nav.enabled && self.params.nav.max_predict_s > 0.0).then(
+                || map::Predictor {
+                    odometry: &self.odometry,
+                    max_predict_ns: seconds_to_ns(self.params.nav.max_predict_s),
+                    max_gap_ns: seconds_to_ns(self.params.nav.max_gap_s),
+                },
+            ),
+        };
+        map::vehicle_estimates(&ids, &evidence, solution, &mut self.last_estimate)
     }
 }

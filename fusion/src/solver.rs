@@ -3,23 +3,24 @@
 //!
 //! Hand-written rather than taken from a solver crate (see the crate docs for
 //! why): the problem is at most a few hundred vehicles × 6 DoF with a sparse,
-//! nearly banded information matrix. The normal equations are ordered by
-//! reverse Cuthill–McKee over the vehicle graph and factored with a profile
-//! (skyline) Cholesky, whose fill stays inside the envelope; the marginal
-//! covariances are the diagonal 6×6 blocks of the inverse Gauss–Newton
-//! information, computed by forward substitution from each block down.
+//! sparse information matrix. The normal equations are kept in 6×6 blocks,
+//! ordered by minimum degree over the vehicle graph and factored by a
+//! block-sparse Cholesky ([`crate::sparse`]); the marginal covariances are
+//! the diagonal 6×6 blocks of the inverse Gauss–Newton information, from a
+//! selected inversion over the factor's pattern.
 //!
 //! Perturbations follow [`proto::geometry`]: `t + δt`, `Exp(δθ)·R`, both in
 //! the reference frame; an edge's residual is `difference(a_from_ref·ref_from_b,
 //! measured a_from_b)`, expressed in frame `a` like the measurement's covariance.
 
+use crate::sparse::{Block, Factor, Symbolic};
 use nalgebra::{Matrix3, Matrix6, Vector3, Vector6};
 use proto::geometry::{
     compose_jacobians, inverse_jacobian, perturb, skew, Cov6, Pose, PoseWithCovariance,
 };
 use proto::VehicleId;
 use serde::{Deserialize, Serialize};
-use std::collections::{BTreeMap, BTreeSet, VecDeque};
+use std::collections::{BTreeMap, BTreeSet};
 
 /// Robust loss applied to each edge's squared Mahalanobis distance `s`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -200,185 +201,6 @@ pub fn edge_chi2(
     (r.transpose() * information * r)[0]
 }
 
-/// `Σ aᵢ·bᵢ` over the common length, in four interleaved partial sums: the
-/// inner loop of the profile factorization and of the marginals, which a
-/// single running sum keeps from vectorizing (floating-point addition is not
-/// reassociated by the compiler). The order is fixed, so results stay
-/// bit-reproducible. (Eight partial sums measured no faster.)
-fn dot(a: &[f64], b: &[f64]) -> f64 {
-    let n = a.len().min(b.len());
-    let (a, b) = (&a[..n], &b[..n]);
-    let mut acc = [0.0f64; 4];
-    let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));
-    let (ra, rb) = (ca.remainder(), cb.remainder());
-    for (x, y) in ca.zip(cb) {
-        for k in 0..4 {
-            acc[k] += x[k] * y[k];
-        }
-    }
-    let tail: f64 = ra.iter().zip(rb).map(|(x, y)| x * y).sum();
-    (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
-}
-
-/// A symmetric positive-definite matrix stored by its lower profile: row `i`
-/// holds columns `first[i]..=i`, the rows one after another in one buffer
-/// (one allocation; a damped copy per Levenberg–Marquardt try is one memcpy).
-#[derive(Debug, Clone)]
-struct Profile {
-    first: Vec<usize>,
-    /// Where row `i` starts in `data`; `start[n]` is its length.
-    start: Vec<usize>,
-    data: Vec<f64>,
-}
-
-impl Profile {
-    fn zeros(first: Vec<usize>) -> Self {
-        let mut start = Vec::with_capacity(first.len() + 1);
-        let mut len = 0;
-        for (i, f) in first.iter().enumerate() {
-            start.push(len);
-            len += i + 1 - f;
-        }
-        start.push(len);
-        Self {
-            first,
-            start,
-            data: vec![0.0; len],
-        }
-    }
-    fn n(&self) -> usize {
-        self.first.len()
-    }
-    /// Row `i`, columns `first[i]..=i`.
-    fn row(&self, i: usize) -> &[f64] {
-        &self.data[self.start[i]..self.start[i + 1]]
-    }
-    fn get(&self, i: usize, j: usize) -> f64 {
-        debug_assert!(j <= i);
-        if j < self.first[i] {
-            0.0
-        } else {
-            self.data[self.start[i] + j - self.first[i]]
-        }
-    }
-    fn add(&mut self, i: usize, j: usize, v: f64) {
-        let (i, j) = if j > i { (j, i) } else { (i, j) };
-        let f = self.first[i];
-        self.data[self.start[i] + j - f] += v;
-    }
-    /// In-place Cholesky `A = L·Lᵀ` within the profile; `None` if not positive definite.
-    fn cholesky(mut self) -> Option<Profile> {
-        let n = self.n();
-        for i in 0..n {
-            let fi = self.first[i];
-            // Rows before i (finished) and row i (being factored).
-            let (done, rest) = self.data.split_at_mut(self.start[i]);
-            let row = &mut rest[..i + 1 - fi];
-            for j in fi..i {
-                let fj = self.first[j];
-                let k0 = fi.max(fj);
-                let row_j = &done[self.start[j]..self.start[j + 1]];
-                let d = dot(&row[k0 - fi..j - fi], &row_j[k0 - fj..j - fj]);
-                row[j - fi] = (row[j - fi] - d) / row_j[j - fj];
-            }
-            let d = row[i - fi] - dot(&row[..i - fi], &row[..i - fi]);
-            if d.is_nan() || d <= 0.0 || !d.is_finite() {
-                return None;
-            }
-            row[i - fi] = d.sqrt();
-        }
-        Some(self)
-    }
-    /// Solve `L·Lᵀ x = b` with `self` the factor `L`.
-    fn solve(&self, b: &[f64]) -> Vec<f64> {
-        let n = self.n();
-        let mut y = b.to_vec();
-        for i in 0..n {
-            let fi = self.first[i];
-            let row = self.row(i);
-            let s = y[i] - dot(&row[..i - fi], &y[fi..i]);
-            y[i] = s / row[i - fi];
-        }
-        // Backward with Lᵀ: column-oriented over the rows of L.
-        for i in (0..n).rev() {
-            let fi = self.first[i];
-            let row = self.row(i);
-            y[i] /= row[i - fi];
-            let yi = y[i];
-            for k in fi..i {
-                y[k] -= row[k - fi] * yi;
-            }
-        }
-        y
-    }
-    /// Diagonal 6×6 block `p` of `(L·Lᵀ)⁻¹`: `Yᵀ·Y` with `Y = L⁻¹·E_p`
-    /// (forward substitution from row `6p` down; rows above are zero).
-    fn inverse_diagonal_block(&self, p: usize) -> Cov6 {
-        let n = self.n();
-        let start = 6 * p;
-        // Column-major: y[c][i - start].
-        let mut y = vec![vec![0.0f64; n - start]; 6];
-        for i in start..n {
-            let f = self.first[i];
-            let k0 = f.max(start);
-            let row = self.row(i);
-            let lii = row[i - f];
-            let lrow = &row[k0 - f..i - f];
-            for (c, yc) in y.iter_mut().enumerate() {
-                let d = dot(lrow, &yc[k0 - start..i - start]);
-                let e = if i - start == c { 1.0 } else { 0.0 };
-                yc[i - start] = (e - d) / lii;
-            }
-        }
-        let mut cov = Cov6::zeros();
-        for r in 0..6 {
-            for c in r..6 {
-                let v = dot(&y[r], &y[c]);
-                cov[(r, c)] = v;
-                cov[(c, r)] = v;
-            }
-        }
-        cov
-    }
-}
-
-/// Reverse Cuthill–McKee order of `vertices` (sorted) under `neighbours`,
-/// deterministic: each BFS starts at the lowest-degree unvisited vertex,
-/// neighbours are visited by (degree, ID).
-fn reverse_cuthill_mckee(
-    vertices: &[VehicleId],
-    neighbours: &BTreeMap<VehicleId, BTreeSet<VehicleId>>,
-) -> Vec<VehicleId> {
-    let degree = |v: &VehicleId| neighbours.get(v).map_or(0, BTreeSet::len);
-    let mut by_degree: Vec<VehicleId> = vertices.to_vec();
-    by_degree.sort_by_key(|v| (degree(v), *v));
-    let mut visited = BTreeSet::new();
-    let mut order = Vec::with_capacity(vertices.len());
-    for &start in &by_degree {
-        if !visited.insert(start) {
-            continue;
-        }
-        let mut queue = VecDeque::from([start]);
-        while let Some(v) = queue.pop_front() {
-            order.push(v);
-            let mut next: Vec<VehicleId> = neighbours
-                .get(&v)
-                .into_iter()
-                .flatten()
-                .copied()
-                .filter(|u| !visited.contains(u))
-                .collect();
-            next.sort_by_key(|u| (degree(u), *u));
-            for u in next {
-                visited.insert(u);
-                queue.push_back(u);
-            }
-        }
-    }
-    order.reverse();
-    order
-}
-
 /// Solve the pose graph. `initial` must hold a pose for every vehicle named by
 /// a constraint; `reference` is held fixed (gauge). Vehicles in `initial` that
 /// no constraint touches keep their initial pose and get no covariance.
@@ -419,23 +241,23 @@ pub fn solve(
     })
 }
 
-/// Where each vehicle's 6 unknowns sit in the normal equations: reverse
-/// Cuthill–McKee order, and the profile (each row's first stored column).
+/// Where each vehicle's 6 unknowns sit in the normal equations: the
+/// block-sparse structure ([`Symbolic`]: minimum-degree order, the factor's
+/// pattern) and, per constraint, the slots its blocks add to.
 struct Layout {
+    /// Vehicle → elimination position (the reference has none).
     position: BTreeMap<VehicleId, usize>,
-    first: Vec<usize>,
+    symbolic: Symbolic,
+    /// Per constraint: the slots of `(a, a)`, `(b, b)` and `(a, b)` (`None`
+    /// for the reference), and whether the off-diagonal slot holds `H_ab`
+    /// (`a` eliminated after `b`) or its transpose.
+    slots: Vec<[Option<usize>; 3]>,
+    a_after_b: Vec<bool>,
     n: usize,
 }
 
 impl Layout {
     fn new(reference: VehicleId, constraints: &[Constraint]) -> Self {
-        let mut neighbours: BTreeMap<VehicleId, BTreeSet<VehicleId>> = BTreeMap::new();
-        for c in constraints {
-            if c.a != reference && c.b != reference {
-                neighbours.entry(c.a).or_default().insert(c.b);
-                neighbours.entry(c.b).or_default().insert(c.a);
-            }
-        }
         let variables: Vec<VehicleId> = constraints
             .iter()
             .flat_map(|c| [c.a, c.b])
@@ -443,27 +265,38 @@ impl Layout {
             .collect::<BTreeSet<_>>()
             .into_iter()
             .collect();
-        let order = reverse_cuthill_mckee(&variables, &neighbours);
-        let position: BTreeMap<VehicleId, usize> =
-            order.iter().enumerate().map(|(i, v)| (*v, i)).collect();
-        let n = 6 * order.len();
-        // Profile: each block row starts at its lowest-positioned neighbour.
-        let mut first = vec![0usize; n];
-        for (p, v) in order.iter().enumerate() {
-            let lowest = neighbours
-                .get(v)
-                .into_iter()
-                .flatten()
-                .filter_map(|u| position.get(u))
-                .copied()
-                .chain([p])
-                .min()
-                .unwrap_or(p);
-            for r in 0..6 {
-                first[6 * p + r] = 6 * lowest;
+        let index = |v: VehicleId| variables.binary_search(&v).ok();
+        let mut neighbours = vec![Vec::new(); variables.len()];
+        for c in constraints {
+            if let (Some(a), Some(b)) = (index(c.a), index(c.b)) {
+                neighbours[a].push(b);
+                neighbours[b].push(a);
             }
         }
-        Self { position, first, n }
+        let symbolic = Symbolic::new(&neighbours);
+        let position: BTreeMap<VehicleId, usize> = variables
+            .iter()
+            .enumerate()
+            .map(|(i, v)| (*v, symbolic.position[i]))
+            .collect();
+        let mut slots = Vec::with_capacity(constraints.len());
+        let mut a_after_b = Vec::with_capacity(constraints.len());
+        for c in constraints {
+            let (pa, pb) = (position.get(&c.a).copied(), position.get(&c.b).copied());
+            let off = match (pa, pb) {
+                (Some(x), Some(y)) if x != y => symbolic.slot(x.max(y), x.min(y)),
+                _ => None,
+            };
+            slots.push([pa, pb, off]);
+            a_after_b.push(matches!((pa, pb), (Some(x), Some(y)) if x > y));
+        }
+        Self {
+            n: 6 * variables.len(),
+            position,
+            symbolic,
+            slots,
+            a_after_b,
+        }
     }
 }
 
@@ -490,42 +323,31 @@ impl Problem<'_> {
     }
 
     /// Gauss–Newton system at `poses`, robust weights included: the
-    /// information (lower triangle, in the profile) and the gradient.
-    fn normal_equations(&self, poses: &BTreeMap<VehicleId, Pose>) -> (Profile, Vec<f64>) {
-        let position = &self.layout.position;
-        let mut h = Profile::zeros(self.layout.first.clone());
-        let mut g = vec![0.0; self.layout.n];
-        for (c, info) in self.constraints.iter().zip(&self.informations) {
+    /// information (its blocks, per slot of the layout) and the gradient
+    /// (by position).
+    fn normal_equations(&self, poses: &BTreeMap<VehicleId, Pose>) -> (Vec<Block>, Vec<f64>) {
+        let layout = &self.layout;
+        let mut h = vec![Block::zeros(); layout.symbolic.slots()];
+        let mut g = vec![0.0; layout.n];
+        for (k, (c, info)) in self.constraints.iter().zip(&self.informations).enumerate() {
             let (r, ja, jb) = residual_and_jacobians(&poses[&c.a], &poses[&c.b], &c.a_from_b);
             let s = (r.transpose() * info * r)[0];
-            let w = self.params.robust.weight(s);
-            let wi = info * w;
-            let blocks = [
-                (position.get(&c.a).copied(), ja),
-                (position.get(&c.b).copied(), jb),
-            ];
-            for (pi, ji) in &blocks {
-                let Some(pi) = pi else { continue };
-                let jt_w = ji.transpose() * wi;
+            let wi = info * self.params.robust.weight(s);
+            let [sa, sb, sab] = layout.slots[k];
+            let (jta_w, jtb_w) = (ja.transpose() * wi, jb.transpose() * wi);
+            for (slot, jt_w, j) in [(sa, &jta_w, &ja), (sb, &jtb_w, &jb)] {
+                let Some(p) = slot else { continue };
                 let gi = jt_w * r;
-                for k in 0..6 {
-                    g[6 * pi + k] += gi[k];
+                for i in 0..6 {
+                    g[6 * p + i] += gi[i];
                 }
-                for (pj, jj) in &blocks {
-                    let Some(pj) = pj else { continue };
-                    if pj > pi {
-                        continue;
-                    }
-                    let hij = jt_w * jj;
-                    for r_ in 0..6 {
-                        for c_ in 0..6 {
-                            let (row, col) = (6 * pi + r_, 6 * pj + c_);
-                            if pi == pj && col > row {
-                                continue;
-                            }
-                            h.add(row, col, hij[(r_, c_)]);
-                        }
-                    }
+                h[p] += jt_w * j;
+            }
+            if let Some(off) = sab {
+                if layout.a_after_b[k] {
+                    h[off] += jta_w * jb;
+                } else {
+                    h[off] += jtb_w * ja;
                 }
             }
         }
@@ -539,38 +361,39 @@ impl Problem<'_> {
         poses: &mut BTreeMap<VehicleId, Pose>,
         mut cost: f64,
     ) -> (usize, f64) {
-        let n = self.layout.n;
+        let sym = &self.layout.symbolic;
         let mut lambda = self.params.initial_lambda;
         let mut iterations = 0;
-        if n == 0 {
+        if self.layout.n == 0 {
             return (iterations, cost);
         }
+        let mut trial = poses.clone();
         for _ in 0..self.params.max_iterations {
             iterations += 1;
             let (h, g) = self.normal_equations(poses);
+            let neg_g: Vec<f64> = g.iter().map(|v| -v).collect();
             let mut improved = false;
             for _ in 0..10 {
                 let mut damped = h.clone();
-                for i in 0..n {
-                    let d = damped.get(i, i);
-                    damped.add(i, i, lambda * d.max(1e-12));
+                for d in &mut damped[..sym.m()] {
+                    for i in 0..6 {
+                        d[(i, i)] += lambda * d[(i, i)].max(1e-12);
+                    }
                 }
-                let Some(l) = damped.cholesky() else {
+                let Some(l) = Factor::new(sym, damped) else {
                     lambda *= 10.0;
                     continue;
                 };
-                let neg_g: Vec<f64> = g.iter().map(|v| -v).collect();
-                let dx = l.solve(&neg_g);
-                let mut trial = poses.clone();
+                let dx = l.solve(sym, &neg_g);
                 for (v, p) in &self.layout.position {
-                    let xi = Vector6::from_iterator(dx[6 * p..6 * p + 6].iter().copied());
+                    let xi = Vector6::from_column_slice(&dx[6 * p..6 * p + 6]);
                     trial.insert(*v, perturb(&poses[v], &xi));
                 }
                 let trial_cost = self.cost(&trial);
                 if trial_cost.is_finite() && trial_cost <= cost {
                     let decrease = cost - trial_cost;
                     let step = dx.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-                    *poses = trial;
+                    std::mem::swap(poses, &mut trial);
                     cost = trial_cost;
                     lambda = (lambda / 10.0).max(1e-12);
                     // Converged: negligible relative decrease, or a step below `min_step`.
@@ -597,11 +420,12 @@ impl Problem<'_> {
         let mut covariances = BTreeMap::new();
         covariances.insert(reference, Cov6::zeros());
         if self.layout.n > 0 {
+            let sym = &self.layout.symbolic;
             let (h, _) = self.normal_equations(poses);
-            let l = h.cholesky().ok_or(SolveError::Singular)?;
+            let l = Factor::new(sym, h).ok_or(SolveError::Singular)?;
+            let blocks = l.inverse_diagonal_blocks(sym);
             for (v, p) in &self.layout.position {
-                let c = l.inverse_diagonal_block(*p);
-                covariances.insert(*v, (c + c.transpose()) * 0.5);
+                covariances.insert(*v, blocks[*p]);
             }
         }
         Ok(covariances)
@@ -660,42 +484,5 @@ mod tests {
         let nb = numeric(|d| difference(&(a.inverse() * perturb(&b, d)), &z));
         assert!((ja - na).abs().max() < 1e-6, "{ja} vs {na}");
         assert!((jb - nb).abs().max() < 1e-6, "{jb} vs {nb}");
-    }
-
-    #[test]
-    fn profile_cholesky_inverse_blocks_match_dense_inverse() {
-        // A banded SPD matrix of 3 blocks.
-        let n = 18;
-        let mut dense = nalgebra::DMatrix::<f64>::zeros(n, n);
-        for i in 0..n {
-            dense[(i, i)] = 4.0 + i as f64 * 0.1;
-            if i >= 5 {
-                dense[(i, i - 5)] = 0.5;
-                dense[(i - 5, i)] = 0.5;
-            }
-        }
-        let first: Vec<usize> = (0..n).map(|i| 6 * ((i / 6).saturating_sub(1))).collect();
-        let mut p = Profile::zeros(first);
-        for i in 0..n {
-            for j in p.first[i]..=i {
-                p.add(i, j, dense[(i, j)]);
-            }
-        }
-        let l = p.cholesky().unwrap();
-        let inv = dense.clone().try_inverse().unwrap();
-        for b in 0..3 {
-            let blk = l.inverse_diagonal_block(b);
-            for r in 0..6 {
-                for c in 0..6 {
-                    assert!((blk[(r, c)] - inv[(6 * b + r, 6 * b + c)]).abs() < 1e-12);
-                }
-            }
-        }
-        let rhs: Vec<f64> = (0..n).map(|i| i as f64 - 3.0).collect();
-        let x = l.solve(&rhs);
-        let back = &dense * nalgebra::DVector::from_vec(x);
-        for i in 0..n {
-            assert!((back[i] - rhs[i]).abs() < 1e-10);
-        }
     }
 }

@@ -1,7 +1,9 @@
 //! `fusion`: the swarm fusion at scale, on observations synthesized from
 //! ground truth (`sim_bridge::obs_synth`, no rendering): fused map error,
 //! outlier precision/recall and solve time for 3…100 vehicles at outlier
-//! rates 0…40 %.
+//! rates 0…40 %, and a 1 000-vehicle fleet at 20 % (issue #18), with how the
+//! solve's cost grows with the vehicles and with the observations in the
+//! window plotted.
 //!
 //! The outlier rate is split evenly between wrong IDs (another vehicle's
 //! marker), unknown IDs and planar flips. Precision/recall are over the
@@ -26,6 +28,8 @@ use std::collections::BTreeMap;
 /// Fleet sizes and outlier rates of the full run.
 pub const SIZES: [usize; 6] = [3, 5, 10, 20, 50, 100];
 pub const OUTLIER_RATES: [f64; 5] = [0.0, 0.1, 0.2, 0.3, 0.4];
+/// The large fleet of the full run, at one outlier rate.
+pub const LARGE: (usize, f64) = (1000, 0.2);
 /// Spacing of the grid formation (m): neighbours within the 4 m visibility range.
 const SPACING_M: f64 = 1.75;
 const FRAME_NS: u64 = 100_000_000;
@@ -45,13 +49,61 @@ struct Cell {
     flips_rejected: Option<f64>,
     observations: usize,
     solve_ms: f64,
+    /// Of the solve: the consistency checks and the LM solves (with gate rounds).
+    consistency_ms: f64,
+    lm_ms: f64,
     /// Why inliers were rejected (reason → count).
     inlier_rejections: BTreeMap<String, usize>,
 }
 
+/// Marker IDs the large fleet takes from each code set (the rest stay free
+/// for unknown-ID outliers), and markers per vehicle.
+const LARGE_POOL: [(CodeSet, u32); 4] = [
+    (CodeSet::Aruco4x4_1000, 900),
+    (CodeSet::Aruco5x5_1000, 900),
+    (CodeSet::Aruco6x6_1000, 900),
+    (CodeSet::AprilTag36h11, 450),
+];
+const LARGE_MARKERS: usize = 3;
+
+/// A fleet of `n` vehicles: [`synthetic_fleet`]'s (four markers of ArUco
+/// 4x4_1000 each) up to 250 vehicles, which that dictionary holds. Beyond,
+/// the same vehicle (rig, hull, marker mounts) with three markers (both
+/// sides and the top; the belly one left off) whose IDs are drawn in turn
+/// from the three 1000-code ArUco sets and AprilTag 36h11
+/// ([`LARGE_POOL`]): the dictionaries hold 3 587 IDs, too few for four per
+/// vehicle at 1 000 vehicles.
+fn fleet_of(n: usize) -> Result<shoal_proto::config::Fleet, EvalError> {
+    let setup = |e: String| EvalError::Setup(e);
+    if n <= 250 {
+        return synthetic_fleet(n, CodeSet::Aruco4x4_1000).map_err(|e| setup(e.to_string()));
+    }
+    let mut fleet = synthetic_fleet(1, CodeSet::Aruco4x4_1000).map_err(|e| setup(e.to_string()))?;
+    let template = fleet.vehicles[0].clone();
+    let mut pool = LARGE_POOL
+        .iter()
+        .flat_map(|&(codes, count)| (0..count).map(move |id| (codes, id)));
+    fleet.vehicles = (1..=n as VehicleId)
+        .map(|id| {
+            let mut v = template.clone();
+            v.id = id;
+            v.name = format!("auv-{id}");
+            v.markers.truncate(LARGE_MARKERS);
+            for m in &mut v.markers {
+                (m.codes, m.id) = pool
+                    .next()
+                    .ok_or_else(|| setup(format!("too few marker IDs for {n} vehicles")))?;
+            }
+            Ok(v)
+        })
+        .collect::<Result<_, EvalError>>()?;
+    fleet.name = format!("synthetic{n}");
+    fleet.description = format!("{n} generated vehicles, {LARGE_MARKERS} markers each");
+    Ok(fleet)
+}
+
 fn run_cell(n: usize, rate: f64, frames: usize, seed: u64) -> Result<Cell, EvalError> {
-    let fleet =
-        synthetic_fleet(n, CodeSet::Aruco4x4_1000).map_err(|e| EvalError::Setup(e.to_string()))?;
+    let fleet = fleet_of(n)?;
     let ids: Vec<VehicleId> = fleet.vehicles.iter().map(|v| v.id).collect();
     let columns = (n as f64).sqrt().ceil() as usize;
     let truth = grid_formation(&ids, columns, SPACING_M, FormationJitter::default(), seed);
@@ -85,6 +137,7 @@ fn run_cell(n: usize, rate: f64, frames: usize, seed: u64) -> Result<Cell, EvalE
     let t0 = std::time::Instant::now();
     let map = fusion.solve(last_stamp);
     let solve_ms = t0.elapsed().as_secs_f64() * 1e3;
+    let stats = fusion.stats().last_solve;
 
     // Map error against the truth, in the reference vehicle's frame.
     let world_from: BTreeMap<VehicleId, _> = truth
@@ -166,7 +219,44 @@ fn run_cell(n: usize, rate: f64, frames: usize, seed: u64) -> Result<Cell, EvalE
         flips_rejected: (flips > 0).then(|| flips_rej as f64 / flips as f64),
         observations,
         solve_ms,
+        consistency_ms: stats.consistency_us as f64 * 1e-3,
+        lm_ms: stats.lm_us as f64 * 1e-3,
         inlier_rejections,
+    })
+}
+
+/// The CSV row and JSON entry of one cell.
+fn record(csv: &mut Csv, n: usize, r: f64, frames: usize, c: &Cell) -> Value {
+    let f = |v: Option<f64>| v.map(|x| format!("{x:.6}")).unwrap_or_default();
+    csv.row(vec![
+        n.to_string(),
+        r.to_string(),
+        frames.to_string(),
+        c.observations.to_string(),
+        c.localized.to_string(),
+        f(c.median_error_m),
+        f(c.max_error_m),
+        f(c.median_angle_deg),
+        f(c.precision),
+        f(c.recall),
+        f(c.flips_rejected),
+        format!("{:.3}", c.solve_ms),
+        format!("{:.3}", c.consistency_ms),
+        format!("{:.3}", c.lm_ms),
+    ]);
+    json!({
+        "localized": c.localized,
+        "median_position_error_m": c.median_error_m,
+        "max_position_error_m": c.max_error_m,
+        "median_angle_error_deg": c.median_angle_deg,
+        "id_outlier_precision": c.precision,
+        "id_outlier_recall": c.recall,
+        "flips_rejected": c.flips_rejected,
+        "solve_ms": c.solve_ms,
+        "consistency_ms": c.consistency_ms,
+        "lm_ms": c.lm_ms,
+        "observations": c.observations,
+        "inlier_rejections": c.inlier_rejections,
     })
 }
 
@@ -182,7 +272,11 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     } else {
         OUTLIER_RATES.to_vec()
     };
-    let bar = opts.bar(sizes.len() * rates.len(), "fusion: fleets");
+    let large = (!opts.quick).then_some(LARGE);
+    let bar = opts.bar(
+        sizes.len() * rates.len() + usize::from(large.is_some()),
+        "fusion: fleets",
+    );
     let mut csv = Csv::new(&[
         "vehicles",
         "outlier_rate",
@@ -196,54 +290,35 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
         "id_outlier_recall",
         "flips_rejected",
         "solve_ms",
+        "consistency_ms",
+        "lm_ms",
     ]);
     let mut results = Map::new();
     let mut err_vals: Vec<Vec<Option<f64>>> = vec![Vec::new(); rates.len()];
     let mut time_vals: Vec<Vec<Option<f64>>> = vec![Vec::new(); rates.len()];
+    // Per rate: (vehicles, observations, solve ms) of every cell.
+    let mut cost: Vec<Vec<(usize, usize, f64)>> = vec![Vec::new(); rates.len()];
+    let seed = |n: usize, ri: usize| opts.seed.wrapping_add(n as u64 * 101 + ri as u64);
     for &n in &sizes {
         let mut per = Map::new();
         for (ri, &r) in rates.iter().enumerate() {
-            let c = run_cell(
-                n,
-                r,
-                frames,
-                opts.seed.wrapping_add(n as u64 * 101 + ri as u64),
-            )?;
-            let f = |v: Option<f64>| v.map(|x| format!("{x:.6}")).unwrap_or_default();
-            csv.row(vec![
-                n.to_string(),
-                r.to_string(),
-                frames.to_string(),
-                c.observations.to_string(),
-                c.localized.to_string(),
-                f(c.median_error_m),
-                f(c.max_error_m),
-                f(c.median_angle_deg),
-                f(c.precision),
-                f(c.recall),
-                f(c.flips_rejected),
-                format!("{:.3}", c.solve_ms),
-            ]);
-            per.insert(
-                format!("{r}"),
-                json!({
-                    "localized": c.localized,
-                    "median_position_error_m": c.median_error_m,
-                    "max_position_error_m": c.max_error_m,
-                    "median_angle_error_deg": c.median_angle_deg,
-                    "id_outlier_precision": c.precision,
-                    "id_outlier_recall": c.recall,
-                    "flips_rejected": c.flips_rejected,
-                    "solve_ms": c.solve_ms,
-                    "observations": c.observations,
-                    "inlier_rejections": c.inlier_rejections,
-                }),
-            );
+            let c = run_cell(n, r, frames, seed(n, ri))?;
+            per.insert(format!("{r}"), record(&mut csv, n, r, frames, &c));
             err_vals[ri].push(c.median_error_m.map(|m| m * 1e3));
             time_vals[ri].push(Some(c.solve_ms));
+            cost[ri].push((n, c.observations, c.solve_ms));
             bar.inc(1);
         }
         results.insert(n.to_string(), Value::Object(per));
+    }
+    if let Some((n, r)) = large {
+        let ri = rates.iter().position(|&x| x == r).unwrap_or(0);
+        let c = run_cell(n, r, frames, seed(n, ri))?;
+        let mut per = Map::new();
+        per.insert(format!("{r}"), record(&mut csv, n, r, frames, &c));
+        results.insert(n.to_string(), Value::Object(per));
+        cost[ri].push((n, c.observations, c.solve_ms));
+        bar.inc(1);
     }
     bar.finish_and_clear();
     csv.write(&opts.out.join("fusion.csv"))?;
@@ -270,14 +345,39 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
             x_label: "vehicles".into(),
             y_label: "solve time (ms)".into(),
             categories,
-            series,
+            series: series.clone(),
         },
         &time_vals,
     ));
+    let curve = |x: fn(&(usize, usize, f64)) -> f64| -> Vec<(String, Vec<(f64, f64)>)> {
+        series
+            .iter()
+            .zip(&cost)
+            .map(|(name, cells)| {
+                let mut pts: Vec<(f64, f64)> = cells.iter().map(|c| (x(c), c.2)).collect();
+                pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+                (name.clone(), pts)
+            })
+            .collect()
+    };
+    let p3 = plot_or_warn(plot::lines(
+        &opts.out.join("eval-fusion-cost-vehicles"),
+        &format!("Fusion solve cost vs fleet size ({frames}-frame window)"),
+        "vehicles",
+        "solve time (ms)",
+        &curve(|c| c.0 as f64),
+    ));
+    let p4 = plot_or_warn(plot::lines(
+        &opts.out.join("eval-fusion-cost-observations"),
+        "Fusion solve cost vs observations per window",
+        "observations in the window",
+        "solve time (ms)",
+        &curve(|c| c.1 as f64),
+    ));
     Ok(json!({
         "frames": frames,
-        "setup": "synthetic fleets (obs_synth::synthetic_fleet, ArUco 4x4_1000 IDs), grid formation 1.75 m apart, default noise/visibility models; outlier rate split evenly between wrong IDs, unknown IDs and planar flips; one solve after the window fills",
+        "setup": "synthetic fleets (obs_synth::synthetic_fleet, ArUco 4x4_1000 IDs), grid formation 1.75 m apart, default noise/visibility models; outlier rate split evenly between wrong IDs, unknown IDs and planar flips; one solve after the window fills; the full run adds 1000 vehicles at 20 %",
         "results": results,
-        "plots": [p1, p2],
+        "plots": [p1, p2, p3, p4],
     }))
 }

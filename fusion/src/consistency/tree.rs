@@ -7,7 +7,18 @@ use crate::solver::{compose, difference, invert};
 use proto::geometry::{Cov6, Pose, PoseWithCovariance};
 use proto::VehicleId;
 use std::cmp::Reverse;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BinaryHeap};
+
+/// Votes, vote and support margins over the runner-up, support, primaries,
+/// and the pair (lowest first on a tie).
+type FrontierKey = (
+    usize,
+    i64,
+    i64,
+    usize,
+    usize,
+    Reverse<(VehicleId, VehicleId)>,
+);
 
 /// The tree's predictions of one pair's relative pose, computed on first use:
 /// the independent-path pose and variance bound, and the exact composition.
@@ -171,6 +182,27 @@ pub fn select_with_prior(
     prior: &Prior,
 ) -> Selection {
     let ranked: Vec<Vec<usize>> = pairs.iter().map(PairCandidates::ranked).collect();
+    // The frontier's ranking of each pair with clusters (fixed: clusters and
+    // votes do not change during the selection), kept in a heap rather than
+    // found by a scan of every pair per vehicle added.
+    let keys: Vec<Option<FrontierKey>> = pairs
+        .iter()
+        .zip(&ranked)
+        .map(|(p, r)| {
+            let top = &p.clusters[*r.first()?];
+            let (sv, ss) = r
+                .get(1)
+                .map_or((0, 0), |&s| (p.clusters[s].votes, p.clusters[s].support()));
+            Some((
+                top.votes,
+                top.votes as i64 - sv as i64,
+                top.support() as i64 - ss as i64,
+                top.support(),
+                top.primaries,
+                Reverse((p.a, p.b)),
+            ))
+        })
+        .collect();
     let mut choice = vec![None; pairs.len()];
     let mut decided = vec![false; pairs.len()];
     let mut by_vehicle: BTreeMap<VehicleId, Vec<usize>> = BTreeMap::new();
@@ -186,10 +218,16 @@ pub fn select_with_prior(
         trees.push(Tree::new(r));
         tree_of.insert(r, t);
         let mut just_added = vec![r];
+        let mut frontier = BinaryHeap::new();
         loop {
             // Verify every pair that closes a cycle with the new vehicles.
             for v in just_added.drain(..) {
                 for &pi in by_vehicle.get(&v).into_iter().flatten() {
+                    if let Some(key) = &keys[pi] {
+                        if !decided[pi] {
+                            frontier.push((*key, pi));
+                        }
+                    }
                     let p = &pairs[pi];
                     if decided[pi] || tree_of.get(&p.a) != Some(&t) || tree_of.get(&p.b) != Some(&t)
                     {
@@ -210,27 +248,19 @@ pub fn select_with_prior(
                     });
                 }
             }
-            // Extend by the most trustworthy frontier pair.
-            let frontier = pairs.iter().enumerate().filter(|(i, p)| {
-                !decided[*i]
-                    && !ranked[*i].is_empty()
+            // Extend by the most trustworthy frontier pair: the heap's best
+            // that is still undecided with one vehicle in the tree (a pair
+            // leaves the frontier for good once decided or inside the tree).
+            let mut best = None;
+            while let Some((_, pi)) = frontier.pop() {
+                let p = &pairs[pi];
+                if !decided[pi]
                     && (tree_of.get(&p.a) == Some(&t)) != (tree_of.get(&p.b) == Some(&t))
-            });
-            let best = frontier.max_by_key(|(i, p)| {
-                let r = &ranked[*i];
-                let top = &p.clusters[r[0]];
-                let (sv, ss) = r
-                    .get(1)
-                    .map_or((0, 0), |&s| (p.clusters[s].votes, p.clusters[s].support()));
-                (
-                    top.votes,
-                    top.votes as i64 - sv as i64,
-                    top.support() as i64 - ss as i64,
-                    top.support(),
-                    top.primaries,
-                    Reverse((p.a, p.b)),
-                )
-            });
+                {
+                    best = Some((pi, p));
+                    break;
+                }
+            }
             let Some((pi, p)) = best else { break };
             decided[pi] = true;
             let c = prior_pick(p, &ranked[pi], prior).unwrap_or(ranked[pi][0]);

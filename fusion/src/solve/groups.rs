@@ -58,6 +58,14 @@ impl TrackGroups {
             }
         };
         let f = &frames[members[0]];
+        if let ([one], true) = (hyp.as_slice(), f.observer < f.target) {
+            // The frame itself (its information already computed).
+            return Some(Candidate {
+                observation: g,
+                hypothesis: h,
+                ..**one
+            });
+        }
         let measured = PoseWithCovariance::new(pose, cov);
         let a_from_b = if f.observer < f.target {
             measured

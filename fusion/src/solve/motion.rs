@@ -5,7 +5,7 @@
 use super::frames::Frame;
 use super::groups::TrackGroups;
 use crate::consistency::Candidate;
-use nalgebra::{SMatrix, SVector};
+use nalgebra::SVector;
 use proto::geometry::Cov6;
 use proto::VehicleId;
 use serde::{Deserialize, Serialize};
@@ -68,10 +68,11 @@ pub(crate) fn fit_groups(frames: &[Frame], groups: &TrackGroups, model: &MotionM
                 let Some(anchor) = frames[newest].hyps[h].map(|c| c.a_from_b) else {
                     continue;
                 };
-                let Some((v, cov_v)) = fit_velocity(frames, members, h, t_n, &anchor, model) else {
+                let Some((v, cov_v, significance)) =
+                    fit_velocity(frames, members, h, t_n, &anchor, model)
+                else {
                     continue;
                 };
-                let significance = cov_v.cholesky().map_or(0.0, |c| v.dot(&c.solve(&v)));
                 if !significance.is_nan() && significance > model.significance_chi2 {
                     *fit = Some((v, cov_v));
                 }
@@ -159,8 +160,9 @@ fn compensate_group(
 
 /// The weighted least-squares fit of `[x; v]` (12 unknowns) to hypothesis
 /// `h` of `members`, in the tangent space at `anchor` (the newest frame, at
-/// `t_n`): the velocity and its covariance. `None` with fewer than two frames
-/// having the hypothesis, or normal equations that cannot be factored.
+/// `t_n`): the velocity, its covariance and its significance (`vᵀ·Σ⁻¹·v`).
+/// `None` with fewer than two frames having the hypothesis, or normal
+/// equations that cannot be factored.
 fn fit_velocity(
     frames: &[Frame],
     members: &[usize],
@@ -168,9 +170,11 @@ fn fit_velocity(
     t_n: u64,
     anchor: &proto::geometry::Pose,
     model: &MotionModel,
-) -> Option<(SVector<f64, 6>, Cov6)> {
-    let mut a = SMatrix::<f64, 12, 12>::zeros();
-    let mut b = SVector::<f64, 12>::zeros();
+) -> Option<(SVector<f64, 6>, Cov6, f64)> {
+    // The normal equations [[S0, S1], [S1, S2]]·[x; v] = [b0; b1] with
+    // S_k = Σ W·d^k, b_k = Σ W·r·d^k, in 6×6 blocks.
+    let (mut s0, mut s1, mut s2) = (Cov6::zeros(), Cov6::zeros(), Cov6::zeros());
+    let (mut b0, mut b1) = (SVector::<f64, 6>::zeros(), SVector::<f64, 6>::zeros());
     let mut used = 0;
     for &i in members {
         let Some(c) = &frames[i].hyps[h] else {
@@ -178,40 +182,34 @@ fn fit_velocity(
         };
         let d = -((t_n - frames[i].stamp_ns) as f64) * 1e-9;
         let r = proto::geometry::difference(&c.a_from_b, anchor);
-        let w = c.information;
+        let w = &c.information;
         let wr = w * r;
-        let mut block = |r0: usize, c0: usize, m: Cov6| {
-            let mut view = a.fixed_view_mut::<6, 6>(r0, c0);
-            view += m;
-        };
-        block(0, 0, w);
-        block(0, 6, w * d);
-        block(6, 0, w * d);
-        block(6, 6, w * (d * d));
-        let mut top = b.fixed_rows_mut::<6>(0);
-        top += wr;
-        let mut bottom = b.fixed_rows_mut::<6>(6);
-        bottom += wr * d;
+        s0 += w;
+        s1 += w * d;
+        s2 += w * (d * d);
+        b0 += wr;
+        b1 += wr * d;
         used += 1;
     }
     if used < 2 {
         return None;
     }
     for k in 0..3 {
-        a[(6 + k, 6 + k)] += model.velocity_prior_m_s.powi(-2);
-        a[(9 + k, 9 + k)] += model.angular_velocity_prior_rad_s.powi(-2);
+        s2[(k, k)] += model.velocity_prior_m_s.powi(-2);
+        s2[(3 + k, 3 + k)] += model.angular_velocity_prior_rad_s.powi(-2);
     }
-    let ch = a.cholesky()?;
-    let sol = ch.solve(&b);
-    // Only the velocity block of the inverse: six of its twelve columns.
-    let mut unit = SMatrix::<f64, 12, 6>::zeros();
-    for k in 0..6 {
-        unit[(6 + k, k)] = 1.0;
-    }
-    let columns = ch.solve(&unit);
-    let v: SVector<f64, 6> = sol.fixed_rows::<6>(6).into_owned();
-    let cov_v: Cov6 = columns.fixed_view::<6, 6>(6, 0).into_owned();
-    Some((v, cov_v))
+    // The velocity through the Schur complement of S0: its information is
+    // S = S2 − S1·S0⁻¹·S1, its covariance S⁻¹ (the velocity block of the
+    // inverse), and v = S⁻¹·(b1 − S1·S0⁻¹·b0).
+    let s0_inv = crate::linalg::spd_inverse6(&s0)?;
+    let k = s1 * s0_inv;
+    let schur = s2 - k * s1;
+    let schur = (schur + schur.transpose()) * 0.5;
+    let cov_v = crate::linalg::spd_inverse6(&schur)?;
+    let v = cov_v * (b1 - k * b0);
+    // vᵀ·cov_v⁻¹·v: the velocity's significance.
+    let significance = v.dot(&(schur * v));
+    Some((v, cov_v, significance))
 }
 
 #[cfg(test)]
