@@ -2,6 +2,9 @@
 //! camera in the paper fleet's line abreast (2 m), vehicle 17 (the far one)
 //! moved 0.5 m deeper so it shows below vehicle 15; water 0.5 /m, with noise.
 //!
+//! The same and the water alone on one thread too (`threads = 1`: the
+//! frame's CPU time; the others use the machine's parallelism).
+//!
 //! Also single markers at 600 mm (0.5 and 8.22 /m; 0.5 /m through a flat port too), the water alone with and
 //! without noise, and the paper's 2448x2048 Eq. (3) camera.
 //!
@@ -52,6 +55,16 @@ fn bench(c: &mut Criterion) {
                 seed,
             )
             .expect("render")
+        })
+    });
+    // The same on one thread: the frame's CPU time.
+    let mut single = Renderer::new();
+    single.threads = 1;
+    c.bench_function("render_1440x1080_two_vehicles_1thread", |b| {
+        b.iter(|| {
+            seed += 1;
+            render_fleet_view(&mut single, &fleet, &truth, 10, 4, &water, 0.0, seed, seed)
+                .expect("render")
         })
     });
     let cam = CameraModel::vehicle_1440();
@@ -126,6 +139,13 @@ fn bench(c: &mut Criterion) {
         0.1,
         facing_camera([0.0, 0.0, 0.8], [0.0, 0.35, 0.0]),
     );
+    c.bench_function("render_1440x1080_empty_noise_1thread", |b| {
+        b.iter(|| {
+            single
+                .render(&cam, &Pose::identity(), &empty, &water, 0.0, 1)
+                .expect("render")
+        })
+    });
     c.bench_function("render_2448x2048_marker_800mm_c8.22", |b| {
         b.iter(|| {
             renderer

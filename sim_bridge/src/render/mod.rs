@@ -37,7 +37,7 @@ use crate::error::SimError;
 use crate::water::WaterParams;
 use cast::{sample_offsets, Band, Caster, Medium};
 use nalgebra::Vector3;
-use optics::{blur_add, quantize_row, round_to_u8_f32, Ambient, LampIntegral, Psf, Rect};
+use optics::{blur_add_threads, quantize_row, round_to_u8_f32, Ambient, LampIntegral, Psf, Rect};
 use rays::RayTable;
 use roi::{hull_roi, plate_roi, psf_groups, Roi};
 use shoal_proto::config::Fleet;
@@ -207,13 +207,14 @@ impl Renderer {
 
         // Forward scatter: blur the scattered light per group of overlapping ROIs.
         for (region, psf) in &blurs {
-            blur_add(
+            blur_add_threads(
                 &self.scatter,
                 w,
                 *region,
                 psf,
                 &mut self.scattered,
                 &mut self.scratch,
+                self.threads,
             );
         }
 
