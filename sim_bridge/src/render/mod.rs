@@ -16,6 +16,12 @@
 //! plate or a hull) is on screen are ray-cast; the water background, the
 //! veil, vignetting and noise are analytic. The water model and its sources
 //! are in `docs/water-model.md`.
+//!
+//! Speed (issue #18): the rays of a camera's pixel centres and corners are
+//! solved once and kept for its later frames; a frame's work runs in bands
+//! of rows over [`Renderer::threads`] threads, each value computed in the
+//! same order whatever their number, so frames are bit-identical on any
+//! number of threads.
 
 mod cast;
 mod frame_files;
@@ -587,4 +593,64 @@ pub fn render_fleet_view(
         vm.frame_seq = frame_seq;
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod thread_tests {
+    use super::*;
+    use crate::world::{Formation, SwarmWorld};
+    use shoal_proto::CodeSet;
+
+    #[test]
+    fn frames_are_the_same_bytes_on_any_number_of_threads() {
+        let fleet = Fleet::load(
+            &std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/fleets/paper.toml"),
+        )
+        .unwrap();
+        let world = SwarmWorld::new(&fleet, Formation::Line, 2.0, 1).unwrap();
+        let mut truth = world.truth();
+        truth[2].world_from_body.translation.z += 0.5;
+        let water = WaterParams::preset(0.5);
+        let mut one = Renderer::new();
+        one.threads = 1;
+        let a = render_fleet_view(&mut one, &fleet, &truth, 10, 4, &water, 1.0, 3, 9).unwrap();
+        assert_eq!(a.visible.len(), 2, "two markers in view");
+        let dn_one = one.last_frame_dn().to_vec();
+        // A marker through a flat port too, then the fleet view again (the
+        // buffers of the other frame must not leak into this one).
+        let cam = CameraModel::vehicle_1440();
+        let scene = Scene::single_marker(
+            CodeSet::Shoal,
+            17,
+            0.1,
+            facing_camera([0.0, 0.0, 0.6], [0.0, 0.35, 0.0]),
+        );
+        let port = FlatPort {
+            distance_m: 0.010,
+            glass_m: 0.008,
+            n_glass: FlatPort::N_ACRYLIC,
+            n_water: FlatPort::N_SEA_WATER,
+        };
+        let murky = WaterParams::preset(8.22);
+        let m1 = one
+            .render_with_port(&cam, Some(&port), &Pose::identity(), &scene, &murky, 0.0, 4)
+            .unwrap();
+        for threads in [2, 3, 8] {
+            let mut many = Renderer::new();
+            many.threads = threads;
+            let m = many
+                .render_with_port(&cam, Some(&port), &Pose::identity(), &scene, &murky, 0.0, 4)
+                .unwrap();
+            assert_eq!(m, m1, "{threads} threads, port");
+            let b = render_fleet_view(&mut many, &fleet, &truth, 10, 4, &water, 1.0, 3, 9).unwrap();
+            assert_eq!(b, a, "{threads} threads");
+            assert!(
+                many.last_frame_dn()
+                    .iter()
+                    .zip(&dn_one)
+                    .all(|(x, y)| x.to_bits() == y.to_bits()),
+                "{threads} threads: DN"
+            );
+        }
+    }
 }
