@@ -438,7 +438,7 @@ pub fn quantize_row(row_in: &[f32], y: usize, water: &WaterParams, seed: u64, ro
 /// call `round` compiles to on baseline x86-64.
 #[inline]
 pub fn round_to_u8(v: f64) -> u8 {
-    if !(v >= 0.0) {
+    if v.is_nan() || v < 0.0 {
         return 0;
     }
     if v >= 254.5 {
@@ -452,7 +452,7 @@ pub fn round_to_u8(v: f64) -> u8 {
 /// [`round_to_u8`] of an `f32`.
 #[inline]
 pub fn round_to_u8_f32(v: f32) -> u8 {
-    if !(v >= 0.0) {
+    if v.is_nan() || v < 0.0 {
         return 0;
     }
     if v >= 254.5 {
