@@ -2,6 +2,9 @@
 //! camera in the paper fleet's line abreast (2 m), vehicle 17 (the far one)
 //! moved 0.5 m deeper so it shows below vehicle 15; water 0.5 /m, with noise.
 //!
+//! The same and the water alone on one thread too (`threads = 1`: the
+//! frame's CPU time; the others use the machine's parallelism).
+//!
 //! Also single markers at 600 mm (0.5 and 8.22 /m; 0.5 /m through a flat port too), the water alone with and
 //! without noise, and the paper's 2448x2048 Eq. (3) camera.
 //!
@@ -15,14 +18,42 @@ use shoal_sim_bridge::water::WaterParams;
 use shoal_sim_bridge::world::{Formation, SwarmWorld};
 use std::path::Path;
 
-fn bench(c: &mut Criterion) {
+/// The paper fleet in line abreast (2 m), vehicle 17 0.5 m deeper, and the 0.5 /m water.
+fn two_vehicle_scene() -> (Fleet, Vec<shoal_proto::VehicleTruth>, WaterParams) {
     let fleet =
         Fleet::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/fleets/paper.toml"))
             .expect("paper fleet");
     let world = SwarmWorld::new(&fleet, Formation::Line, 2.0, 1).unwrap();
     let mut truth = world.truth();
     truth[2].world_from_body.translation.z += 0.5;
-    let water = WaterParams::preset(0.5);
+    (fleet, truth, WaterParams::preset(0.5))
+}
+
+/// The two-vehicle frame and the water alone on one thread: a frame's CPU time.
+fn one_thread(c: &mut Criterion) {
+    let (fleet, truth, water) = two_vehicle_scene();
+    let mut single = Renderer::new();
+    single.threads = 1;
+    let mut seed = 0;
+    c.bench_function("render_1440x1080_two_vehicles_1thread", |b| {
+        b.iter(|| {
+            seed += 1;
+            render_fleet_view(&mut single, &fleet, &truth, 10, 4, &water, 0.0, seed, seed)
+                .expect("render")
+        })
+    });
+    let cam = CameraModel::vehicle_1440();
+    c.bench_function("render_1440x1080_empty_noise_1thread", |b| {
+        b.iter(|| {
+            single
+                .render(&cam, &Pose::identity(), &Scene::empty(), &water, 0.0, 1)
+                .expect("render")
+        })
+    });
+}
+
+fn bench(c: &mut Criterion) {
+    let (fleet, truth, water) = two_vehicle_scene();
     let mut renderer = Renderer::new();
     let probe =
         render_fleet_view(&mut renderer, &fleet, &truth, 10, 4, &water, 0.0, 0, 1).expect("render");
@@ -138,6 +169,6 @@ fn bench(c: &mut Criterion) {
 criterion_group! {
     name = benches;
     config = Criterion::default().sample_size(10);
-    targets = bench
+    targets = bench, one_thread
 }
 criterion_main!(benches);

@@ -2,9 +2,9 @@
 //! lattice, the pixel classes (uniform patch, plate edge with exact module
 //! coverage, supersampled), and the water terms of each sample.
 
+use super::rays::RayTable;
 use super::roi::Roi;
 use super::trace::{self, Hit, Objects};
-use super::Renderer;
 use crate::render::optics::LampIntegral;
 use shoal_proto::CameraModel;
 
@@ -81,36 +81,49 @@ pub(super) fn sample_offsets(n: usize) -> Vec<(f64, f64)> {
     v
 }
 
-impl Renderer {
-    /// Ray-cast every pixel inside some ROI.
-    pub(super) fn cast(
-        &mut self,
-        cam: &CameraModel,
-        objects: &Objects,
-        rois: &[Option<Roi>],
-        medium: &Medium,
-    ) {
-        let w = cam.width as usize;
-        let h = cam.height as usize;
-        let mut spans: Vec<(usize, usize, bool)> = Vec::new();
+/// The ray-cast outputs of a band of image rows (row-major, `w` wide,
+/// starting at row `y0`).
+pub(super) struct Band<'a> {
+    pub(super) y0: usize,
+    pub(super) clean: &'a mut [f32],
+    pub(super) direct: &'a mut [f32],
+    pub(super) scatter: &'a mut [f32],
+    pub(super) veil: &'a mut [f32],
+    pub(super) lamp: &'a mut [f32],
+}
+
+/// Everything casting a frame's rows needs, shared by the threads.
+pub(super) struct Caster<'a> {
+    pub(super) cam: &'a CameraModel,
+    pub(super) objects: &'a Objects,
+    pub(super) rois: &'a [Option<Roi>],
+    pub(super) medium: &'a Medium,
+    pub(super) rays: &'a RayTable,
+    /// Supersampling offsets (pixel units around the centre).
+    pub(super) offsets: &'a [(f64, f64)],
+    /// Per object: always supersample (its ROI's `fine`).
+    pub(super) fine: Vec<bool>,
+}
+
+impl Caster<'_> {
+    /// Ray-cast every pixel of `band` inside some ROI (the others are left as they are).
+    pub(super) fn cast_band(&self, band: Band<'_>) {
+        let w = self.cam.width as usize;
+        let rows = band.clean.len() / w.max(1);
+        let mut spans: Vec<(usize, usize)> = Vec::new();
         // Objects whose ROI covers the current row: (id, x0, x1).
         let mut row_objects: Vec<(u32, usize, usize)> = Vec::new();
         let mut span_ids: Vec<u32> = Vec::new();
         let mut pixel_ids: Vec<u32> = Vec::new();
-        let mut fine_objects = vec![false; rois.len()];
-        for (i, r) in rois.iter().enumerate() {
-            if let Some(r) = r {
-                fine_objects[i] = r.fine;
-            }
-        }
-        let mut prev: Vec<(usize, usize, Vec<LatticePoint>)> = Vec::new();
-        for y in 0..h {
+        // Corner hits of the row above's bottom edge, per span, reused as this row's top.
+        let mut prev: Vec<(usize, usize, Vec<Option<Hit>>)> = Vec::new();
+        for y in band.y0..band.y0 + rows {
             spans.clear();
             row_objects.clear();
-            for (id, r) in rois.iter().enumerate() {
+            for (id, r) in self.rois.iter().enumerate() {
                 if let Some(r) = r {
                     if y >= r.rect.y0 && y <= r.rect.y1 {
-                        spans.push((r.rect.x0, r.rect.x1, r.fine));
+                        spans.push((r.rect.x0, r.rect.x1));
                         row_objects.push((id as u32, r.rect.x0, r.rect.x1));
                     }
                 }
@@ -121,17 +134,22 @@ impl Renderer {
             }
             spans.sort_unstable_by_key(|s| s.0);
             let mut merged: Vec<(usize, usize)> = Vec::new();
-            for &(a, b, _) in &spans {
+            for &(a, b) in &spans {
                 match merged.last_mut() {
                     Some(last) if a <= last.1 + 1 => last.1 = last.1.max(b),
                     _ => merged.push((a, b)),
                 }
             }
             let v = y as f64;
+            let (top_rays, bottom_rays) = (
+                self.rays.corner_row(y, false),
+                self.rays.corner_row(y, true),
+            );
+            let centres = self.rays.centre_row(y);
             let mut next_prev = Vec::with_capacity(merged.len());
             for &(x0, x1) in &merged {
-                // Pixel-corner lattice rows above and below this row (shared by
-                // neighbouring pixels; the upper one reused from the row above).
+                // Pixel-corner hits above and below this row (shared by
+                // neighbouring pixels; the upper ones reused from the row above).
                 // ROIs have a margin of ≥ 2 px around their objects, so rays
                 // through this span can only hit objects whose ROI meets it.
                 span_ids.clear();
@@ -141,25 +159,20 @@ impl Renderer {
                         .filter(|o| o.1 <= x1 && o.2 >= x0)
                         .map(|o| o.0),
                 );
+                let corner_hits = |rays: &[(f64, f64)]| -> Vec<Option<Hit>> {
+                    rays[x0..=x1 + 1]
+                        .iter()
+                        .map(|r| self.objects.trace_in(&span_ids, r.0, r.1))
+                        .collect()
+                };
                 let top = match prev.iter().position(|(a, b, _)| *a == x0 && *b == x1) {
                     Some(k) => prev.swap_remove(k).2,
-                    None => lattice_row(cam, objects, &span_ids, x0, x1, v - 0.5),
+                    None => corner_hits(top_rays),
                 };
-                let bottom = lattice_row(cam, objects, &span_ids, x0, x1, v + 0.5);
+                let bottom = corner_hits(bottom_rays);
                 for x in x0..=x1 {
                     let k = x - x0;
-                    let u = x as f64;
-                    let guess = (
-                        0.25 * (top[k].0 .0
-                            + top[k + 1].0 .0
-                            + bottom[k].0 .0
-                            + bottom[k + 1].0 .0),
-                        0.25 * (top[k].0 .1
-                            + top[k + 1].0 .1
-                            + bottom[k].0 .1
-                            + bottom[k + 1].0 .1),
-                    );
-                    let centre = trace::ray_from(cam, u, v, guess);
+                    let centre = centres[x];
                     pixel_ids.clear();
                     pixel_ids.extend(
                         row_objects
@@ -167,25 +180,22 @@ impl Renderer {
                             .filter(|o| o.1 <= x && o.2 >= x)
                             .map(|o| o.0),
                     );
-                    let hit_c = objects.trace_in(&pixel_ids, centre.0, centre.1);
-                    let corners = [top[k].1, top[k + 1].1, bottom[k + 1].1, bottom[k].1];
-                    let kind = classify_pixel(objects, &hit_c, &corners, &fine_objects);
-                    let s = self.pixel_sample(
-                        cam,
-                        objects,
-                        &pixel_ids,
-                        kind,
-                        hit_c,
-                        centre,
-                        (u, v),
-                        medium,
-                    );
-                    let i = y * w + x;
-                    self.clean[i] = s.clean as f32;
-                    self.direct[i] = s.direct as f32;
-                    self.scatter[i] = s.scatter as f32;
-                    self.veil[i] = s.veil as f32;
-                    self.lamp[i] = s.lamp as f32;
+                    let hit_c = self.objects.trace_in(&pixel_ids, centre.0, centre.1);
+                    let corners = [top[k], top[k + 1], bottom[k + 1], bottom[k]];
+                    let kind = classify_pixel(self.objects, &hit_c, &corners, &self.fine);
+                    let footprint = [
+                        top_rays[x],
+                        top_rays[x + 1],
+                        bottom_rays[x],
+                        bottom_rays[x + 1],
+                    ];
+                    let s = self.pixel_sample(&pixel_ids, kind, hit_c, &footprint, (x as f64, v));
+                    let i = (y - band.y0) * w + x;
+                    band.clean[i] = s.clean as f32;
+                    band.direct[i] = s.direct as f32;
+                    band.scatter[i] = s.scatter as f32;
+                    band.veil[i] = s.veil as f32;
+                    band.lamp[i] = s.lamp as f32;
                 }
                 next_prev.push((x0, x1, bottom));
             }
@@ -195,24 +205,23 @@ impl Renderer {
 
     /// The sample of one pixel of class `kind`: its centre sample, the exact
     /// module coverage of a plate edge, or the mean of the supersampling
-    /// offsets around pixel centre `(u, v)` (ray `centre`, hit `hit_c`).
+    /// offsets around pixel centre `(u, v)` (hit `hit_c`; the corner rays
+    /// `footprint`: top-left, top-right, bottom-left, bottom-right).
     fn pixel_sample(
         &self,
-        cam: &CameraModel,
-        objects: &Objects,
         ids: &[u32],
         kind: PixelKind,
         hit_c: Option<Hit>,
-        centre: (f64, f64),
+        footprint: &[(f64, f64); 4],
         (u, v): (f64, f64),
-        medium: &Medium,
     ) -> Sample {
+        let medium = self.medium;
         let nsamples = self.offsets.len() as f64;
         if let PixelKind::Uniform = kind {
             medium.sample(hit_c)
         } else if let (PixelKind::PlateEdge(white), Some(h)) = (kind, hit_c) {
             // Exact area coverage of the modules under the pixel.
-            let plate = &objects.plates[h.object as usize];
+            let plate = &self.objects.plates[h.object as usize];
             let mix = |a: f64, b: f64| white * a + (1.0 - white) * b;
             let cos_i = h.lamp_geom
                 / if h.radiance > 0.5 * plate.shade {
@@ -227,10 +236,17 @@ impl Renderer {
             };
             medium.sample(Some(hit))
         } else {
+            let [tl, tr, bl, br] = *footprint;
             let mut acc = Sample::default();
-            for &(du, dv) in &self.offsets {
-                let r = trace::ray_from(cam, u + du, v + dv, centre);
-                let s = medium.sample(objects.trace_in(ids, r.0, r.1));
+            for &(du, dv) in self.offsets {
+                // One Newton step from the bilinear blend of the exact corner rays.
+                let (s, t) = (du + 0.5, dv + 0.5);
+                let guess = (
+                    (1.0 - t) * ((1.0 - s) * tl.0 + s * tr.0) + t * ((1.0 - s) * bl.0 + s * br.0),
+                    (1.0 - t) * ((1.0 - s) * tl.1 + s * tr.1) + t * ((1.0 - s) * bl.1 + s * br.1),
+                );
+                let r = trace::ray_near(self.cam, u + du, v + dv, guess);
+                let s = medium.sample(self.objects.trace_in(ids, r.0, r.1));
                 acc.clean += s.clean;
                 acc.direct += s.direct;
                 acc.scatter += s.scatter;
@@ -246,33 +262,6 @@ impl Renderer {
             }
         }
     }
-}
-
-/// A pixel corner's ray and what it hits.
-type LatticePoint = ((f64, f64), Option<Hit>);
-
-/// The pixel-corner points `u = x0 − ½ … x1 + ½` at image row `v`.
-fn lattice_row(
-    cam: &CameraModel,
-    objects: &Objects,
-    ids: &[u32],
-    x0: usize,
-    x1: usize,
-    v: f64,
-) -> Vec<LatticePoint> {
-    let first = cam.ray(x0 as f64 - 0.5, v);
-    let (mut prev, mut last) = (first, first);
-    (x0..=x1 + 1)
-        .map(|x| {
-            // Linear extrapolation from the two previous rays: Newton then
-            // converges in one step.
-            let guess = (2.0 * last.0 - prev.0, 2.0 * last.1 - prev.1);
-            let r = trace::ray_from(cam, x as f64 - 0.5, v, guess);
-            prev = if x == x0 { r } else { last };
-            last = r;
-            (r, objects.trace_in(ids, r.0, r.1))
-        })
-        .collect()
 }
 
 /// How a pixel is rendered.

@@ -16,12 +16,20 @@
 //! plate or a hull) is on screen are ray-cast; the water background, the
 //! veil, vignetting and noise are analytic. The water model and its sources
 //! are in `docs/water-model.md`.
+//!
+//! Speed (issue #18): the rays of a camera's pixel centres and corners are
+//! solved once and kept for its later frames; a frame's work runs in bands
+//! of rows over [`Renderer::threads`] threads, each value computed in the
+//! same order whatever their number, so frames are bit-identical on any
+//! number of threads.
 
 mod cast;
 mod frame_files;
 #[cfg(test)]
 mod geometry_tests;
 pub mod optics;
+mod par;
+mod rays;
 mod roi;
 mod scene;
 pub mod trace;
@@ -33,13 +41,15 @@ pub use visibility::{all_corners_in_frame, visible_in_view, visible_in_view_with
 
 use crate::error::SimError;
 use crate::water::WaterParams;
-use cast::{sample_offsets, Medium};
+use cast::{sample_offsets, Band, Caster, Medium};
 use nalgebra::Vector3;
-use optics::{blur_add, quantize_with_noise, Ambient, LampIntegral, Psf};
+use optics::{blur_add_threads, quantize_row, round_to_u8_f32, Ambient, LampIntegral, Psf, Rect};
+use rays::RayTable;
 use roi::{hull_roi, plate_roi, psf_groups, Roi};
 use shoal_proto::config::Fleet;
 use shoal_proto::geometry::pose_is_finite;
 use shoal_proto::{CameraModel, FlatPort, GrayImage, Pose, VehicleId, VehicleTruth, VisibleMarker};
+use trace::Objects;
 use visibility::{build_objects, visible_markers};
 
 /// One rendered frame: the underwater image, its clean twin (same view, no
@@ -53,12 +63,19 @@ pub struct RenderOutput {
     pub visible: Vec<VisibleMarker>,
 }
 
-/// Reusable frame buffers; one per thread that renders.
+/// Reusable frame buffers and the camera's viewing rays (solved once per
+/// camera model, reused by its later frames); one per thread that renders.
+/// A frame's work is split over [`Renderer::threads`] threads; the output
+/// does not depend on their number.
 #[derive(Debug)]
 pub struct Renderer {
     /// Samples per axis for pixels that straddle an edge (default 8: 64 samples).
     pub supersample: usize,
+    /// Threads a frame is rendered on (default: the machine's parallelism, at most 8).
+    pub threads: usize,
     offsets: Vec<(f64, f64)>,
+    rays: RayTable,
+    veil_rays: Option<VeilRays>,
     clean: Vec<f32>,
     direct: Vec<f32>,
     scatter: Vec<f32>,
@@ -79,7 +96,10 @@ impl Renderer {
     pub fn new() -> Self {
         Renderer {
             supersample: 8,
+            threads: par::default_threads(),
             offsets: sample_offsets(8),
+            rays: RayTable::default(),
+            veil_rays: None,
             clean: Vec::new(),
             direct: Vec::new(),
             scatter: Vec::new(),
@@ -160,53 +180,65 @@ impl Renderer {
             lamp: LampIntegral::new(water.c_per_m),
         };
 
-        for buf in [
-            &mut self.clean,
-            &mut self.direct,
-            &mut self.scatter,
-            &mut self.scattered,
-        ] {
-            buf.clear();
-            buf.resize(n, 0.0);
-        }
-        for buf in [&mut self.veil, &mut self.lamp] {
-            buf.clear();
-            buf.resize(n, 1.0);
-        }
-
-        // Regions of interest.
+        // Regions of interest, and the regions their forward scatter reaches.
         let rois: Vec<Option<Roi>> = objects
             .plates
             .iter()
             .map(|p| plate_roi(cam, port, p))
             .chain(objects.hulls.iter().map(|hl| hull_roi(cam, port, hl)))
             .collect();
+        let blurs: Vec<(Rect, Psf)> = psf_groups(cam, water, &rois)
+            .into_iter()
+            .map(|(rect, range)| {
+                let psf = Psf::for_range(water, 0.5 * (cam.fx + cam.fy), range);
+                let margin = psf.radius_px().ceil() as usize + 1;
+                (rect.dilated(margin, w, h), psf)
+            })
+            .collect();
+        // Outside these rectangles the frame is water alone: the buffers
+        // there are neither written nor read.
+        let active: Vec<Rect> = rois
+            .iter()
+            .flatten()
+            .map(|r| r.rect)
+            .chain(blurs.iter().map(|b| b.0))
+            .collect();
+        self.reset_buffers(w, n, &active);
+        let mut rows = vec![false; h];
+        for r in rois.iter().flatten() {
+            rows[r.rect.y0..=r.rect.y1].fill(true);
+        }
+        self.rays.prepare(cam, &rows, self.threads);
         self.cast(cam, &objects, &rois, &medium);
 
         // Forward scatter: blur the scattered light per group of overlapping ROIs.
-        for (rect, range) in psf_groups(cam, water, &rois) {
-            let psf = Psf::for_range(water, 0.5 * (cam.fx + cam.fy), range);
-            let margin = psf.radius_px().ceil() as usize + 1;
-            let region = rect.dilated(margin, w, h);
-            blur_add(
+        for (region, psf) in &blurs {
+            blur_add_threads(
                 &self.scatter,
                 w,
-                region,
-                &psf,
+                *region,
+                psf,
                 &mut self.scattered,
                 &mut self.scratch,
+                self.threads,
             );
         }
 
-        // Compose: veil, vignetting, exposure (docs/water-model.md, Eq. (W1)).
-        self.compose(cam, port, water, &ambient, &medium, &up);
+        // Compose: veil, vignetting, exposure (docs/water-model.md, Eq. (W1)),
+        // then noise and quantization.
         let mut image = vec![0u8; n];
-        quantize_with_noise(&self.dn, w, water, seed, &mut image);
-        let clean: Vec<u8> = self
-            .clean
-            .iter()
-            .map(|v| (255.0 * v).round().clamp(0.0, 255.0) as u8)
-            .collect();
+        let mut clean = vec![0u8; n];
+        self.finish(
+            cam,
+            port,
+            water,
+            &ambient,
+            &medium,
+            &up,
+            &active,
+            seed,
+            (&mut image, &mut clean),
+        );
 
         let visible = visible_markers(cam, scene, &objects);
         Ok(RenderOutput {
@@ -229,8 +261,97 @@ impl Renderer {
         &self.dn
     }
 
-    /// Final radiance to DN: `exposure · V(x) · [D + h∗F + B(x)·β + lamp veil]`.
-    fn compose(
+    /// Size the buffers for `n` pixels and set them to the water alone
+    /// (nothing hit: no direct or scattered light, full veil) inside `active`.
+    fn reset_buffers(&mut self, w: usize, n: usize, active: &[Rect]) {
+        let zero = [
+            &mut self.clean,
+            &mut self.direct,
+            &mut self.scatter,
+            &mut self.scattered,
+        ];
+        if self.veil.len() != n {
+            for buf in zero {
+                buf.clear();
+                buf.resize(n, 0.0);
+            }
+            for buf in [&mut self.veil, &mut self.lamp] {
+                buf.clear();
+                buf.resize(n, 1.0);
+            }
+            return;
+        }
+        for buf in zero {
+            for r in active {
+                for y in r.y0..=r.y1 {
+                    buf[y * w + r.x0..=y * w + r.x1].fill(0.0);
+                }
+            }
+        }
+        for buf in [&mut self.veil, &mut self.lamp] {
+            for r in active {
+                for y in r.y0..=r.y1 {
+                    buf[y * w + r.x0..=y * w + r.x1].fill(1.0);
+                }
+            }
+        }
+    }
+
+    /// Ray-cast every pixel inside some ROI, in bands of rows over the threads.
+    fn cast(
+        &mut self,
+        cam: &CameraModel,
+        objects: &Objects,
+        rois: &[Option<Roi>],
+        medium: &Medium,
+    ) {
+        const BAND_ROWS: usize = 8;
+        let w = cam.width as usize;
+        let caster = Caster {
+            cam,
+            objects,
+            rois,
+            medium,
+            rays: &self.rays,
+            offsets: &self.offsets,
+            fine: rois
+                .iter()
+                .map(|r| r.as_ref().is_some_and(|r| r.fine))
+                .collect(),
+        };
+        let in_roi = |y0: usize, rows: usize| {
+            rois.iter()
+                .flatten()
+                .any(|r| r.rect.y0 < y0 + rows && r.rect.y1 >= y0)
+        };
+        let chunk = BAND_ROWS * w;
+        let tasks: Vec<Band<'_>> = self
+            .clean
+            .chunks_mut(chunk)
+            .zip(self.direct.chunks_mut(chunk))
+            .zip(self.scatter.chunks_mut(chunk))
+            .zip(self.veil.chunks_mut(chunk))
+            .zip(self.lamp.chunks_mut(chunk))
+            .enumerate()
+            .map(|(i, ((((clean, direct), scatter), veil), lamp))| Band {
+                y0: i * BAND_ROWS,
+                clean,
+                direct,
+                scatter,
+                veil,
+                lamp,
+            })
+            .filter(|b| in_roi(b.y0, BAND_ROWS))
+            .collect();
+        par::run_tasks(tasks, self.threads, |band| caster.cast_band(band));
+    }
+
+    /// Final radiance to DN, `exposure · V(x) · [D + h∗F + B(x)·β + lamp
+    /// veil]` (kept in `self.dn`), then noise and quantization into
+    /// `image`, and the clean twin into `clean`; in bands of rows over the
+    /// threads. Outside `active` the frame is the water alone.
+    #[allow(clippy::too_many_arguments)]
+    fn finish(
         &mut self,
         cam: &CameraModel,
         port: Option<&FlatPort>,
@@ -238,68 +359,186 @@ impl Renderer {
         ambient: &Ambient,
         medium: &Medium,
         up: &Vector3<f64>,
+        active: &[Rect],
+        seed: u64,
+        (image, clean_out): (&mut [u8], &mut [u8]),
     ) {
+        const BAND_ROWS: usize = 16;
         let (w, h) = (cam.width as usize, cam.height as usize);
-        // The veil and vignetting are smooth: evaluate them on a coarse grid.
-        let step = 8usize;
-        let gw = (w - 1) / step + 2;
-        let gh = (h - 1) / step + 2;
-        let mut veil_grid = vec![0.0f32; gw * gh];
-        let mut vig_grid = vec![0.0f32; gw * gh];
-        for gy in 0..gh {
-            for gx in 0..gw {
-                let (u, v) = ((gx * step) as f64, (gy * step) as f64);
-                let (x, y) = cam.ray(u, v);
-                let d = Vector3::new(x, y, 1.0);
-                let norm = d.norm();
-                // The veil comes along the in-water ray; vignetting is the lens's.
-                let cos_zenith = match port {
-                    None => d.dot(up) / norm,
-                    Some(port) => {
-                        let (_, (a, b)) = port.refract(x, y);
-                        let dw = Vector3::new(a, b, 1.0);
-                        dw.dot(up) / dw.norm()
-                    }
-                };
-                let dir_gain = (1.0 + water.backscatter_up_gain * cos_zenith).max(0.1);
-                let spatial = ambient.spatial(u / w as f64, v / h as f64);
-                veil_grid[gy * gw + gx] = (water.backscatter_inf
-                    * dir_gain
-                    * spatial
-                    * ambient.temporal
-                    * water.illumination) as f32;
-                let cos_t = 1.0 / norm;
-                vig_grid[gy * gw + gx] = (1.0 - water.vignetting * (1.0 - cos_t.powi(4))) as f32;
-            }
+        if !self
+            .veil_rays
+            .as_ref()
+            .is_some_and(|g| g.cam == *cam && g.port.as_ref() == port)
+        {
+            self.veil_rays = Some(VeilRays::new(cam, port));
         }
+        let Some(grid) = self.veil_rays.as_ref() else {
+            return;
+        };
+        let (veil_grid, vig_grid) = grid.veil_and_vignetting(water, ambient, up);
         let lamp_veil = (water.lamp_power * water.lamp_backscatter * medium.lamp.total) as f32;
         let gain = (255.0 * water.exposure) as f32;
         self.dn.clear();
         self.dn.resize(w * h, 0.0);
+        let chunk = BAND_ROWS * w;
+        let tasks: Vec<_> = self
+            .dn
+            .chunks_mut(chunk)
+            .zip(image.chunks_mut(chunk))
+            .zip(clean_out.chunks_mut(chunk))
+            .enumerate()
+            .collect();
+        let (gw, gh, step) = (grid.gw, grid.gh, VeilRays::STEP);
         let inv = 1.0 / step as f32;
-        let mut veil_row = vec![0.0f32; gw];
-        let mut vig_row = vec![0.0f32; gw];
-        for y in 0..h {
-            let fy = y as f32 * inv;
-            let gy = (fy as usize).min(gh - 2);
-            let ty = fy - gy as f32;
-            for gx in 0..gw {
-                veil_row[gx] =
-                    veil_grid[gy * gw + gx] * (1.0 - ty) + veil_grid[(gy + 1) * gw + gx] * ty;
-                vig_row[gx] =
-                    vig_grid[gy * gw + gx] * (1.0 - ty) + vig_grid[(gy + 1) * gw + gx] * ty;
+        let (direct, scattered) = (&self.direct, &self.scattered);
+        let (veil, lamp, clean) = (&self.veil, &self.lamp, &self.clean);
+        par::run_tasks(tasks, self.threads, |(band, ((dn, img), cln))| {
+            let mut veil_row = vec![0.0f32; gw];
+            let mut vig_row = vec![0.0f32; gw];
+            let mut spans: Vec<(usize, usize)> = Vec::new();
+            let rows = dn.len() / w;
+            for r in 0..rows {
+                let y = band * BAND_ROWS + r;
+                let fy = y as f32 * inv;
+                let gy = (fy as usize).min(gh - 2);
+                let ty = fy - gy as f32;
+                for gx in 0..gw {
+                    veil_row[gx] =
+                        veil_grid[gy * gw + gx] * (1.0 - ty) + veil_grid[(gy + 1) * gw + gx] * ty;
+                    vig_row[gx] =
+                        vig_grid[gy * gw + gx] * (1.0 - ty) + vig_grid[(gy + 1) * gw + gx] * ty;
+                }
+                let at = |x: usize| {
+                    let gx = x / step;
+                    let tx = (x % step) as f32 * inv;
+                    let b = veil_row[gx] * (1.0 - tx) + veil_row[gx + 1] * tx;
+                    let vg = vig_row[gx] * (1.0 - tx) + vig_row[gx + 1] * tx;
+                    (b, vg)
+                };
+                let out = &mut dn[r * w..(r + 1) * w];
+                // The water alone everywhere, then the active spans over it.
+                for (x, o) in out.iter_mut().enumerate() {
+                    let (b, vg) = at(x);
+                    *o = gain * vg * (b + lamp_veil);
+                }
+                let cln = &mut cln[r * w..(r + 1) * w];
+                cln.fill(0);
+                row_spans(active, y, &mut spans);
+                let row = y * w;
+                for &(x0, x1) in &spans {
+                    for x in x0..=x1 {
+                        let (b, vg) = at(x);
+                        let i = row + x;
+                        out[x] = gain
+                            * vg
+                            * (direct[i] + scattered[i] + b * veil[i] + lamp_veil * lamp[i]);
+                        cln[x] = round_to_u8_f32(255.0 * clean[i]);
+                    }
+                }
+                quantize_row(out, y, water, seed, &mut img[r * w..(r + 1) * w]);
             }
-            let row = y * w;
-            let (direct, scattered) = (&self.direct[row..row + w], &self.scattered[row..row + w]);
-            let (veil, lamp) = (&self.veil[row..row + w], &self.lamp[row..row + w]);
-            for (x, out) in self.dn[row..row + w].iter_mut().enumerate() {
-                let gx = x / step;
-                let tx = (x % step) as f32 * inv;
-                let b = veil_row[gx] * (1.0 - tx) + veil_row[gx + 1] * tx;
-                let vg = vig_row[gx] * (1.0 - tx) + vig_row[gx + 1] * tx;
-                *out = gain * vg * (direct[x] + scattered[x] + b * veil[x] + lamp_veil * lamp[x]);
+        });
+    }
+}
+
+/// The merged x spans (inclusive) of the rectangles of `rects` on row `y`.
+fn row_spans(rects: &[Rect], y: usize, spans: &mut Vec<(usize, usize)>) {
+    spans.clear();
+    spans.extend(
+        rects
+            .iter()
+            .filter(|r| r.y0 <= y && y <= r.y1)
+            .map(|r| (r.x0, r.x1)),
+    );
+    spans.sort_unstable();
+    let mut k = 0;
+    for i in 0..spans.len() {
+        if k > 0 && spans[i].0 <= spans[k - 1].1 + 1 {
+            spans[k - 1].1 = spans[k - 1].1.max(spans[i].1);
+        } else {
+            spans[k] = spans[i];
+            k += 1;
+        }
+    }
+    spans.truncate(k);
+}
+
+/// The viewing rays of a coarse grid over the image (every
+/// [`VeilRays::STEP`] pixels), where the smooth veil and vignetting are
+/// evaluated; kept per camera and port.
+#[derive(Debug)]
+struct VeilRays {
+    cam: CameraModel,
+    port: Option<FlatPort>,
+    gw: usize,
+    gh: usize,
+    /// Per grid point: the ray in the water (for the veil's direction),
+    /// that ray's length, and the in-air ray's length (for vignetting).
+    rays: Vec<(Vector3<f64>, f64, f64)>,
+}
+
+impl VeilRays {
+    const STEP: usize = 8;
+
+    fn new(cam: &CameraModel, port: Option<&FlatPort>) -> VeilRays {
+        let (w, h) = (cam.width as usize, cam.height as usize);
+        let gw = (w - 1) / Self::STEP + 2;
+        let gh = (h - 1) / Self::STEP + 2;
+        let mut rays = Vec::with_capacity(gw * gh);
+        for gy in 0..gh {
+            for gx in 0..gw {
+                let (u, v) = ((gx * Self::STEP) as f64, (gy * Self::STEP) as f64);
+                let (x, y) = cam.ray(u, v);
+                let d = Vector3::new(x, y, 1.0);
+                let norm = d.norm();
+                // The veil comes along the in-water ray; vignetting is the lens's.
+                let water = match port {
+                    None => d,
+                    Some(port) => {
+                        let (_, (a, b)) = port.refract(x, y);
+                        Vector3::new(a, b, 1.0)
+                    }
+                };
+                let water_norm = match port {
+                    None => norm,
+                    Some(_) => water.norm(),
+                };
+                rays.push((water, water_norm, norm));
             }
         }
+        VeilRays {
+            cam: *cam,
+            port: port.copied(),
+            gw,
+            gh,
+            rays,
+        }
+    }
+
+    /// The veil `B(x)·β` and the vignetting `V(x)` on the grid.
+    fn veil_and_vignetting(
+        &self,
+        water: &WaterParams,
+        ambient: &Ambient,
+        up: &Vector3<f64>,
+    ) -> (Vec<f32>, Vec<f32>) {
+        let (w, h) = (self.cam.width as f64, self.cam.height as f64);
+        let mut veil = Vec::with_capacity(self.rays.len());
+        let mut vig = Vec::with_capacity(self.rays.len());
+        for (i, (d, d_norm, norm)) in self.rays.iter().enumerate() {
+            let (gx, gy) = (i % self.gw, i / self.gw);
+            let (u, v) = ((gx * Self::STEP) as f64, (gy * Self::STEP) as f64);
+            let cos_zenith = d.dot(up) / d_norm;
+            let dir_gain = (1.0 + water.backscatter_up_gain * cos_zenith).max(0.1);
+            let spatial = ambient.spatial(u / w, v / h);
+            veil.push(
+                (water.backscatter_inf * dir_gain * spatial * ambient.temporal * water.illumination)
+                    as f32,
+            );
+            let cos_t = 1.0 / norm;
+            vig.push((1.0 - water.vignetting * (1.0 - cos_t.powi(4))) as f32);
+        }
+        (veil, vig)
     }
 }
 
@@ -354,4 +593,64 @@ pub fn render_fleet_view(
         vm.frame_seq = frame_seq;
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod thread_tests {
+    use super::*;
+    use crate::world::{Formation, SwarmWorld};
+    use shoal_proto::CodeSet;
+
+    #[test]
+    fn frames_are_the_same_bytes_on_any_number_of_threads() {
+        let fleet = Fleet::load(
+            &std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/fleets/paper.toml"),
+        )
+        .unwrap();
+        let world = SwarmWorld::new(&fleet, Formation::Line, 2.0, 1).unwrap();
+        let mut truth = world.truth();
+        truth[2].world_from_body.translation.z += 0.5;
+        let water = WaterParams::preset(0.5);
+        let mut one = Renderer::new();
+        one.threads = 1;
+        let a = render_fleet_view(&mut one, &fleet, &truth, 10, 4, &water, 1.0, 3, 9).unwrap();
+        assert_eq!(a.visible.len(), 2, "two markers in view");
+        let dn_one = one.last_frame_dn().to_vec();
+        // A marker through a flat port too, then the fleet view again (the
+        // buffers of the other frame must not leak into this one).
+        let cam = CameraModel::vehicle_1440();
+        let scene = Scene::single_marker(
+            CodeSet::Shoal,
+            17,
+            0.1,
+            facing_camera([0.0, 0.0, 0.6], [0.0, 0.35, 0.0]),
+        );
+        let port = FlatPort {
+            distance_m: 0.010,
+            glass_m: 0.008,
+            n_glass: FlatPort::N_ACRYLIC,
+            n_water: FlatPort::N_SEA_WATER,
+        };
+        let murky = WaterParams::preset(8.22);
+        let m1 = one
+            .render_with_port(&cam, Some(&port), &Pose::identity(), &scene, &murky, 0.0, 4)
+            .unwrap();
+        for threads in [2, 3, 8] {
+            let mut many = Renderer::new();
+            many.threads = threads;
+            let m = many
+                .render_with_port(&cam, Some(&port), &Pose::identity(), &scene, &murky, 0.0, 4)
+                .unwrap();
+            assert_eq!(m, m1, "{threads} threads, port");
+            let b = render_fleet_view(&mut many, &fleet, &truth, 10, 4, &water, 1.0, 3, 9).unwrap();
+            assert_eq!(b, a, "{threads} threads");
+            assert!(
+                many.last_frame_dn()
+                    .iter()
+                    .zip(&dn_one)
+                    .all(|(x, y)| x.to_bits() == y.to_bits()),
+                "{threads} threads: DN"
+            );
+        }
+    }
 }

@@ -121,6 +121,23 @@ pub fn blur_add(
     dst: &mut [f32],
     scratch: &mut Vec<f32>,
 ) {
+    blur_add_threads(src, w, rect, psf, dst, scratch, 1);
+}
+
+/// [`blur_add`] in bands of rows over up to `threads` threads; every
+/// output value is summed in the same order as on one thread, so the
+/// result is the same.
+pub fn blur_add_threads(
+    src: &[f32],
+    w: usize,
+    rect: Rect,
+    psf: &Psf,
+    dst: &mut [f32],
+    scratch: &mut Vec<f32>,
+    threads: usize,
+) {
+    /// Grid rows per task.
+    const BAND: usize = 8;
     // Also catches a NaN width.
     if psf.scale_px.is_nan() || psf.scale_px <= 0.05 {
         for y in rect.y0..=rect.y1 {
@@ -135,7 +152,84 @@ pub fn blur_add(
     let d = ((radius / 8.0).ceil() as usize).max(1);
     let gw = rect.width().div_ceil(d);
     let gh = rect.height().div_ceil(d);
-    // Kernel on the cell grid, each tap integrated over its cell with 4x4 samples.
+    let (kernel, kr) = cell_kernel(psf, radius, d);
+    let kside = (2 * kr + 1) as usize;
+
+    // Box-average the source into cells (each cell summed row by row).
+    scratch.clear();
+    scratch.resize(2 * gw * gh, 0.0);
+    let (grid, out) = scratch.split_at_mut(gw * gh);
+    let inv = 1.0 / (d * d) as f32;
+    let tasks: Vec<_> = grid.chunks_mut(BAND * gw).enumerate().collect();
+    super::par::run_tasks(tasks, threads, |(b, cells)| {
+        let gy0 = b * BAND;
+        for (r, cell_row) in cells.chunks_mut(gw).enumerate() {
+            let y_lo = rect.y0 + (gy0 + r) * d;
+            for y in y_lo..(y_lo + d).min(rect.y1 + 1) {
+                for x in rect.x0..=rect.x1 {
+                    cell_row[(x - rect.x0) / d] += src[y * w + x];
+                }
+            }
+            cell_row.iter_mut().for_each(|g| *g *= inv);
+        }
+    });
+    // Scatter each non-zero cell through the kernel (sources are sparse);
+    // each band takes the sources reaching its rows, in the same order.
+    let grid = &*grid;
+    let tasks: Vec<_> = out.chunks_mut(BAND * gw).enumerate().collect();
+    super::par::run_tasks(tasks, threads, |(b, band)| {
+        let (o0, o1) = (b * BAND, b * BAND + band.len() / gw);
+        let lo = o0.saturating_sub(kr as usize);
+        for gy in lo..(o1 + kr as usize).min(gh) {
+            for gx in 0..gw {
+                let s = grid[gy * gw + gx];
+                if s == 0.0 {
+                    continue;
+                }
+                for j in -kr..=kr {
+                    let oy = gy as isize + j;
+                    if oy < o0 as isize || oy >= o1 as isize {
+                        continue;
+                    }
+                    let krow =
+                        &kernel[((j + kr) as usize) * kside..((j + kr) as usize + 1) * kside];
+                    let orow = (oy as usize - o0) * gw;
+                    for (ki, &k) in krow.iter().enumerate() {
+                        let ox = gx as isize + ki as isize - kr;
+                        if ox >= 0 && ox < gw as isize {
+                            band[orow + ox as usize] += s * k;
+                        }
+                    }
+                }
+            }
+        }
+    });
+    let out = &*out;
+    let tasks: Vec<_> = dst
+        .chunks_mut(w)
+        .enumerate()
+        .skip(rect.y0)
+        .take(rect.height())
+        .collect();
+    let tasks: Vec<Vec<_>> = tasks
+        .into_iter()
+        .fold(Vec::new(), |mut acc: Vec<Vec<_>>, row| {
+            match acc.last_mut() {
+                Some(band) if band.len() < BAND * d => band.push(row),
+                _ => acc.push(vec![row]),
+            }
+            acc
+        });
+    super::par::run_tasks(tasks, threads, |rows| {
+        for (y, row) in rows {
+            upsample_row(out, gw, gh, d, rect, y, row);
+        }
+    });
+}
+
+/// The PSF integrated over `d`x`d` cells (4x4 samples per cell), normalized
+/// to unit sum, and its half width in cells.
+fn cell_kernel(psf: &Psf, radius: f64, d: usize) -> (Vec<f32>, isize) {
     let kr = (radius / d as f64).ceil() as isize;
     let kside = (2 * kr + 1) as usize;
     let mut kernel = vec![0.0f64; kside * kside];
@@ -154,66 +248,40 @@ pub fn blur_add(
         }
     }
     let total: f64 = kernel.iter().sum();
-    let kernel: Vec<f32> = kernel.iter().map(|k| (k / total) as f32).collect();
+    (kernel.iter().map(|k| (k / total) as f32).collect(), kr)
+}
 
-    // Box-average the source into cells.
-    scratch.clear();
-    scratch.resize(2 * gw * gh, 0.0);
-    let (grid, out) = scratch.split_at_mut(gw * gh);
-    for y in rect.y0..=rect.y1 {
-        let gy = (y - rect.y0) / d;
-        for x in rect.x0..=rect.x1 {
-            grid[gy * gw + (x - rect.x0) / d] += src[y * w + x];
-        }
-    }
-    let inv = 1.0 / (d * d) as f32;
-    grid.iter_mut().for_each(|g| *g *= inv);
-    // Scatter each non-zero cell through the kernel (sources are sparse).
-    for gy in 0..gh {
-        for gx in 0..gw {
-            let s = grid[gy * gw + gx];
-            if s == 0.0 {
-                continue;
-            }
-            for j in -kr..=kr {
-                let oy = gy as isize + j;
-                if oy < 0 || oy >= gh as isize {
-                    continue;
-                }
-                let krow = &kernel[((j + kr) as usize) * kside..((j + kr) as usize + 1) * kside];
-                let orow = oy as usize * gw;
-                for (ki, &k) in krow.iter().enumerate() {
-                    let ox = gx as isize + ki as isize - kr;
-                    if ox >= 0 && ox < gw as isize {
-                        out[orow + ox as usize] += s * k;
-                    }
-                }
-            }
-        }
-    }
+/// Add the cell grid `out` (`gw`x`gh` cells of `d` px over `rect`) to
+/// frame row `y` (`row`): bilinearly from cell centres, or cell by cell
+/// when `d` is 1.
+fn upsample_row(
+    out: &[f32],
+    gw: usize,
+    gh: usize,
+    d: usize,
+    rect: Rect,
+    y: usize,
+    row: &mut [f32],
+) {
     if d == 1 {
-        for y in rect.y0..=rect.y1 {
-            for x in rect.x0..=rect.x1 {
-                dst[y * w + x] += out[(y - rect.y0) * gw + (x - rect.x0)];
-            }
+        let cells = &out[(y - rect.y0) * gw..(y - rect.y0 + 1) * gw];
+        for (o, c) in row[rect.x0..=rect.x1].iter_mut().zip(cells) {
+            *o += c;
         }
         return;
     }
-    // Bilinear upsampling from cell centres.
-    for y in rect.y0..=rect.y1 {
-        let fy = ((y - rect.y0) as f32 + 0.5) / d as f32 - 0.5;
-        let y0 = fy.floor().clamp(0.0, (gh - 1) as f32) as usize;
-        let y1 = (y0 + 1).min(gh - 1);
-        let ty = (fy - y0 as f32).clamp(0.0, 1.0);
-        for x in rect.x0..=rect.x1 {
-            let fx = ((x - rect.x0) as f32 + 0.5) / d as f32 - 0.5;
-            let x0 = fx.floor().clamp(0.0, (gw - 1) as f32) as usize;
-            let x1 = (x0 + 1).min(gw - 1);
-            let tx = (fx - x0 as f32).clamp(0.0, 1.0);
-            let a = out[y0 * gw + x0] * (1.0 - tx) + out[y0 * gw + x1] * tx;
-            let b = out[y1 * gw + x0] * (1.0 - tx) + out[y1 * gw + x1] * tx;
-            dst[y * w + x] += a * (1.0 - ty) + b * ty;
-        }
+    let fy = ((y - rect.y0) as f32 + 0.5) / d as f32 - 0.5;
+    let y0 = fy.floor().clamp(0.0, (gh - 1) as f32) as usize;
+    let y1 = (y0 + 1).min(gh - 1);
+    let ty = (fy - y0 as f32).clamp(0.0, 1.0);
+    for x in rect.x0..=rect.x1 {
+        let fx = ((x - rect.x0) as f32 + 0.5) / d as f32 - 0.5;
+        let x0 = fx.floor().clamp(0.0, (gw - 1) as f32) as usize;
+        let x1 = (x0 + 1).min(gw - 1);
+        let tx = (fx - x0 as f32).clamp(0.0, 1.0);
+        let a = out[y0 * gw + x0] * (1.0 - tx) + out[y0 * gw + x1] * tx;
+        let b = out[y1 * gw + x0] * (1.0 - tx) + out[y1 * gw + x1] * tx;
+        row[x] += a * (1.0 - ty) + b * ty;
     }
 }
 
@@ -328,38 +396,70 @@ impl Ambient {
 /// Row `y` draws from ChaCha8 stream `y` of `seed`, so output is identical
 /// for a seed whatever the evaluation order.
 pub fn quantize_with_noise(dn: &[f32], w: usize, water: &WaterParams, seed: u64, out: &mut [u8]) {
+    for (y, (row_in, row_out)) in dn.chunks(w).zip(out.chunks_mut(w)).enumerate() {
+        quantize_row(row_in, y, water, seed, row_out);
+    }
+}
+
+/// Row `y` of [`quantize_with_noise`].
+pub fn quantize_row(row_in: &[f32], y: usize, water: &WaterParams, seed: u64, row_out: &mut [u8]) {
+    if water.is_noiseless() {
+        for (o, &v) in row_out.iter_mut().zip(row_in) {
+            *o = round_to_u8_f32(v);
+        }
+        return;
+    }
     let gain = water.gain_e_per_dn;
     let read = water.read_noise_dn;
-    let noiseless = water.is_noiseless();
-    for (y, (row_in, row_out)) in dn.chunks(w).zip(out.chunks_mut(w)).enumerate() {
-        if noiseless {
-            for (o, &v) in row_out.iter_mut().zip(row_in) {
-                *o = v.round().clamp(0.0, 255.0) as u8;
-            }
-            continue;
-        }
-        let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        rng.set_stream(y as u64);
-        for (o, &v) in row_out.iter_mut().zip(row_in) {
-            let mean = v.max(0.0) as f64;
-            let lambda = mean * gain;
-            let value = if lambda < 30.0 && lambda > 0.0 {
-                // Few photo-electrons: exact Poisson, plus read noise.
-                let shot = Poisson::new(lambda)
-                    .map(|p| p.sample(&mut rng))
-                    .unwrap_or(lambda)
-                    / gain;
-                let z: f64 = StandardNormal.sample(&mut rng);
-                shot + read * z
-            } else {
-                // Poisson ≈ Gaussian: one draw with the summed variance.
-                let var = if gain.is_finite() { mean / gain } else { 0.0 } + read * read;
-                let z: f64 = StandardNormal.sample(&mut rng);
-                mean + z * var.sqrt()
-            };
-            *o = value.round().clamp(0.0, 255.0) as u8;
-        }
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    rng.set_stream(y as u64);
+    for (o, &v) in row_out.iter_mut().zip(row_in) {
+        let mean = v.max(0.0) as f64;
+        let lambda = mean * gain;
+        let value = if lambda < 30.0 && lambda > 0.0 {
+            // Few photo-electrons: exact Poisson, plus read noise.
+            let shot = Poisson::new(lambda)
+                .map(|p| p.sample(&mut rng))
+                .unwrap_or(lambda)
+                / gain;
+            let z: f64 = StandardNormal.sample(&mut rng);
+            shot + read * z
+        } else {
+            // Poisson ≈ Gaussian: one draw with the summed variance.
+            let var = if gain.is_finite() { mean / gain } else { 0.0 } + read * read;
+            let z: f64 = StandardNormal.sample(&mut rng);
+            mean + z * var.sqrt()
+        };
+        *o = round_to_u8(value);
     }
+}
+
+/// `v.round().clamp(0.0, 255.0) as u8` (NaN gives 0), without the libm
+/// call `round` compiles to on baseline x86-64.
+#[inline]
+pub fn round_to_u8(v: f64) -> u8 {
+    if v.is_nan() || v < 0.0 {
+        return 0;
+    }
+    if v >= 254.5 {
+        return 255;
+    }
+    // v < 254.5: the truncation and the fraction are exact.
+    let t = v as u32;
+    (t + u32::from(v - t as f64 >= 0.5)) as u8
+}
+
+/// [`round_to_u8`] of an `f32`.
+#[inline]
+pub fn round_to_u8_f32(v: f32) -> u8 {
+    if v.is_nan() || v < 0.0 {
+        return 0;
+    }
+    if v >= 254.5 {
+        return 255;
+    }
+    let t = v as u32;
+    (t + u32::from(v - t as f32 >= 0.5)) as u8
 }
 
 #[cfg(test)]
@@ -407,6 +507,91 @@ mod tests {
                 if scale > 1.0 {
                     assert!(dst[80 * w + 90 - 2] > 0.0);
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn fast_rounding_is_round_then_clamp() {
+        let reference = |v: f64| v.round().clamp(0.0, 255.0) as u8;
+        let mut values = vec![
+            f64::NAN,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            -0.0,
+            0.0,
+            -0.5,
+            -0.49999999999999994,
+            0.49999999999999994,
+            0.5,
+            1.5,
+            2.5,
+            254.49999999999997,
+            254.5,
+            255.0,
+            255.5,
+            1e300,
+        ];
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        for i in 0..200_000 {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            let v = (state >> 11) as f64 / (1u64 << 53) as f64 * 270.0 - 7.0;
+            values.push(v);
+            // Exact halves and their neighbours.
+            let half = (i % 520) as f64 * 0.5 - 2.0;
+            values.extend([half, half.next_up(), half.next_down()]);
+        }
+        for v in values {
+            assert_eq!(round_to_u8(v), reference(v), "{v:e}");
+            let f = v as f32;
+            assert_eq!(
+                round_to_u8_f32(f),
+                f.round().clamp(0.0, 255.0) as u8,
+                "{f:e}"
+            );
+            for g in [f.next_up(), f.next_down()] {
+                assert_eq!(
+                    round_to_u8_f32(g),
+                    g.round().clamp(0.0, 255.0) as u8,
+                    "{g:e}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn blur_on_threads_is_the_blur_on_one() {
+        let (w, h) = (300, 200);
+        let mut src = vec![0.0f32; w * h];
+        let mut state = 12345u32;
+        for y in 40..150 {
+            for x in 60..250 {
+                state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+                src[y * w + x] = (state >> 8) as f32 / (1u32 << 24) as f32;
+            }
+        }
+        for (scale, p) in [(0.5, 1.5), (3.0, 2.0), (12.0, 1.0), (30.0, 1.5)] {
+            let psf = Psf { p, scale_px: scale };
+            let rect = Rect {
+                x0: 60,
+                y0: 40,
+                x1: 249,
+                y1: 149,
+            }
+            .dilated(psf.radius_px().ceil() as usize + 1, w, h);
+            let mut one = vec![0.25f32; w * h];
+            blur_add(&src, w, rect, &psf, &mut one, &mut Vec::new());
+            for threads in [2, 3, 7] {
+                let mut many = vec![0.25f32; w * h];
+                blur_add_threads(&src, w, rect, &psf, &mut many, &mut Vec::new(), threads);
+                assert!(
+                    one.iter()
+                        .zip(&many)
+                        .all(|(a, b)| a.to_bits() == b.to_bits()),
+                    "scale {scale}, {threads} threads"
+                );
             }
         }
     }

@@ -47,6 +47,27 @@ pub fn ray_from(cam: &CameraModel, u: f64, v: f64, guess: (f64, f64)) -> (f64, f
     (x, y)
 }
 
+/// [`ray_from`] from a guess already within ~1e-8 of the ray (normalized
+/// units), such as the bilinear blend of the pixel's exact corner rays:
+/// Newton converges quadratically, so one step lands within rounding of
+/// the solution and the convergence check is skipped.
+#[inline]
+pub fn ray_near(cam: &CameraModel, u: f64, v: f64, guess: (f64, f64)) -> (f64, f64) {
+    let tx = (u - cam.cx) / cam.fx;
+    let ty = (v - cam.cy) / cam.fy;
+    let (x, y) = guess;
+    let (xd, yd, j) = cam.distortion.apply(x, y);
+    let (ex, ey) = (tx - xd, ty - yd);
+    let det = j[0] * j[3] - j[1] * j[2];
+    if det.abs() < 1e-12 || ex.abs() + ey.abs() > 1e-6 {
+        return ray_from(cam, u, v, guess);
+    }
+    (
+        x + (j[3] * ex - j[1] * ey) / det,
+        y + (-j[2] * ex + j[0] * ey) / det,
+    )
+}
+
 /// What a sample ray hit.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Hit {
