@@ -12,98 +12,91 @@
 
 use super::model::{blur, mat_from, mat_values, BLACK};
 use super::{PatternFitError, Window, GEOM};
-use crate::detect::geom::{homography_4, Px};
+use crate::detect::geom::{apply, homography_4, Px};
 use nalgebra::{DVector, Matrix3};
 
 /// What the geometric derivatives need at each pixel of the window.
 pub(super) struct GeometricFields {
-    /// `disp[j]` = (∂H/∂p_j)·H⁻¹: the displacement field of corner
-    /// coordinate `j` at ideal pixel x is `(A x̃)_xy − x·(A x̃)_z`, x̃ = (x, y, 1)
-    /// — a quadratic in x, so it and its derivatives are exact and cheap
-    /// at any pixel ([`displacement`]).
-    disp: [Matrix3<f64>; GEOM],
+    /// `disp[j][k]`: how pixel `k`'s model point moves with corner
+    /// coordinate `j` (the displacement field D_j).
+    disp: Vec<Vec<[f64; 2]>>,
     /// Σ_kernels G∗E, per pixel.
     along: Vec<[f64; 2]>,
     /// `spread[k][a][b]` = Σ_kernels σ²·∂_b(G∗E_a).
     spread: Vec<[[f64; 2]; 2]>,
+    w: usize,
 }
 
 impl GeometricFields {
     /// The fields at `corners` (homography `h` from `unit`), for the pixels
-    /// `idx` of `win`, the regions' sharp image gradients `grads` and the
-    /// linear weights `coef` (region × kernel gains, then the white print's
-    /// gain gradients per kernel).
+    /// `idx` of `win` whose module points are `uv`, the regions' sharp
+    /// image gradients `grads` and the linear weights `coef` (region ×
+    /// kernel gains, then the white print's gain gradients per kernel).
     #[allow(clippy::too_many_arguments)]
     pub(super) fn new(
         unit: &[Px; 4],
         corners: &[Px; 4],
         h: &Matrix3<f64>,
+        uv: &[[f64; 2]],
         grads: &[Vec<[f32; 2]>],
         coef: &DVector<f64>,
         kernel_sigma: &[f64],
         win: &Window,
         idx: &[usize],
     ) -> Result<GeometricFields, PatternFitError> {
-        let disp = displacement_fields(unit, corners, h)?;
+        let disp = displacement_fields(unit, corners, h, uv)?;
         let (along, spread) = blurred_gradients(grads, coef, kernel_sigma, win, idx)?;
         Ok(GeometricFields {
             disp,
             along,
             spread,
+            w: win.w,
         })
     }
 
-    /// The model's derivative in each corner coordinate at pixel `k` of
-    /// the window, whose ideal position is `pos`, negated: the Jacobian's
-    /// geometric columns.
-    #[inline]
-    pub(super) fn row(&self, k: usize, pos: Px, row: &mut [f64]) {
-        let (al, sp) = (self.along[k], self.spread[k]);
-        for (r, a) in row.iter_mut().zip(&self.disp) {
-            let (d, dd) = displacement(a, pos);
-            let mut v = d[0] * al[0] + d[1] * al[1];
-            for i in 0..2 {
-                v += dd[i][0] * sp[i][0] + dd[i][1] * sp[i][1];
+    /// The model's derivative in each corner coordinate at pixel `k` (an
+    /// inner pixel of the window), negated: the Jacobian's geometric columns.
+    pub(super) fn row(&self, k: usize, row: &mut [f64]) {
+        let w = self.w;
+        for (j, d) in self.disp.iter().enumerate() {
+            let mut v = d[k][0] * self.along[k][0] + d[k][1] * self.along[k][1];
+            for a in 0..2 {
+                let dbx = 0.5 * (d[k + 1][a] - d[k - 1][a]);
+                let dby = 0.5 * (d[k + w][a] - d[k - w][a]);
+                v += dbx * self.spread[k][a][0] + dby * self.spread[k][a][1];
             }
-            *r = -v;
+            row[j] = -v;
         }
     }
 }
 
-/// The displacement D of ideal pixel `p` under `a` = (∂H/∂p_j)·H⁻¹, and
-/// its derivatives `dd[c][b]` = ∂D_c/∂x_b.
-#[inline]
-fn displacement(a: &Matrix3<f64>, p: Px) -> ([f64; 2], [[f64; 2]; 2]) {
-    let [x, y] = p;
-    let r = |i: usize| a[(i, 0)] * x + a[(i, 1)] * y + a[(i, 2)];
-    let (a0, a1, a2) = (r(0), r(1), r(2));
-    (
-        [a0 - x * a2, a1 - y * a2],
-        [
-            [a[(0, 0)] - a2 - x * a[(2, 0)], a[(0, 1)] - x * a[(2, 1)]],
-            [a[(1, 0)] - y * a[(2, 0)], a[(1, 1)] - a2 - y * a[(2, 1)]],
-        ],
-    )
-}
-
-/// (∂H/∂p_j)·H⁻¹ for each corner coordinate `j`, H's derivative taken
-/// numerically. With ũ = H⁻¹x̃ (so Hũ = x̃ = (x, y, 1)), the pixel of
-/// module point ũ moves by (∂H ũ)_xy − x·(∂H ũ)_z.
+/// ∂x/∂(corner coordinate) at each pixel's module point `uv`: the
+/// displacement fields D_j, numerically.
 fn displacement_fields(
     unit: &[Px; 4],
     corners: &[Px; 4],
     h: &Matrix3<f64>,
-) -> Result<[Matrix3<f64>; GEOM], PatternFitError> {
+    uv: &[[f64; 2]],
+) -> Result<Vec<Vec<[f64; 2]>>, PatternFitError> {
     let eps = 1e-3;
-    let hinv = h.try_inverse().ok_or(PatternFitError::Singular)?;
-    let mut out = [Matrix3::zeros(); GEOM];
-    for (j, o) in out.iter_mut().enumerate() {
-        let mut c = *corners;
-        c[j / 2][j % 2] += eps;
-        let hj = homography_4(unit, &c).ok_or(PatternFitError::Singular)?;
-        *o = (hj - h) / eps * hinv;
-    }
-    Ok(out)
+    let hj: Vec<Matrix3<f64>> = (0..GEOM)
+        .map(|j| {
+            let mut c = *corners;
+            c[j / 2][j % 2] += eps;
+            homography_4(unit, &c).ok_or(PatternFitError::Singular)
+        })
+        .collect::<Result<_, _>>()?;
+    Ok(hj
+        .iter()
+        .map(|hj| {
+            uv.iter()
+                .map(|&p| {
+                    let (a, b) = (apply(hj, p), apply(h, p));
+                    [(a[0] - b[0]) / eps, (a[1] - b[1]) / eps]
+                })
+                .collect()
+        })
+        .collect())
 }
 
 /// Per pixel, Σ_kernels G∗E (`along`) and Σ_kernels σ²·∂_b(G∗E_a)
@@ -132,28 +125,21 @@ fn blurred_gradients(
             coef[first_gradient_basis + 2 * k],
             coef[first_gradient_basis + 2 * k + 1],
         );
-        let c: Vec<f64> = (0..grads.len())
-            .map(|reg| coef[reg * kernels + k])
-            .collect();
-        for y in 0..win.h {
-            let yn = (y as f64 - cy) / scale;
-            for x in 0..w {
-                let i = y * w + x;
-                let xn = (x as f64 - cx) / scale;
-                let gain_white = cgx * xn + cgy * yn;
-                let mut acc = [0.0; 2];
-                for (reg, g) in grads.iter().enumerate() {
-                    let c = if reg == BLACK {
-                        c[reg]
-                    } else {
-                        c[reg] + gain_white
-                    };
-                    acc[0] += c * f64::from(g[i][0]);
-                    acc[1] += c * f64::from(g[i][1]);
+        for i in 0..n {
+            let xn = ((i % w) as f64 - cx) / scale;
+            let yn = ((i / w) as f64 - cy) / scale;
+            let gain_white = cgx * xn + cgy * yn;
+            let mut acc = [0.0; 2];
+            for (reg, g) in grads.iter().enumerate() {
+                let mut c = coef[reg * kernels + k];
+                if reg != BLACK {
+                    c += gain_white;
                 }
-                field[0][i] = acc[0] as f32;
-                field[1][i] = acc[1] as f32;
+                acc[0] += c * g[i][0] as f64;
+                acc[1] += c * g[i][1] as f64;
             }
+            field[0][i] = acc[0] as f32;
+            field[1][i] = acc[1] as f32;
         }
         let blurred: [Vec<f32>; 2] = if sigma > 0.0 {
             [
@@ -164,8 +150,11 @@ fn blurred_gradients(
             field.clone()
         };
         let s2 = sigma * sigma;
-        // `idx` holds no border pixel (`solver::Fitted`).
         for &i in idx {
+            let (x, y) = (i % w, i / w);
+            if x == 0 || y == 0 || x + 1 == w || y + 1 == win.h {
+                continue;
+            }
             for a in 0..2 {
                 let g = &blurred[a];
                 along[i][a] += g[i] as f64;
@@ -177,43 +166,4 @@ fn blurred_gradients(
         }
     }
     Ok((along, spread))
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::detect::geom::apply;
-
-    #[test]
-    fn the_displacement_field_is_the_pixels_motion_with_a_corner() {
-        let unit = [[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]];
-        let corners = [[112.3, 95.6], [318.9, 80.2], [324.4, 301.7], [106.1, 287.5]];
-        let h = homography_4(&unit, &corners).unwrap();
-        let fields = displacement_fields(&unit, &corners, &h).unwrap();
-        let eps = 1e-6;
-        for uv in [[0.5, 0.5], [3.2, 7.9], [9.7, 1.1]] {
-            let p = apply(&h, uv);
-            for (j, a) in fields.iter().enumerate() {
-                let mut c = corners;
-                c[j / 2][j % 2] += eps;
-                let q = apply(&homography_4(&unit, &c).unwrap(), uv);
-                let (d, dd) = displacement(a, p);
-                for i in 0..2 {
-                    let num = (q[i] - p[i]) / eps;
-                    assert!((d[i] - num).abs() < 1e-3, "D {j} {i}: {} vs {num}", d[i]);
-                }
-                // Its derivative in the pixel: D at the module points of p ± 1 px.
-                for b in 0..2 {
-                    let mut lo = p;
-                    let mut hi = p;
-                    lo[b] -= 0.5;
-                    hi[b] += 0.5;
-                    let (dl, dh) = (displacement(a, lo).0, displacement(a, hi).0);
-                    for i in 0..2 {
-                        assert!((dd[i][b] - (dh[i] - dl[i])).abs() < 1e-6);
-                    }
-                }
-            }
-        }
-    }
 }

@@ -180,7 +180,7 @@ pub(super) fn mat_values(m: &Mat) -> Result<Vec<f32>, PatternFitError> {
 /// (white, black, quiet zone) rendered sharp and through each Gaussian of
 /// `sigmas` (index `region · kernels + kernel`, kernel 0 = sharp), then the
 /// white print × x and × y through each kernel (a pair per kernel); with
-/// the sharp renderings' image gradients.
+/// each pixel's module point and the sharp renderings' image gradients.
 pub(super) fn build_bases(
     grid: &[bool],
     m: usize,
@@ -198,6 +198,7 @@ pub(super) fn build_bases(
     // gradients in the image.
     let mut sharp = vec![vec![0f32; n]; REGIONS];
     let mut grads = vec![vec![[0f32; 2]; n]; REGIONS];
+    let mut uv = vec![[0f64; 2]; n];
     for y in 0..win.h {
         for x in 0..win.w {
             let [px, py] = win.pos[y * w + x];
@@ -215,6 +216,7 @@ pub(super) fn build_bases(
                 (hinv[(1, 1)] - v * hinv[(2, 1)]) / p.z,
             ];
             let k = y * w + x;
+            uv[k] = [u, v];
             // Most pixels lie wholly inside one module (a pixel's footprint
             // spans ½(|∂u/∂x| + |∂u/∂y|) modules either side): weight 1, no
             // gradient — what `axis_weights` gives there, without it.
@@ -280,12 +282,14 @@ pub(super) fn build_bases(
         bases.push(gx);
         bases.push(gy);
     }
-    Ok(Bases { bases, grads })
+    Ok(Bases { bases, uv, grads })
 }
 
 /// What [`build_bases`] renders.
 pub(super) struct Bases {
     pub bases: Vec<Vec<f32>>,
+    /// Each pixel's module point.
+    pub uv: Vec<[f64; 2]>,
     /// Per region, the sharp rendering's image gradient.
     pub grads: Vec<Vec<[f32; 2]>>,
 }

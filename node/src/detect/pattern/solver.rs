@@ -1,15 +1,8 @@
 //! One Gauss–Newton step of the pattern fit ([`evaluate`]): the linear
 //! weights (region × kernel gains, the white print's gain gradients, the
 //! veil's quadratic) and the eight corner coordinates solved together from
-//! normal equations, with a ridge relative to each column's scale.
-//!
-//! The gradient `Jᵀr` is summed over every fitted pixel at every step; the
-//! curvature `JᵀJ` ([`Curvature`]) over every other pixel of every other
-//! row, scaled up, once per fit (again after a backtrack). Only the gradient
-//! decides where the fit stops (`Jᵀr = 0`), so the corners are those of the
-//! exact Gauss–Newton; the curvature only sets the path there, and the
-//! geometry moves a fraction of a pixel over the fit. The 39-column outer
-//! product per pixel was most of the fit's cost (`docs/detector.md`).
+//! normal equations over every fitted pixel, with a ridge relative to each
+//! column's scale.
 
 use super::derivatives::GeometricFields;
 use super::model::{build_bases, Bases, BLACK, WHITE};
@@ -61,62 +54,12 @@ impl Step {
     }
 }
 
-/// The fitted pixels, fixed for the whole fit: their window index, the
-/// veil's polynomial there, the observed grey level, and whether the
-/// pixel is in the curvature's sample (even column and even row).
-pub(super) struct Fitted {
-    pub k: Vec<usize>,
-    poly: Vec<[f64; POLY]>,
-    observed: Vec<f64>,
-    sample: Vec<bool>,
-}
-
-impl Fitted {
-    /// The pixels of `win` where `fitted` holds, but not on its border
-    /// (the derivatives take central differences), read from `raw`.
-    pub(super) fn new(raw: &GrayView<'_>, win: &Window, fitted: &[bool]) -> Fitted {
-        let (cx, cy, scale) = win.frame();
-        let mut f = Fitted {
-            k: Vec::new(),
-            poly: Vec::new(),
-            observed: Vec::new(),
-            sample: Vec::new(),
-        };
-        for y in 1..win.h.saturating_sub(1) {
-            let row = &raw.data[(win.y0 + y) * raw.stride + win.x0..];
-            for x in 1..win.w - 1 {
-                let k = y * win.w + x;
-                if !fitted[k] {
-                    continue;
-                }
-                let (xn, yn) = ((x as f64 - cx) / scale, (y as f64 - cy) / scale);
-                f.k.push(k);
-                f.poly.push([1.0, xn, yn, xn * xn, xn * yn, yn * yn]);
-                f.observed.push(f64::from(row[x]));
-                f.sample.push(x % 2 == 0 && y % 2 == 0);
-            }
-        }
-        f
-    }
-
-    pub(super) fn len(&self) -> usize {
-        self.k.len()
-    }
-}
-
 /// The linear part of the model at one geometry: the pattern bases and the
-/// veil's polynomial per fitted pixel.
+/// veil's polynomial per pixel of the window, and the observed grey levels.
 struct LinearRows<'a> {
     bases: &'a [Vec<f32>],
-    px: &'a Fitted,
-}
-
-/// The curvature `JᵀJ` of the joint system (linear weights and corners),
-/// estimated on a quarter of the pixels and scaled to all of them, with its
-/// ridge-regularized inverse.
-pub(super) struct Curvature {
-    ata: DMatrix<f64>,
-    inv: DMatrix<f64>,
+    win: &'a Window,
+    raw: &'a GrayView<'a>,
 }
 
 impl LinearRows<'_> {
@@ -125,58 +68,33 @@ impl LinearRows<'_> {
         self.bases.len() + POLY
     }
 
-    /// Calls `f(p, bases)` for every fitted pixel `p` in order (or only
-    /// those in the curvature's sample), `bases` its basis values.
-    ///
-    /// The bases are one window-sized array each, 25 of them: read pixel
-    /// by pixel they were a cache miss per value (a quarter of the fit's
-    /// time). Here a span of [`SPAN`] window pixels of every basis is
-    /// first copied, contiguously, into a small pixel-major buffer.
-    fn for_each_row(&self, sample_only: bool, mut f: impl FnMut(usize, &[f32])) {
-        const SPAN: usize = 256;
-        let nb = self.bases.len();
-        let n = self.bases.first().map_or(0, Vec::len);
-        let mut buf = vec![0f32; nb * SPAN];
-        let mut p = 0;
-        while p < self.px.len() {
-            let s = self.px.k[p];
-            let e = (s + SPAN).min(n);
-            for (j, b) in self.bases.iter().enumerate() {
-                for (o, &v) in b[s..e].iter().enumerate() {
-                    buf[o * nb + j] = v;
-                }
-            }
-            while p < self.px.len() && self.px.k[p] < e {
-                if !sample_only || self.px.sample[p] {
-                    let o = self.px.k[p] - s;
-                    f(p, &buf[o * nb..(o + 1) * nb]);
-                }
-                p += 1;
-            }
+    /// The linear columns at pixel `k` into `r` (`len()` values).
+    fn row(&self, k: usize, r: &mut [f64]) {
+        let w = self.win.w;
+        let (cx, cy, scale) = self.win.frame();
+        for (j, b) in self.bases.iter().enumerate() {
+            r[j] = b[k] as f64;
         }
+        let x = ((k % w) as f64 - cx) / scale;
+        let y = ((k / w) as f64 - cy) / scale;
+        r[self.bases.len()..].copy_from_slice(&[1.0, x, y, x * x, x * y, y * y]);
     }
 
-    /// The linear columns of fitted pixel `p` with basis values `bases`
-    /// into `r` (`len()` values).
-    #[inline]
-    fn row(&self, p: usize, bases: &[f32], r: &mut [f64]) {
-        let nb = bases.len();
-        for (rj, &b) in r.iter_mut().zip(bases) {
-            *rj = f64::from(b);
-        }
-        r[nb..nb + POLY].copy_from_slice(&self.px.poly[p]);
+    /// The raw frame's grey level at pixel `k` of the window.
+    fn observed(&self, k: usize) -> f64 {
+        let w = self.win.w;
+        let (x, y) = (self.win.x0 + k % w, self.win.y0 + k / w);
+        self.raw.data[y * self.raw.stride + x] as f64
     }
 
-    /// The linear weights alone, at this geometry, over the curvature's
-    /// sample of the pixels: the start of the joint fit, which refits them
-    /// with the corners.
-    fn fit(&self) -> Result<DVector<f64>, PatternFitError> {
+    /// The linear weights alone, at this geometry, over the pixels `idx`.
+    fn fit(&self, idx: &[usize]) -> Result<DVector<f64>, PatternFitError> {
         let mut ne = Normal::new(self.len());
         let mut r = vec![0.0; self.len()];
-        self.for_each_row(true, |p, b| {
-            self.row(p, b, &mut r);
-            ne.add(&r, self.px.observed[p]);
-        });
+        for &k in idx {
+            self.row(k, &mut r);
+            ne.add(&r, self.observed(k));
+        }
         let (a, b) = ne.finish();
         solve_ridge(&a, &b).ok_or(PatternFitError::Singular)
     }
@@ -185,86 +103,86 @@ impl LinearRows<'_> {
 /// The model at `corners` (homography `h`): residual, linear weights and
 /// the Gauss–Newton step. `coef` (the weights predicted from the previous
 /// step) sets the geometric derivatives; without it they are fitted first.
-/// `curvature` is estimated here when `None`, else reused.
 #[allow(clippy::too_many_arguments)]
 pub(super) fn evaluate(
+    raw: &GrayView<'_>,
     grid: &[bool],
     m: usize,
     unit: &[Px; 4],
     corners: &[Px; 4],
     h: &Matrix3<f64>,
     win: &Window,
-    px: &Fitted,
+    idx: &[usize],
     coef: Option<&DVector<f64>>,
-    curvature: &mut Option<Curvature>,
 ) -> Result<Step, PatternFitError> {
     let sigmas = HALO_SIGMAS_PX;
     let kernels = 1 + sigmas.len();
     let kernel_sigma: Vec<f64> = std::iter::once(0.0).chain(sigmas.iter().copied()).collect();
-    let Bases { bases, grads } = build_bases(grid, m, h, win, &sigmas)?;
-    let lin = LinearRows { bases: &bases, px };
+    let Bases { bases, uv, grads } = build_bases(grid, m, h, win, &sigmas)?;
+    let lin = LinearRows {
+        bases: &bases,
+        win,
+        raw,
+    };
     let linear = lin.len();
     // Linear weights to start from.
     let coef = match coef {
         Some(c) if c.len() == linear => c.clone(),
-        _ => lin.fit()?,
+        _ => lin.fit(idx)?,
     };
     // White must read brighter than black through the whole PSF.
     let gain = |reg: usize| (0..kernels).map(|k| coef[reg * kernels + k]).sum::<f64>();
     if gain(WHITE) <= gain(BLACK) {
         return Err(PatternFitError::NoContrast);
     }
-    let geometry =
-        GeometricFields::new(unit, corners, h, &grads, &coef, &kernel_sigma, win, &px.k)?;
+    let geometry = GeometricFields::new(
+        unit,
+        corners,
+        h,
+        &uv,
+        &grads,
+        &coef,
+        &kernel_sigma,
+        win,
+        idx,
+    )?;
 
     let all = GEOM + linear;
-    // The curvature's sample, when it is to be estimated at this step.
-    let mut sample = curvature.is_none().then(|| Normal::new(all));
-    let mut atr = vec![0.0f64; all];
+    let mut ne = Normal::new(all);
     let mut row = vec![0.0f64; all];
-    let (mut sse, mut sampled) = (0.0, 0usize);
-    lin.for_each_row(false, |p, b| {
-        geometry.row(px.k[p], win.pos[px.k[p]], &mut row[..GEOM]);
-        lin.row(p, b, &mut row[GEOM..]);
+    let mut sse = 0.0;
+    let w = win.w;
+    for &k in idx {
+        let (x, y) = (k % w, k / w);
+        if x == 0 || y == 0 || x + 1 == w || y + 1 == win.h {
+            continue;
+        }
+        geometry.row(k, &mut row[..GEOM]);
+        lin.row(k, &mut row[GEOM..]);
         let model: f64 = row[GEOM..]
             .iter()
             .zip(coef.iter())
             .map(|(a, b)| a * b)
             .sum();
-        let res = px.observed[p] - model;
+        let res = lin.observed(k) - model;
         sse += res * res;
-        for (g, &j) in atr.iter_mut().zip(&row) {
-            *g += j * res;
-        }
-        if let Some(ne) = sample.as_mut().filter(|_| px.sample[p]) {
-            ne.add(&row, 0.0);
-            sampled += 1;
-        }
-    });
-    if let Some(ne) = sample {
-        let (mut ata, _) = ne.finish();
-        ata *= px.len() as f64 / sampled.max(1) as f64;
-        let inv = ridge_inverse(&ata).ok_or(PatternFitError::Singular)?;
-        *curvature = Some(Curvature { ata, inv });
+        ne.add(&row, res);
     }
-    let curvature = curvature.as_ref().ok_or(PatternFitError::Singular)?;
-    solve_step(curvature, DVector::from_vec(atr), sse, px.len(), &coef)
+    solve_step(ne, sse, idx.len(), &coef)
 }
 
-/// The step from the curvature and the gradient `atr` over `pixels` pixels
-/// (residual sum of squares `sse` at the weights `coef`): the linear
-/// weights re-fitted at this geometry, the joint Gauss–Newton update, the
-/// corners' covariance.
+/// The step from the normal equations `ne` over `pixels` pixels (residual
+/// sum of squares `sse` at the weights `coef`): the linear weights re-fitted
+/// at this geometry, the joint Gauss–Newton update, the corners' covariance.
 fn solve_step(
-    curvature: &Curvature,
-    atr: DVector<f64>,
+    ne: Normal,
     sse: f64,
     pixels: usize,
     coef: &DVector<f64>,
 ) -> Result<Step, PatternFitError> {
-    let all = atr.len();
+    let all = ne.cols;
     let linear = all - GEOM;
-    let (a, inv) = (&curvature.ata, &curvature.inv);
+    let (a, atr) = ne.finish();
     // The weights re-fitted at this geometry: the linear block alone.
     let lin_a = a.view((GEOM, GEOM), (linear, linear)).into_owned();
     let lin_b = atr.rows(GEOM, linear).into_owned();
@@ -272,7 +190,8 @@ fn solve_step(
     let sse_here = (sse - lin_b.dot(&dc)).max(0.0);
     let dof = pixels.saturating_sub(all).max(1) as f64;
     let sigma2 = sse_here / dof;
-    let delta_all = inv * &atr;
+    let inv = ridge_inverse(&a).ok_or(PatternFitError::Singular)?;
+    let delta_all = &inv * &atr;
     let mut delta = [0.0; GEOM];
     delta.copy_from_slice(&delta_all.as_slice()[..GEOM]);
     let mut covariance = SMatrix::<f64, 8, 8>::zeros();
