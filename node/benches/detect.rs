@@ -16,6 +16,12 @@
 //! A third group times detection alone with each corner refinement, and the
 //! pose alone.
 //!
+//! `waters_interleaved` (printed, not a criterion group): at every water
+//! preset where markers read, HOIRM + detection + pose against OpenCV
+//! ArUco's detection on the raw frames, alternated frame by frame, as a
+//! ratio (issue #18's target, ≤ 0.5): `cargo bench -p shoal-node --bench
+//! detect -- waters_interleaved` (`SHOAL_BENCH_WATERS=8.22` for one).
+//!
 //! `cargo bench -p shoal-node --bench detect`
 
 use criterion::{criterion_group, criterion_main, Criterion};
@@ -243,9 +249,104 @@ fn bench_refinement(c: &mut Criterion) {
     g.finish();
 }
 
+/// Whether the bench's filter (its first argument that is not an option,
+/// as criterion reads it) selects `name`: the hand-timed groups below obey
+/// it too.
+fn selected(name: &str) -> bool {
+    std::env::args()
+        .skip(1)
+        .find(|a| !a.starts_with('-'))
+        .is_none_or(|f| name.contains(&f))
+}
+
+/// Shoal's detection + pose and OpenCV ArUco's detection, alternated on
+/// every frame, over `frames`: (shoal ms, OpenCV ms, frames) per call,
+/// printed as their ratio. `shoal` returns how many markers it read.
+fn interleaved(
+    label: &str,
+    frames: usize,
+    rounds: usize,
+    mut shoal: impl FnMut(usize) -> usize,
+    mut opencv: impl FnMut(usize) -> usize,
+) {
+    let (mut t_shoal, mut t_cv, mut read_shoal, mut read_cv) = (0f64, 0f64, 0usize, 0usize);
+    for r in 0..rounds {
+        for i in 0..frames {
+            let t0 = std::time::Instant::now();
+            let a = shoal(i);
+            let t1 = std::time::Instant::now();
+            let b = opencv(i);
+            let t2 = std::time::Instant::now();
+            // The first round warms the caches and allocations up.
+            if r > 0 {
+                t_shoal += (t1 - t0).as_secs_f64();
+                t_cv += (t2 - t1).as_secs_f64();
+                read_shoal += a;
+                read_cv += b;
+            }
+        }
+    }
+    let calls = (frames * rounds.saturating_sub(1)).max(1) as f64;
+    eprintln!(
+        "{label}: interleaved over {calls} frames: shoal {:.2} ms ({:.2} markers), OpenCV ArUco {:.2} ms ({:.2} markers), ratio {:.3}",
+        1e3 * t_shoal / calls,
+        read_shoal as f64 / calls,
+        1e3 * t_cv / calls,
+        read_cv as f64 / calls,
+        t_shoal / t_cv.max(1e-12)
+    );
+}
+
+/// Every water preset where markers read (1440x1080, the accuracy pose):
+/// shoal's restoration (HOIRM) + detection + pose against OpenCV ArUco's
+/// detection alone on the raw frames, alternated frame by frame (issue
+/// #18's target, ≤ 0.5 at every water). `SHOAL_BENCH_WATERS` (comma-
+/// separated) picks the waters.
+fn bench_waters(_c: &mut Criterion) {
+    if !selected("waters_interleaved") {
+        return;
+    }
+    use shoal_node::restore::{restorer, Method, RestoreParams};
+    opencv::core::set_num_threads(1).expect("threads");
+    let cam = CameraModel::vehicle_1440();
+    let waters: Vec<f64> = std::env::var("SHOAL_BENCH_WATERS")
+        .ok()
+        .map(|v| v.split(',').filter_map(|w| w.trim().parse().ok()).collect())
+        .unwrap_or_else(|| vec![0.126, 1.38, 3.92, 5.16, 6.12, 8.22]);
+    for c_per_m in waters {
+        let raw = frames_in(CodeSet::Shoal, c_per_m);
+        let mut hoirm = restorer(Method::Hoirm, &RestoreParams::default());
+        let mut shoal = ShoalDetector::new(
+            CodeSet::Shoal,
+            DetectParams {
+                lens: Some(cam),
+                ..DetectParams::default()
+            },
+        );
+        let mut aruco = OpenCvAruco::new(CodeSet::Shoal).expect("aruco");
+        let mut t_ns = 0u64;
+        interleaved(
+            &format!("water {c_per_m} /m, HOIRM + detect + pose vs OpenCV"),
+            raw.len(),
+            4,
+            |i| {
+                let f = &raw[i];
+                t_ns += 1_000_000_000;
+                let restored = hoirm.restore(f, t_ns).expect("restore").image;
+                let found = shoal.detect_restored(&restored, f).expect("detect");
+                for d in &found {
+                    let _ = estimate_pose(&cam, &d.object_points(SIDE_M), &d.corners_px, None);
+                }
+                found.len()
+            },
+            |i| aruco.detect(&raw[i]).expect("detect").len(),
+        );
+    }
+}
+
 criterion_group! {
     name = benches;
     config = Criterion::default().sample_size(30);
-    targets = bench, bench_turbid, bench_refinement
+    targets = bench, bench_turbid, bench_refinement, bench_waters
 }
 criterion_main!(benches);

@@ -79,7 +79,7 @@ fn region(grid: &[bool], m: i64, c: i64, r: i64) -> Option<usize> {
 /// Also returns the weights' gradients in the image (per px).
 #[inline]
 fn axis_weights(u: f64, grad: [f64; 2]) -> (i64, [f64; 3], [[f64; 2]; 3]) {
-    let g = grad[0].hypot(grad[1]).max(1e-12);
+    let g = (grad[0] * grad[0] + grad[1] * grad[1]).sqrt().max(1e-12);
     let (na, nb) = (grad[0].abs() / g, grad[1].abs() / g);
     let (a, b) = if na >= nb { (na, nb) } else { (nb, na) };
     let i = u.floor();
@@ -217,6 +217,20 @@ pub(super) fn build_bases(
             ];
             let k = y * w + x;
             uv[k] = [u, v];
+            // Most pixels lie wholly inside one module (a pixel's footprint
+            // spans ½(|∂u/∂x| + |∂u/∂y|) modules either side): weight 1, no
+            // gradient — what `axis_weights` gives there, without it.
+            let (fu, fv) = (u - u.floor(), v - v.floor());
+            let (tu, tv) = (
+                0.5 * (gu[0].abs() + gu[1].abs()),
+                0.5 * (gv[0].abs() + gv[1].abs()),
+            );
+            if fu >= tu && 1.0 - fu >= tu && fv >= tv && 1.0 - fv >= tv {
+                if let Some(reg) = region(grid, m as i64, u.floor() as i64, v.floor() as i64) {
+                    sharp[reg][k] = 1.0;
+                }
+                continue;
+            }
             let (ci, wu, gwu) = axis_weights(u, gu);
             let (ri, wv, gwv) = axis_weights(v, gv);
             for dr in 0..3 {
