@@ -21,6 +21,7 @@
 //! | `nav`             | (vehicles' own nav)    | [`nav`]         |
 //! | `real`            | (real recordings)      | [`real`]        |
 //! | `refraction`      | (flat-port refraction) | [`refraction`]  |
+//! | `profiles`        | (camera profiles, #16) | [`profiles`]    |
 //!
 //! `quick` runs a reduced version of each (seconds in a debug build) for CI.
 //! The development probes (`shoal eval probe <name>`) are in [`probe`].
@@ -35,6 +36,7 @@ pub mod nav;
 pub mod noise;
 pub mod plot;
 pub mod probe;
+pub mod profiles;
 pub mod real;
 pub mod refraction;
 pub mod restoration;
@@ -65,10 +67,11 @@ pub enum Experiment {
     Nav,
     Real,
     Refraction,
+    Profiles,
 }
 
 impl Experiment {
-    pub const ALL: [Experiment; 14] = [
+    pub const ALL: [Experiment; 15] = [
         Experiment::Features,
         Experiment::Accuracy,
         Experiment::AccuracyYaw,
@@ -83,6 +86,7 @@ impl Experiment {
         Experiment::Nav,
         Experiment::Real,
         Experiment::Refraction,
+        Experiment::Profiles,
     ];
 
     pub fn name(self) -> &'static str {
@@ -101,6 +105,7 @@ impl Experiment {
             Experiment::Nav => "nav",
             Experiment::Real => "real",
             Experiment::Refraction => "refraction",
+            Experiment::Profiles => "profiles",
         }
     }
 }
@@ -263,6 +268,7 @@ pub fn run(experiment: Experiment, opts: &EvalOptions) -> Result<serde_json::Val
         Experiment::Nav => nav::run(opts)?,
         Experiment::Real => real::run(opts)?,
         Experiment::Refraction => refraction::run(opts)?,
+        Experiment::Profiles => profiles::run(opts)?,
     };
     if let Some(obj) = summary.as_object_mut() {
         obj.insert("experiment".into(), experiment.name().into());

@@ -18,10 +18,14 @@
 //! are in `docs/water-model.md`.
 
 mod cast;
+pub mod codec;
+pub mod effects;
 mod frame_files;
 #[cfg(test)]
 mod geometry_tests;
+pub mod motion;
 pub mod optics;
+pub mod realistic;
 mod roi;
 mod scene;
 pub mod trace;
