@@ -174,16 +174,23 @@ impl ExposureSchedule {
 
     /// The weight of sub-frame `j` in row `y` (a row's weights sum to 1):
     /// the overlap of the sub-frame's interval with the row's exposure; an
-    /// instantaneous exposure takes the sub-frame whose interval holds its time.
+    /// instantaneous exposure is interpolated linearly between the two
+    /// sub-frames around its time.
     pub fn weight(&self, j: usize, y: usize) -> f64 {
         let start = y as f64 * self.line_time_s;
         let (a, b) = (
             self.times_s[j] - 0.5 * self.step_s,
             self.times_s[j] + 0.5 * self.step_s,
         );
-        if self.exposure_s <= 0.0 || self.step_s <= 0.0 {
-            let last = j + 1 == self.times_s.len();
-            return f64::from(u8::from(start >= a && (start < b || last)));
+        if self.step_s <= 0.0 {
+            return 1.0;
+        }
+        if self.exposure_s <= 0.0 {
+            // An instant: interpolate between the two sub-frames around it
+            // (the first and the last hold beyond the ends).
+            let n = self.times_s.len();
+            let t = start.clamp(self.times_s[0], self.times_s[n - 1]);
+            return (1.0 - (t - self.times_s[j]).abs() / self.step_s).max(0.0);
         }
         let overlap = (b.min(start + self.exposure_s) - a.max(start)).max(0.0);
         overlap / self.exposure_s
