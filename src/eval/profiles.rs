@@ -5,8 +5,8 @@
 //! figure with its 95 % interval across seeds; and, at one condition, each
 //! effect alone (which effect costs what).
 //!
-//! Scenes: a 100 mm enhanced marker at 1 or 2 m, up to ±0.25 of the range
-//! off the axis, turned up to ±30°, in 0.5 and 3.92 /m water; the camera
+//! Scenes: a 100 mm enhanced marker at 1–2 m, up to ±0.25 of the range
+//! off the axis, turned up to ±30°, in 0.5, 1.38 and 3.92 /m water; the camera
 //! drifts as a vehicle holding formation does (up to 0.1 m/s, up to 4°/s
 //! about each axis). Both profiles see the same scene, motion and noise
 //! seed; the truth is the marker's pose at the frame's reference time
@@ -35,9 +35,9 @@ use shoal_sim_bridge::render::{facing_camera, Renderer, Scene};
 /// Seeds per condition (issue #16: at least 5).
 pub const SEEDS: u64 = 5;
 /// `(c per m, range m)` of the main comparison.
-pub const CONDITIONS: [(f64, f64); 4] = [(0.5, 1.0), (0.5, 2.0), (3.92, 1.0), (3.92, 2.0)];
+pub const CONDITIONS: [(f64, f64); 4] = [(0.5, 1.0), (0.5, 2.0), (1.38, 1.5), (3.92, 1.0)];
 /// The condition of the one-effect-at-a-time runs.
-pub const ABLATION: (f64, f64) = (3.92, 1.5);
+pub const ABLATION: (f64, f64) = (0.5, 2.0);
 /// Relative motion of a vehicle holding formation: speed (m/s) and rate about each axis (rad/s).
 const MAX_SPEED_MPS: f64 = 0.1;
 const MAX_RATE_RADPS: f64 = 4.0 * std::f64::consts::PI / 180.0;
@@ -162,8 +162,10 @@ fn t975(dof: usize) -> f64 {
     T.get(dof.wrapping_sub(1)).copied().unwrap_or(1.96)
 }
 
-/// Mean of per-seed values and its 95 % interval (Student's t); `None` without two seeds.
-fn mean_ci(per_seed: &[f64]) -> Value {
+/// Mean of per-seed values and its 95 % interval (Student's t), clipped to
+/// `bounds` (a recall lies in 0..=1, an error or a ratio is never negative);
+/// `None` without two seeds.
+fn mean_ci(per_seed: &[f64], bounds: (f64, f64)) -> Value {
     let v: Vec<f64> = per_seed.iter().copied().filter(|x| x.is_finite()).collect();
     let n = v.len() as f64;
     if v.len() < 2 {
@@ -172,8 +174,13 @@ fn mean_ci(per_seed: &[f64]) -> Value {
     let mean = v.iter().sum::<f64>() / n;
     let var = v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0);
     let half = t975(v.len() - 1) * (var / n).sqrt();
-    json!({ "mean": mean, "ci95": [mean - half, mean + half], "seeds": v.len() })
+    let clip = |x: f64| x.clamp(bounds.0, bounds.1);
+    json!({ "mean": mean, "ci95": [clip(mean - half), clip(mean + half)], "seeds": v.len() })
 }
+
+/// Bounds of a recall and of an error or ratio.
+const UNIT: (f64, f64) = (0.0, 1.0);
+const POSITIVE: (f64, f64) = (0.0, f64::INFINITY);
 
 fn per_seed(rows: &[&Row], f: impl Fn(&[&Row]) -> Option<f64>) -> Vec<f64> {
     let mut seeds: Vec<u64> = rows.iter().map(|r| r.seed).collect();
@@ -207,9 +214,12 @@ fn summarize(rows: &[Row], profile: &str, c: f64, r: f64, ideal: Option<&str>) -
     let pos = |rs: &[&Row]| median_of(rs, |x| x.position_mm);
     let mut out = json!({
         "frames": mine.len(),
-        "recall": mean_ci(&per_seed(&mine, recall)),
-        "median_position_mm": mean_ci(&per_seed(&mine, pos)),
-        "median_rotation_deg": mean_ci(&per_seed(&mine, |rs| median_of(rs, |x| x.rotation_deg))),
+        "recall": mean_ci(&per_seed(&mine, recall), UNIT),
+        "median_position_mm": mean_ci(&per_seed(&mine, pos), POSITIVE),
+        "median_rotation_deg": mean_ci(
+            &per_seed(&mine, |rs| median_of(rs, |x| x.rotation_deg)),
+            POSITIVE,
+        ),
         "sub_frames_mean": mine.iter().map(|x| x.sub_frames as f64).sum::<f64>() / mine.len().max(1) as f64,
     });
     if let Some(base) = ideal {
@@ -219,7 +229,7 @@ fn summarize(rows: &[Row], profile: &str, c: f64, r: f64, ideal: Option<&str>) -
             let b: Vec<&Row> = theirs.iter().copied().filter(|x| x.seed == seed).collect();
             Some(pos(rs)? / pos(&b)?)
         });
-        out["position_ratio_to_ideal"] = mean_ci(&ratios);
+        out["position_ratio_to_ideal"] = mean_ci(&ratios, POSITIVE);
     }
     out
 }
