@@ -102,26 +102,7 @@ pub fn render_profiled(
 ) -> Result<ProfiledFrame, SimError> {
     profile.validate()?;
     if profile.is_ideal() {
-        let (world_from_camera, scene) = timeline.at(0.0)?;
-        let output = renderer.render_with_port(
-            cam,
-            port,
-            &world_from_camera,
-            &scene,
-            water,
-            time_s,
-            seed,
-        )?;
-        return Ok(ProfiledFrame {
-            output,
-            node_camera: *cam,
-            port: port.copied(),
-            report: FrameReport {
-                sub_frames: 1,
-                gain: 1.0,
-                ..FrameReport::default()
-            },
-        });
+        return ideal_frame(renderer, (cam, port), timeline, water, time_s, seed);
     }
     let p = &profile.params;
     let (lens, port) = match (port, profile.is_on(Effect::Port)) {
@@ -133,26 +114,7 @@ pub fn render_profiled(
         (None, false) => (*cam, None),
     };
     let (w, h) = (cam.width as usize, cam.height as usize);
-    let exposure_s = if profile.is_on(Effect::MotionBlur) {
-        p.motion_blur.exposure_s
-    } else {
-        0.0
-    };
-    let line_time_s = if profile.is_on(Effect::RollingShutter) {
-        p.rolling_shutter.line_time_s
-    } else {
-        0.0
-    };
-    let span = exposure_s + line_time_s * h.saturating_sub(1) as f64;
-    let speed = image_speed_px_per_s(timeline, &lens, port.as_ref(), span)?;
-    let schedule = ExposureSchedule::new(
-        exposure_s,
-        line_time_s,
-        h,
-        speed,
-        p.motion_blur.max_step_px,
-        p.motion_blur.max_samples,
-    );
+    let (schedule, speed) = schedule_of(profile, timeline, (&lens, port.as_ref()))?;
     let reference_s = schedule.reference_s(h);
     let nearest = (0..schedule.times_s.len())
         .min_by(|a, b| {
@@ -193,31 +155,19 @@ pub fn render_profiled(
             c_per_m: c,
             ..*water
         };
-        let mut acc = vec![0.0f32; w * h];
-        for (j, &t) in schedule.times_s.iter().enumerate() {
-            let (world_from_camera, scene) = timeline.at(t)?;
-            let out = renderer.render_with_port(
-                &lens,
-                port.as_ref(),
-                &world_from_camera,
-                &scene,
-                &water_c,
-                time_s + t,
-                seed,
-            )?;
-            let dn = renderer.last_frame_dn();
-            for y in 0..h {
-                let wgt = schedule.weight(j, y) as f32;
-                if wgt > 0.0 {
-                    let row = y * w..(y + 1) * w;
-                    for (a, d) in acc[row.clone()].iter_mut().zip(&dn[row]) {
-                        *a += wgt * d;
-                    }
-                }
-            }
-            if j == nearest && (ci == channel_c.len() / 2) {
-                reference = Some(out);
-            }
+        let keep = (ci == channel_c.len() / 2).then_some(nearest);
+        let (mut acc, kept) = integrate(
+            renderer,
+            (&lens, port.as_ref()),
+            timeline,
+            &schedule,
+            &water_c,
+            time_s,
+            seed,
+            keep,
+        )?;
+        if kept.is_some() {
+            reference = kept;
         }
         if profile.is_on(Effect::Lamps) {
             for (a, g) in acc.iter_mut().zip(lamp_field(cam, &p.lamps, c)) {
@@ -244,12 +194,96 @@ pub fn render_profiled(
         });
     };
 
-    // Sensor: metering, gain, noise, demosaicing, gamma.
+    let (data, gain) = sensor(profile, channels, water, (w, h), seed)?;
+    output.image = GrayImage {
+        width: cam.width,
+        height: cam.height,
+        data,
+    };
+    let node_camera = if profile.is_on(Effect::Calibration) {
+        calibration_error(cam, &p.calibration, profile.seed)
+    } else {
+        *cam
+    };
+    Ok(ProfiledFrame {
+        output,
+        node_camera,
+        port,
+        report: FrameReport {
+            sub_frames: schedule.times_s.len(),
+            reference_s,
+            image_speed_px_per_s: speed,
+            gain,
+            psf: psf.map(|p| p.describe()),
+            snow_particles: particles.len(),
+        },
+    })
+}
+
+/// The light of one colour channel integrated over the schedule's
+/// sub-frames, row by row; with `keep`, also that sub-frame's render.
+#[allow(clippy::too_many_arguments)]
+fn integrate(
+    renderer: &mut Renderer,
+    (lens, port): (&CameraModel, Option<&FlatPort>),
+    timeline: &dyn Timeline,
+    schedule: &ExposureSchedule,
+    water: &WaterParams,
+    time_s: f64,
+    seed: u64,
+    keep: Option<usize>,
+) -> Result<(Vec<f32>, Option<RenderOutput>), SimError> {
+    let (w, h) = (lens.width as usize, lens.height as usize);
+    let mut acc = vec![0.0f32; w * h];
+    let mut kept = None;
+    for (j, &t) in schedule.times_s.iter().enumerate() {
+        let (world_from_camera, scene) = timeline.at(t)?;
+        let out = renderer.render_with_port(
+            lens,
+            port,
+            &world_from_camera,
+            &scene,
+            water,
+            time_s + t,
+            seed,
+        )?;
+        let dn = renderer.last_frame_dn();
+        for y in 0..h {
+            let wgt = schedule.weight(j, y) as f32;
+            if wgt > 0.0 {
+                let row = y * w..(y + 1) * w;
+                for (a, d) in acc[row.clone()].iter_mut().zip(&dn[row]) {
+                    *a += wgt * d;
+                }
+            }
+        }
+        if keep == Some(j) {
+            kept = Some(out);
+        }
+    }
+    Ok((acc, kept))
+}
+
+/// The sensor and the camera's processing: metering and gain, the Bayer
+/// mosaic, noise, demosaicing and luma, gamma, 8 bits, the codec. Returns
+/// the frame and the gain.
+fn sensor(
+    profile: &CameraProfile,
+    channels: Vec<Vec<f32>>,
+    water: &WaterParams,
+    (w, h): (usize, usize),
+    seed: u64,
+) -> Result<(Vec<u8>, f64), SimError> {
+    let p = &profile.params;
+    let colour = channels.len() == 3;
     let (gain, gamma) = if profile.is_on(Effect::Exposure) {
         let e = &p.exposure;
         let meter = if colour {
-            let [r, g, b] = [&channels[0], &channels[1], &channels[2]];
-            luma(&[r.clone(), g.clone(), b.clone()])
+            luma(&[
+                channels[0].clone(),
+                channels[1].clone(),
+                channels[2].clone(),
+            ])
         } else {
             channels[0].clone()
         };
@@ -280,27 +314,62 @@ pub fn render_profiled(
     } else if profile.is_on(Effect::H264) {
         data = h264_like(&data, w, h, p.h264.qp);
     }
-    output.image = GrayImage {
-        width: cam.width,
-        height: cam.height,
-        data,
-    };
-    let node_camera = if profile.is_on(Effect::Calibration) {
-        calibration_error(cam, &p.calibration, profile.seed)
+    Ok((data, gain))
+}
+
+/// The sub-frames of a frame: the exposure (motion blur) and line time
+/// (rolling shutter) of the effects that are on, as many as the image
+/// motion needs; and that motion (px/s).
+fn schedule_of(
+    profile: &CameraProfile,
+    timeline: &dyn Timeline,
+    (lens, port): (&CameraModel, Option<&FlatPort>),
+) -> Result<(ExposureSchedule, f64), SimError> {
+    let p = &profile.params;
+    let h = lens.height as usize;
+    let exposure_s = if profile.is_on(Effect::MotionBlur) {
+        p.motion_blur.exposure_s
     } else {
-        *cam
+        0.0
     };
+    let line_time_s = if profile.is_on(Effect::RollingShutter) {
+        p.rolling_shutter.line_time_s
+    } else {
+        0.0
+    };
+    let span = exposure_s + line_time_s * h.saturating_sub(1) as f64;
+    let speed = image_speed_px_per_s(timeline, lens, port, span)?;
+    let schedule = ExposureSchedule::new(
+        exposure_s,
+        line_time_s,
+        h,
+        speed,
+        p.motion_blur.max_step_px,
+        p.motion_blur.max_samples,
+    );
+    Ok((schedule, speed))
+}
+
+/// The ideal profile: the renderer at the frame's start, the node knowing the camera.
+fn ideal_frame(
+    renderer: &mut Renderer,
+    (cam, port): (&CameraModel, Option<&FlatPort>),
+    timeline: &dyn Timeline,
+    water: &WaterParams,
+    time_s: f64,
+    seed: u64,
+) -> Result<ProfiledFrame, SimError> {
+    let (world_from_camera, scene) = timeline.at(0.0)?;
+    let output =
+        renderer.render_with_port(cam, port, &world_from_camera, &scene, water, time_s, seed)?;
     Ok(ProfiledFrame {
         output,
-        node_camera,
-        port,
+        node_camera: *cam,
+        port: port.copied(),
         report: FrameReport {
-            sub_frames: schedule.times_s.len(),
-            reference_s,
-            image_speed_px_per_s: speed,
-            gain,
-            psf: psf.map(|p| p.describe()),
-            snow_particles: particles.len(),
+            sub_frames: 1,
+            gain: 1.0,
+            ..FrameReport::default()
         },
     })
 }
