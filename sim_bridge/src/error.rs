@@ -56,6 +56,30 @@ pub enum SimError {
         value: f64,
         reason: &'static str,
     },
+    #[error("{path}: cannot read the camera profile: {source}")]
+    ProfileRead {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path}: camera profile: {message}")]
+    ProfileParse { path: PathBuf, message: String },
+    #[error("camera profile: {effect}.{field} = {value}: {reason}")]
+    ProfileInvalid {
+        effect: &'static str,
+        field: &'static str,
+        value: f64,
+        reason: String,
+    },
+    #[error("unknown camera profile {name:?}; expected ideal or realistic")]
+    UnknownProfile { name: String },
+    #[error("unknown camera effect {name:?}; known: {known}")]
+    UnknownEffect { name: String, known: String },
+    #[error("{stage}: {message}")]
+    Effect {
+        stage: &'static str,
+        message: String,
+    },
     #[error("cannot write {path}: {message}")]
     ImageWrite { path: PathBuf, message: String },
 }

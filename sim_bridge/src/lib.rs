@@ -9,6 +9,7 @@
 pub mod error;
 pub mod nav;
 pub mod obs_synth;
+pub mod profile;
 pub mod render;
 pub mod water;
 pub mod world;

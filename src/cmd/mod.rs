@@ -9,6 +9,7 @@ pub mod log;
 pub mod net;
 pub mod relay;
 pub mod services;
+pub mod sim_render;
 pub mod soak;
 pub mod station;
 pub mod tools;

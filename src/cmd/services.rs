@@ -13,9 +13,8 @@ use shoal_proto::messages::SimTruth;
 use shoal_services::fusion::{FusionConfig, Placement};
 use shoal_services::node::{NodeConfig, Source};
 use shoal_services::sim::SimConfig;
-use shoal_sim_bridge::render::{render_fleet_view, write_frame_pair, Renderer};
 use shoal_sim_bridge::water::WaterPresets;
-use shoal_sim_bridge::world::{Formation, SwarmWorld};
+use shoal_sim_bridge::world::Formation;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
@@ -389,28 +388,9 @@ pub struct SimRunArgs {
 
 #[derive(Debug, Subcommand)]
 pub enum SimCmd {
-    /// Render one camera frame (and its clean twin) to PNG for a person to look at.
-    Render {
-        #[arg(long, default_value = "configs/fleets/paper.toml")]
-        fleet: PathBuf,
-        #[arg(long, default_value_t = 0.5, value_parser = super::args::non_negative)]
-        water: f64,
-        /// Observer vehicle (default: the fleet's reference vehicle).
-        #[arg(long)]
-        vehicle: Option<u32>,
-        /// Camera name (forward, up, down, port, starboard) or index.
-        #[arg(long, default_value = "starboard")]
-        camera: String,
-        #[arg(long, default_value = "line")]
-        formation: String,
-        #[arg(long, default_value_t = 1.75, value_parser = super::args::positive)]
-        spacing: f64,
-        #[arg(long, default_value_t = 7)]
-        seed: u64,
-        /// Output PNG; the clean twin is written beside it.
-        #[arg(long)]
-        out: PathBuf,
-    },
+    /// Render one camera frame (and its clean twin) for a person to look at, through a
+    /// camera profile (`--profile realistic`, `--effect NAME`; docs/water-model.md).
+    Render(super::sim_render::RenderArgs),
 }
 
 fn formation(name: &str) -> anyhow::Result<Formation> {
@@ -431,61 +411,8 @@ fn presets(path: &Option<PathBuf>) -> anyhow::Result<WaterPresets> {
 }
 
 pub fn run_sim(a: SimArgs) -> anyhow::Result<()> {
-    if let Some(SimCmd::Render {
-        fleet: fp,
-        water,
-        vehicle,
-        camera,
-        formation: f,
-        spacing,
-        seed,
-        out,
-    }) = a.cmd
-    {
-        let fleet = fleet(&fp)?;
-        let vehicle = vehicle.unwrap_or(fleet.reference_vehicle);
-        let v = fleet
-            .vehicle(vehicle)
-            .with_context(|| format!("vehicle {vehicle} is not in the fleet"))?;
-        let cam = match camera.parse::<u8>() {
-            Ok(i) => i,
-            Err(_) => v
-                .cameras
-                .iter()
-                .find(|c| c.name == camera)
-                .map(|c| c.index)
-                .with_context(|| format!("vehicle {vehicle} has no camera {camera:?}"))?,
-        };
-        let water = WaterPresets::builtin().get(water)?;
-        let world = SwarmWorld::new(&fleet, formation(&f)?, spacing, seed)?;
-        let out_frame = render_fleet_view(
-            &mut Renderer::new(),
-            &fleet,
-            &world.truth(),
-            vehicle,
-            cam,
-            &water,
-            0.0,
-            0,
-            seed,
-        )?;
-        if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(dir)
-                .with_context(|| format!("cannot create {}", dir.display()))?;
-        }
-        let clean = write_frame_pair(&out_frame, &out)?;
-        shoal::outln!("wrote {} and {}", out.display(), clean.display());
-        for m in &out_frame.visible {
-            shoal::outln!(
-                "  sees {}#{} on vehicle {} at {:.2} m, {:.0}% visible",
-                m.codes,
-                m.marker,
-                m.target_vehicle,
-                m.range_m,
-                m.visible_fraction * 100.0
-            );
-        }
-        return Ok(());
+    if let Some(SimCmd::Render(r)) = a.cmd {
+        return super::sim_render::run(r);
     }
     let a = a.run;
     let fleet = fleet(&a.fleet)?;

@@ -21,6 +21,7 @@
 //! | `nav`             | (vehicles' own nav)    | [`nav`]         |
 //! | `real`            | (real recordings)      | [`real`]        |
 //! | `refraction`      | (flat-port refraction) | [`refraction`]  |
+//! | `profiles`        | (camera profiles, #16) | [`profiles`]    |
 //!
 //! `quick` runs a reduced version of each (seconds in a debug build) for CI.
 //! The development probes (`shoal eval probe <name>`) are in [`probe`].
@@ -36,6 +37,7 @@ pub mod node_rate;
 pub mod noise;
 pub mod plot;
 pub mod probe;
+pub mod profiles;
 pub mod real;
 pub mod refraction;
 pub mod restoration;
@@ -68,10 +70,12 @@ pub enum Experiment {
     Refraction,
     /// Issue #18: one vehicle's node fed its five cameras at 10 frames/s.
     NodeRate,
+    /// Issue #16: the ideal against the realistic camera profile.
+    Profiles,
 }
 
 impl Experiment {
-    pub const ALL: [Experiment; 15] = [
+    pub const ALL: [Experiment; 16] = [
         Experiment::Features,
         Experiment::Accuracy,
         Experiment::AccuracyYaw,
@@ -87,6 +91,7 @@ impl Experiment {
         Experiment::Real,
         Experiment::Refraction,
         Experiment::NodeRate,
+        Experiment::Profiles,
     ];
 
     pub fn name(self) -> &'static str {
@@ -106,6 +111,7 @@ impl Experiment {
             Experiment::Real => "real",
             Experiment::Refraction => "refraction",
             Experiment::NodeRate => "node-rate",
+            Experiment::Profiles => "profiles",
         }
     }
 }
@@ -269,6 +275,7 @@ pub fn run(experiment: Experiment, opts: &EvalOptions) -> Result<serde_json::Val
         Experiment::Real => real::run(opts)?,
         Experiment::Refraction => refraction::run(opts)?,
         Experiment::NodeRate => node_rate::run(opts)?,
+        Experiment::Profiles => profiles::run(opts)?,
     };
     if let Some(obj) = summary.as_object_mut() {
         obj.insert("experiment".into(), experiment.name().into());

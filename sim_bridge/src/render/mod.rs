@@ -24,12 +24,16 @@
 //! number of threads.
 
 mod cast;
+pub mod codec;
+pub mod effects;
 mod frame_files;
 #[cfg(test)]
 mod geometry_tests;
+pub mod motion;
 pub mod optics;
 mod par;
 mod rays;
+pub mod realistic;
 mod roi;
 mod scene;
 pub mod trace;

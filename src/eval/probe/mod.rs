@@ -11,12 +11,14 @@
 //! | `psf-scale`      | the pixel unit of Eq. (14)'s σ, fitted to the simulator     | [`psf_scale`]    |
 //! | `restore-sheet`  | HOIRM stage by stage (CNR per stage) beside the baselines   | [`restore_sheet`]|
 //! | `water-sheet`    | the simulator's water presets side by side                  | [`water_sheet`]  |
+//! | `effects-sheet`  | the camera effects of issue #16, each alone and all together | [`effects_sheet`]|
 //! | `code-tables`    | regenerate `proto/data/codes/` from OpenCV and libapriltag  | [`code_tables`]  |
 //! | `record-cost`    | the recorder's cost per camera frame on a real log          | [`record_cost`]  |
 //! | `big-log`        | a log of N GB from a real one, to measure reading costs     | [`big_log`]      |
 
 pub mod big_log;
 pub mod code_tables;
+pub mod effects_sheet;
 pub mod hoirm;
 pub mod psf_scale;
 pub mod record_cost;
@@ -39,6 +41,8 @@ pub enum Probe {
     RestoreSheet(restore_sheet::RestoreSheetArgs),
     /// Contact sheet of the simulator's water presets.
     WaterSheet(water_sheet::WaterSheetArgs),
+    /// Contact sheet of the camera effects (issue #16): each alone and all together.
+    EffectsSheet(effects_sheet::EffectsSheetArgs),
     /// Regenerate the ArUco / AprilTag code tables (proto/data/codes/) from the installed libraries.
     CodeTables(code_tables::CodeTablesArgs),
     /// Cost of recording camera frames, stage by stage, on the frames of a log.
@@ -55,6 +59,7 @@ pub fn run(probe: &Probe) -> Result<(), EvalError> {
         Probe::PsfScale(a) => psf_scale::run(a),
         Probe::RestoreSheet(a) => restore_sheet::run(a),
         Probe::WaterSheet(a) => water_sheet::run(a),
+        Probe::EffectsSheet(a) => effects_sheet::run(a),
         Probe::CodeTables(a) => code_tables::run(a),
         Probe::RecordCost(a) => record_cost::run(a),
         Probe::BigLog(a) => big_log::run(a),
