@@ -294,7 +294,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
         );
         let r = run_rate(&fleet, &frames, c, RATE_HZ, seconds)?;
         table.push_str(&format!(
-            "| {c} | {:?} {} m | {} | {:.0} | {:.2} | {} ({:.1} %) | {} | {} | {} | {} | {} | {} |\n",
+            "| {c} | {:?} {} m | {} | {:.0} | {:.2} | {} ({:.1} %) | {} | {} | {} | {} | {} | {} / {} |\n",
             scene.1,
             scene.2,
             r.cameras,
@@ -307,11 +307,8 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
             opt(r.cores_needed(), 2),
             opt(r.latency_ms, 1),
             r.detections,
-            format!(
-                "{} / {}",
-                opt(r.rss_running_kb.map(|k| k as f64 / 1024.0), 0),
-                opt(r.rss_per_camera_kb().map(|k| k / 1024.0), 1)
-            ),
+            opt(r.rss_running_kb.map(|k| k as f64 / 1024.0), 0),
+            opt(r.rss_per_camera_kb().map(|k| k / 1024.0), 1),
         ));
         rows.push(json!({
             "water_c_per_m": c,
