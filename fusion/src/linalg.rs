@@ -2,17 +2,10 @@
 
 use proto::geometry::Cov6;
 
-/// Inverse of a symmetric positive-definite 6×6 matrix through its Cholesky
-/// factor `L` (`A⁻¹ = L⁻ᵀ L⁻¹`); `None` when `A` is not positive definite
-/// (or holds a NaN). Reads the lower triangle, as nalgebra's `cholesky()`
-/// does; the result is exactly symmetric.
-///
-/// Written out for the fixed size because every observation's hypotheses
-/// need their information matrix on every solve: nalgebra's generic
-/// `Cholesky::inverse` solves six triangular systems column by column and
-/// was an eighth of a 100-vehicle solve (`cargo bench -p shoal-fusion
-/// --bench solve`, which also times the two side by side).
-pub fn spd_inverse6(a: &Cov6) -> Option<Cov6> {
+/// The lower Cholesky factor `L` (`A = L·Lᵀ`) of a symmetric 6×6 matrix,
+/// from its lower triangle; `None` when `A` is not positive definite (or
+/// holds a NaN).
+fn cholesky6(a: &Cov6) -> Option<[[f64; 6]; 6]> {
     let mut l = [[0.0f64; 6]; 6];
     for j in 0..6 {
         let mut d = a[(j, j)];
@@ -34,6 +27,21 @@ pub fn spd_inverse6(a: &Cov6) -> Option<Cov6> {
             l[i][j] = s * inv;
         }
     }
+    Some(l)
+}
+
+/// Inverse of a symmetric positive-definite 6×6 matrix through its Cholesky
+/// factor `L` (`A⁻¹ = L⁻ᵀ L⁻¹`); `None` when `A` is not positive definite
+/// (or holds a NaN). Reads the lower triangle, as nalgebra's `cholesky()`
+/// does; the result is exactly symmetric.
+///
+/// Written out for the fixed size because every observation's hypotheses
+/// need their information matrix on every solve: nalgebra's generic
+/// `Cholesky::inverse` solves six triangular systems column by column and
+/// was an eighth of a 100-vehicle solve (`cargo bench -p shoal-fusion
+/// --bench solve`, which also times the two side by side).
+pub fn spd_inverse6(a: &Cov6) -> Option<Cov6> {
+    let l = cholesky6(a)?;
     // M = L⁻¹, lower triangular.
     let mut m = [[0.0f64; 6]; 6];
     for i in 0..6 {
@@ -68,33 +76,16 @@ pub fn spd_inverse6(a: &Cov6) -> Option<Cov6> {
 /// generic `cholesky().solve()` it replaces allocates nothing either but
 /// runs column by column through nalgebra's general code.
 pub fn spd_quadratic6(a: &Cov6, r: &nalgebra::Vector6<f64>) -> Option<f64> {
-    let mut l = [[0.0f64; 6]; 6];
+    let l = cholesky6(a)?;
     let mut z = [0.0f64; 6];
     let mut sum = 0.0;
     for j in 0..6 {
-        let mut d = a[(j, j)];
-        for k in 0..j {
-            d -= l[j][k] * l[j][k];
-        }
-        if !(d > 0.0 && d.is_finite()) {
-            return None;
-        }
-        let ljj = d.sqrt();
-        l[j][j] = ljj;
-        let inv = 1.0 / ljj;
-        for i in j + 1..6 {
-            let mut s = a[(i, j)];
-            for k in 0..j {
-                s -= l[i][k] * l[j][k];
-            }
-            l[i][j] = s * inv;
-        }
         // Forward substitution, row j: z_j = (r_j − Σ L_jk z_k) / L_jj.
         let mut s = r[j];
         for k in 0..j {
             s -= l[j][k] * z[k];
         }
-        z[j] = s * inv;
+        z[j] = s * (1.0 / l[j][j]);
         sum += z[j] * z[j];
     }
     sum.is_finite().then_some(sum)
