@@ -546,21 +546,14 @@ impl VeilRays {
     }
 }
 
-/// What vehicle `vehicle`'s camera `camera_index` sees: the library call
-/// behind `shoal sim render`. `truth` gives every vehicle's pose (the
-/// observer's own hull occludes like any other); `frame_seq` goes into the
-/// ground truth.
-pub fn render_fleet_view(
-    renderer: &mut Renderer,
-    fleet: &Fleet,
+/// Vehicle `vehicle`'s camera `camera_index` in `fleet`, and where it is in
+/// the world by `truth`; an error names the unknown vehicle or camera.
+pub fn fleet_camera<'a>(
+    fleet: &'a Fleet,
     truth: &[VehicleTruth],
     vehicle: VehicleId,
     camera_index: u8,
-    water: &WaterParams,
-    time_s: f64,
-    frame_seq: u64,
-    seed: u64,
-) -> Result<RenderOutput, SimError> {
+) -> Result<(&'a shoal_proto::config::Camera, Pose), SimError> {
     let v = fleet.vehicle(vehicle).ok_or(SimError::UnknownVehicle {
         vehicle,
         context: "fleet",
@@ -580,8 +573,26 @@ pub fn render_fleet_view(
             vehicle,
             context: "ground truth",
         })?;
+    Ok((cam, me.world_from_body * cam.body_from_camera))
+}
+
+/// What vehicle `vehicle`'s camera `camera_index` sees: the library call
+/// behind `shoal sim render`. `truth` gives every vehicle's pose (the
+/// observer's own hull occludes like any other); `frame_seq` goes into the
+/// ground truth.
+pub fn render_fleet_view(
+    renderer: &mut Renderer,
+    fleet: &Fleet,
+    truth: &[VehicleTruth],
+    vehicle: VehicleId,
+    camera_index: u8,
+    water: &WaterParams,
+    time_s: f64,
+    frame_seq: u64,
+    seed: u64,
+) -> Result<RenderOutput, SimError> {
+    let (cam, world_from_camera) = fleet_camera(fleet, truth, vehicle, camera_index)?;
     let scene = Scene::from_fleet(fleet, truth);
-    let world_from_camera = me.world_from_body * cam.body_from_camera;
     let mut out = renderer.render_with_port(
         &cam.model,
         cam.port.as_ref(),

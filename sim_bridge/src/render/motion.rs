@@ -103,33 +103,9 @@ impl Timeline for FleetTimeline<'_> {
         let mut world = self.world.clone();
         world.step(dt_s);
         let truth = world.truth();
-        let vehicle = self.vehicle;
-        let v = self
-            .fleet
-            .vehicle(vehicle)
-            .ok_or(SimError::UnknownVehicle {
-                vehicle,
-                context: "fleet",
-            })?;
-        let cam = v
-            .cameras
-            .get(self.camera_index as usize)
-            .ok_or(SimError::UnknownCamera {
-                vehicle,
-                camera: self.camera_index,
-                count: v.cameras.len(),
-            })?;
-        let me = truth
-            .iter()
-            .find(|t| t.vehicle == vehicle)
-            .ok_or(SimError::UnknownVehicle {
-                vehicle,
-                context: "ground truth",
-            })?;
-        Ok((
-            me.world_from_body * cam.body_from_camera,
-            Scene::from_fleet(self.fleet, &truth),
-        ))
+        let (_, world_from_camera) =
+            super::fleet_camera(self.fleet, &truth, self.vehicle, self.camera_index)?;
+        Ok((world_from_camera, Scene::from_fleet(self.fleet, &truth)))
     }
 }
 

@@ -4,7 +4,7 @@
 //! and right of the axis (so vignetting and the lamps' beams show), the
 //! camera sliding sideways at 0.3 m/s and turning at 8°/s, in 1.38 /m water.
 //! Tiles (300x300 crops at full resolution, left to right, top to bottom):
-//! ideal; each image effect alone in [`TILE_EFFECTS`] order; all of them
+//! ideal; each image effect alone in `Effect::ALL` order; all of them
 //! (the realistic profile); the clean twin. Calibration error changes no
 //! pixel and has no tile.
 
@@ -22,20 +22,13 @@ const TILE: usize = 300;
 const GAP: usize = 6;
 const COLS: usize = 7;
 
-/// The effects with a tile of their own, in sheet order.
-pub const TILE_EFFECTS: [Effect; 11] = [
-    Effect::MotionBlur,
-    Effect::RollingShutter,
-    Effect::Port,
-    Effect::Lamps,
-    Effect::Snow,
-    Effect::Psf,
-    Effect::Vignetting,
-    Effect::Colour,
-    Effect::Exposure,
-    Effect::Jpeg,
-    Effect::H264,
-];
+/// The effects with a tile of their own, in sheet order: every one but the
+/// calibration error, which changes no pixel.
+fn tile_effects() -> impl Iterator<Item = Effect> {
+    Effect::ALL
+        .into_iter()
+        .filter(|e| *e != Effect::Calibration)
+}
 
 #[derive(Debug, clap::Args)]
 pub struct EffectsSheetArgs {
@@ -64,7 +57,7 @@ pub fn run(a: &EffectsSheetArgs) -> Result<(), EvalError> {
     };
     let water = WaterPresets::builtin().get(a.water)?;
     let mut profiles: Vec<CameraProfile> = vec![CameraProfile::ideal()];
-    profiles.extend(TILE_EFFECTS.iter().map(|e| CameraProfile::only(&[*e])));
+    profiles.extend(tile_effects().map(|e| CameraProfile::only(&[e])));
     profiles.push(CameraProfile::realistic());
     let profiles: Vec<CameraProfile> = profiles.into_iter().map(|p| p.with_seed(a.seed)).collect();
     let tiles = profiles.len() + 1;
