@@ -55,7 +55,7 @@ pub use corners::{
     CornerChoice, CornerFit, CornerFitCounts, FitReason, SquareCorners, SquareReport,
     HALO_MIN_SIGMA_PX,
 };
-pub use params::{DetectParams, FitPattern, Refinement};
+pub use params::{ContrastOffset, DetectParams, FitPattern, Refinement};
 pub use paths::{detect_paths, DetectSummary};
 
 /// Errors of detection.

@@ -22,8 +22,15 @@ pub struct DetectParams {
     /// Adaptive-threshold window sizes (odd, pixels at the detection level);
     /// more windows find more marker sizes at more cost.
     pub threshold_windows: Vec<i32>,
-    /// Offset subtracted from the local mean (grey levels).
+    /// Offset subtracted from the local mean (grey levels): a pixel is dark
+    /// when it is at least this far below the mean of its window. With
+    /// [`DetectParams::contrast_offset`] this is the offset where the local
+    /// contrast is high (and where there is none).
     pub threshold_offset: f64,
+    /// The offset follows the local contrast where that is low
+    /// ([`ContrastOffset`]); `None`: [`DetectParams::threshold_offset`]
+    /// everywhere.
+    pub contrast_offset: Option<ContrastOffset>,
     /// Frames wider than this are searched for quads at half resolution.
     pub full_res_max_width: i32,
     /// Smallest accepted code-square side in full-resolution pixels.
@@ -34,7 +41,10 @@ pub struct DetectParams {
     pub full_res_region_max_side_px: f64,
     /// …in at most this many windows per frame (0: never).
     pub max_full_res_regions: usize,
-    /// Quads with a corner closer than this to the image border (px) are dropped.
+    /// Quads with a corner closer than this to the image border (px) are
+    /// dropped (and always those whose dark region reaches the outermost
+    /// row or column: cut by the border). A tag whose quiet zone the frame
+    /// cuts can lie a pixel from the edge and still be whole.
     pub border_margin_px: f64,
     /// Polygon approximation tolerance as a fraction of the contour perimeter.
     pub approx_epsilon: f64,
@@ -70,6 +80,27 @@ pub struct DetectParams {
     pub require_frame: bool,
 }
 
+/// A threshold offset relative to the local contrast (stage 1,
+/// `docs/detector.md`, *A threshold offset that follows the contrast*).
+///
+/// The local contrast is the grey-level range (maximum − minimum) around
+/// each pixel, over 4 x 4 px tiles covering about the threshold window. A
+/// marker whose black and white differ by 15 grey levels (a far tag in
+/// green water) is lost under a fixed offset of 3: its black border's
+/// region leaks into the dark surround. Where the range is at least
+/// `flat_below_dn`, the offset is `fraction` × range, at least `min_dn`
+/// and at most [`DetectParams::threshold_offset`]; so the offset is the
+/// fixed one wherever the contrast is high (range ≥ offset / fraction) and
+/// in flat regions (range < `flat_below_dn`), where a smaller one would
+/// only trace sensor noise. AprilTag 3 thresholds at the middle of the
+/// local extremes for the same reason.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ContrastOffset {
+    pub fraction: f64,
+    pub min_dn: f64,
+    pub flat_below_dn: f64,
+}
+
 /// When [`super::pattern::fit_pattern`] replaces the per-side corner fits.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum FitPattern {
@@ -91,6 +122,11 @@ impl Default for DetectParams {
         Self {
             threshold_windows: vec![19],
             threshold_offset: 3.0,
+            contrast_offset: Some(ContrastOffset {
+                fraction: 0.1,
+                min_dn: 1.0,
+                flat_below_dn: 6.0,
+            }),
             full_res_max_width: 1000,
             // 36h11's 8-module black square at ~1.1 px per module: AprilTag 3
             // reads tags this small on real photos (docs/real-data.md).
@@ -98,7 +134,7 @@ impl Default for DetectParams {
             // A 10-module enhanced frame whose 2-module ring is ≤ ~4 px at half size.
             full_res_region_max_side_px: 90.0,
             max_full_res_regions: 24,
-            border_margin_px: 2.0,
+            border_margin_px: 1.0,
             approx_epsilon: 0.04,
             min_contrast: 6.0,
             max_border_error_rate: 0.2,

@@ -179,15 +179,7 @@ fn quads_of_level(
     let mut approx: Vector<Point> = Vector::new();
     for &win in &params.threshold_windows {
         let win = (win.max(3)) | 1;
-        imgproc::adaptive_threshold(
-            level,
-            &mut bin,
-            255.0,
-            imgproc::ADAPTIVE_THRESH_MEAN_C,
-            imgproc::THRESH_BINARY_INV,
-            win,
-            params.threshold_offset,
-        )?;
+        binarize(params, level, win, &mut bin)?;
         let mut contours: Vector<Vector<Point>> = Vector::new();
         imgproc::find_contours(
             &bin,
@@ -220,6 +212,138 @@ fn quads_of_level(
     Ok(())
 }
 
+/// Side of the square tiles over which [`binarize`] takes the local range.
+const RANGE_TILE_PX: usize = 4;
+
+/// The dark pixels of `level` (255, else 0): at least the offset below the
+/// mean of their `win` x `win` window. The offset is
+/// [`DetectParams::threshold_offset`], or, with
+/// [`DetectParams::contrast_offset`], the one that follows the local
+/// contrast ([`ContrastOffset`](super::ContrastOffset)). The fixed offset
+/// is OpenCV's `adaptiveThreshold` (mean, inverted), bit for bit, and so is
+/// the relative one wherever it comes to the fixed value.
+fn binarize(
+    params: &DetectParams,
+    level: &Mat,
+    win: i32,
+    bin: &mut Mat,
+) -> Result<(), DetectError> {
+    let rel = params
+        .contrast_offset
+        .filter(|_| level.typ() == opencv::core::CV_8UC1 && level.cols() >= 8 && level.rows() >= 8);
+    let Some(rel) = rel else {
+        imgproc::adaptive_threshold(
+            level,
+            bin,
+            255.0,
+            imgproc::ADAPTIVE_THRESH_MEAN_C,
+            imgproc::THRESH_BINARY_INV,
+            win,
+            params.threshold_offset,
+        )?;
+        return Ok(());
+    };
+    // adaptiveThreshold's mean: a normalised box filter, same depth,
+    // replicated border.
+    let mut mean = Mat::default();
+    imgproc::box_filter(
+        level,
+        &mut mean,
+        -1,
+        Size::new(win, win),
+        Point::new(-1, -1),
+        true,
+        opencv::core::BORDER_REPLICATE | opencv::core::BORDER_ISOLATED,
+    )?;
+    let contiguous = |m: &Mat| -> Result<Mat, DetectError> {
+        Ok(if m.is_continuous() {
+            m.clone()
+        } else {
+            m.try_clone()?
+        })
+    };
+    let (src, mean) = (contiguous(level)?, contiguous(&mean)?);
+    let (w, h) = (src.cols() as usize, src.rows() as usize);
+    let offsets = tile_offsets(params, rel, src.data_bytes()?, w, h, win as usize);
+    let tw = w.div_ceil(RANGE_TILE_PX);
+    let mut out = vec![0u8; w * h];
+    let (s, m) = (src.data_bytes()?, mean.data_bytes()?);
+    for y in 0..h {
+        let row = &offsets[(y / RANGE_TILE_PX) * tw..][..tw];
+        let base = y * w;
+        for x in 0..w {
+            let d = i32::from(s[base + x]) - i32::from(m[base + x]);
+            if d <= -row[x / RANGE_TILE_PX] {
+                out[base + x] = 255;
+            }
+        }
+    }
+    *bin = Mat::from_slice(&out)?.reshape(1, h as i32)?.try_clone()?;
+    Ok(())
+}
+
+/// The integer offset (as `adaptiveThreshold` floors it) of every
+/// [`RANGE_TILE_PX`] tile of the `w` x `h` image `data`: from the grey-level
+/// range over the tiles within about half the window `win` of it.
+fn tile_offsets(
+    params: &DetectParams,
+    rel: super::ContrastOffset,
+    data: &[u8],
+    w: usize,
+    h: usize,
+    win: usize,
+) -> Vec<i32> {
+    let t = RANGE_TILE_PX;
+    let (tw, th) = (w.div_ceil(t), h.div_ceil(t));
+    let (mut lo, mut hi) = (vec![u8::MAX; tw * th], vec![0u8; tw * th]);
+    for y in 0..h {
+        let row = &data[y * w..(y + 1) * w];
+        let trow = (y / t) * tw;
+        for (x, &v) in row.iter().enumerate() {
+            let k = trow + x / t;
+            lo[k] = lo[k].min(v);
+            hi[k] = hi[k].max(v);
+        }
+    }
+    // Tiles within `r` of a tile, separably: rows, then columns.
+    let r = ((win / 2 + t / 2) / t).max(1);
+    let spread = |v: &[u8], f: fn(u8, u8) -> u8| -> Vec<u8> {
+        let mut a = v.to_vec();
+        for ty in 0..th {
+            for tx in 0..tw {
+                let (x0, x1) = (tx.saturating_sub(r), (tx + r).min(tw - 1));
+                a[ty * tw + tx] = v[ty * tw + x0..=ty * tw + x1]
+                    .iter()
+                    .copied()
+                    .reduce(f)
+                    .unwrap_or(0);
+            }
+        }
+        let mut b = a.clone();
+        for ty in 0..th {
+            let (y0, y1) = (ty.saturating_sub(r), (ty + r).min(th - 1));
+            for tx in 0..tw {
+                b[ty * tw + tx] = (y0..=y1).map(|yy| a[yy * tw + tx]).reduce(f).unwrap_or(0);
+            }
+        }
+        b
+    };
+    let (lo, hi) = (spread(&lo, u8::min), spread(&hi, u8::max));
+    let fixed = params.threshold_offset;
+    lo.iter()
+        .zip(&hi)
+        .map(|(&l, &u)| {
+            let range = f64::from(u - l);
+            let off = if range < rel.flat_below_dn {
+                fixed
+            } else {
+                (rel.fraction * range).clamp(rel.min_dn.min(fixed), fixed)
+            };
+            off.floor() as i32
+        })
+        .collect()
+}
+
 /// The contour `c` of `level` as a convex quad, clockwise, in level
 /// pixels; `None` when it is not one, is too small or too large, or comes
 /// closer than [`DetectParams::border_margin_px`] to the border. `approx`
@@ -247,6 +371,14 @@ fn contour_quad(
     let mut q = [[0.0; 2]; 4];
     for (i, pt) in approx.iter().enumerate() {
         q[i] = [f64::from(pt.x), f64::from(pt.y)];
+    }
+    // A region that reaches the image's outermost row or column is cut by
+    // it: its outline follows the border, not the square.
+    let (wi, hi) = (level.cols() - 1, level.rows() - 1);
+    if c.iter()
+        .any(|p| p.x <= 0 || p.y <= 0 || p.x >= wi || p.y >= hi)
+    {
+        return Ok(None);
     }
     let margin = params.border_margin_px / scale;
     if q.iter().any(|c| {
@@ -424,6 +556,148 @@ mod tests {
         assert!(
             !found(&unguarded),
             "the line's dark band merges with the square"
+        );
+    }
+
+    /// A faint tag in dim water: black 41 and a 3 px white margin of 53 on
+    /// water of 47, blurred (σ 1.2 px) and noisy (σ 1 grey level). Under
+    /// the fixed offset of 3 the black square's region leaks through the
+    /// margin into the water and no contour is its quad; with the offset
+    /// following the local contrast it is found.
+    #[test]
+    fn a_faint_square_is_found_with_the_offset_that_follows_the_contrast() {
+        use opencv::core::{Rect, Scalar, CV_64FC1};
+        let mut f = Mat::new_rows_cols_with_default(120, 160, CV_64FC1, Scalar::all(47.0)).unwrap();
+        for (r, v) in [
+            (Rect::new(50, 30, 60, 60), 53.0),
+            (Rect::new(53, 33, 54, 54), 41.0),
+        ] {
+            imgproc::rectangle(&mut f, r, Scalar::all(v), -1, imgproc::LINE_8, 0).unwrap();
+        }
+        let mut blurred = Mat::default();
+        imgproc::gaussian_blur_def(&f, &mut blurred, Size::new(0, 0), 1.2).unwrap();
+        // Gaussian noise from a fixed xorshift sequence (Box–Muller).
+        let mut state: u64 = 0x9e37_79b9_7f4a_7c15;
+        let mut uniform = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            ((state >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+        };
+        let mut img =
+            Mat::new_rows_cols_with_default(120, 160, opencv::core::CV_8UC1, Scalar::all(0.0))
+                .unwrap();
+        for y in 0..120 {
+            for x in 0..160 {
+                let n = (-2.0 * uniform().ln()).sqrt() * (std::f64::consts::TAU * uniform()).cos();
+                let v = *blurred.at_2d::<f64>(y, x).unwrap() + n;
+                *img.at_2d_mut::<u8>(y, x).unwrap() = v.round().clamp(0.0, 255.0) as u8;
+            }
+        }
+        let found = |params: &DetectParams| {
+            find_quads(params, &img).unwrap().iter().any(|q| {
+                let c = super::super::geom::centre(&q.pts);
+                (c[0] - 79.5).abs() < 2.0 && (c[1] - 59.5).abs() < 2.0 && min_side(&q.pts) > 50.0
+            })
+        };
+        assert!(found(&DetectParams::default()), "relative offset");
+        let fixed = DetectParams {
+            contrast_offset: None,
+            ..DetectParams::default()
+        };
+        assert!(!found(&fixed), "the fixed offset should lose it");
+    }
+
+    /// Where the contrast is high or absent, the relative offset is the
+    /// fixed one: the binary image is OpenCV's `adaptiveThreshold`, bit for
+    /// bit, on a frame of strong edges and flat regions.
+    #[test]
+    fn the_relative_offset_is_the_fixed_one_on_strong_edges_and_flats() {
+        use opencv::core::{Rect, Scalar, CV_8UC1};
+        let mut img =
+            Mat::new_rows_cols_with_default(97, 131, CV_8UC1, Scalar::all(120.0)).unwrap();
+        imgproc::rectangle(
+            &mut img,
+            Rect::new(20, 15, 40, 50),
+            Scalar::all(20.0),
+            -1,
+            imgproc::LINE_8,
+            0,
+        )
+        .unwrap();
+        imgproc::rectangle(
+            &mut img,
+            Rect::new(80, 40, 30, 30),
+            Scalar::all(230.0),
+            -1,
+            imgproc::LINE_8,
+            0,
+        )
+        .unwrap();
+        let params = DetectParams::default();
+        let mut ours = Mat::default();
+        binarize(&params, &img, 19, &mut ours).unwrap();
+        let mut theirs = Mat::default();
+        imgproc::adaptive_threshold(
+            &img,
+            &mut theirs,
+            255.0,
+            imgproc::ADAPTIVE_THRESH_MEAN_C,
+            imgproc::THRESH_BINARY_INV,
+            19,
+            params.threshold_offset,
+        )
+        .unwrap();
+        assert_eq!(ours.data_bytes().unwrap(), theirs.data_bytes().unwrap());
+    }
+
+    /// A square whose quiet zone the frame cuts to one row (the tank
+    /// video's tag 3 in frame 151: its black edge 2 px below the top) is a
+    /// quad; one cut by the border is not, though its visible part is a
+    /// convex quadrilateral.
+    #[test]
+    fn a_square_a_pixel_from_the_edge_is_kept_and_one_cut_by_it_is_not() {
+        use opencv::core::{Rect, Scalar, CV_8UC1};
+        let params = DetectParams::default();
+        let frame = |top: i32| {
+            let mut img =
+                Mat::new_rows_cols_with_default(80, 100, CV_8UC1, Scalar::all(200.0)).unwrap();
+            imgproc::rectangle(
+                &mut img,
+                Rect::new(30, top, 30, 30),
+                Scalar::all(30.0),
+                -1,
+                imgproc::LINE_8,
+                0,
+            )
+            .unwrap();
+            img
+        };
+        let near_top = |quads: &[Quad]| {
+            quads
+                .iter()
+                .any(|q| q.pts.iter().any(|c| c[1] < 2.0) && min_side(&q.pts) > 20.0)
+        };
+        // The quad search itself: a one-row white quiet zone above a flat
+        // black square would pass for an edge-line artefact here.
+        let search = |params: &DetectParams, img: &Mat| {
+            let mut quads = Vec::new();
+            quads_of_level(params, img, 1.0, [0.0, 0.0], &mut quads).unwrap();
+            quads
+        };
+        let whole = frame(1);
+        assert!(near_top(&search(&params, &whole)), "whole square at 1 px");
+        let old = DetectParams {
+            border_margin_px: 2.0,
+            ..DetectParams::default()
+        };
+        assert!(!near_top(&search(&old, &whole)), "a 2 px margin drops it");
+        let cut = frame(-10);
+        assert!(
+            search(&params, &cut)
+                .iter()
+                .all(|q| min_side(&q.pts) < 15.0),
+            "the cut square's visible part is not a quad"
         );
     }
 
