@@ -255,31 +255,73 @@ fn binarize(
         true,
         opencv::core::BORDER_REPLICATE | opencv::core::BORDER_ISOLATED,
     )?;
-    let contiguous = |m: &Mat| -> Result<Mat, DetectError> {
-        Ok(if m.is_continuous() {
-            m.clone()
-        } else {
-            m.try_clone()?
-        })
+    let src = if level.is_continuous() {
+        level.clone()
+    } else {
+        level.try_clone()?
     };
-    let (src, mean) = (contiguous(level)?, contiguous(&mean)?);
     let (w, h) = (src.cols() as usize, src.rows() as usize);
-    let offsets = tile_offsets(params, rel, src.data_bytes()?, w, h, win as usize);
     let tw = w.div_ceil(RANGE_TILE_PX);
-    let mut out = vec![0u8; w * h];
-    let (s, m) = (src.data_bytes()?, mean.data_bytes()?);
-    for y in 0..h {
-        let row = &offsets[(y / RANGE_TILE_PX) * tw..][..tw];
-        let base = y * w;
-        for x in 0..w {
-            let d = i32::from(s[base + x]) - i32::from(m[base + x]);
-            if d <= -row[x / RANGE_TILE_PX] {
-                out[base + x] = 255;
+    let offsets = tile_offsets(params, rel, src.data_bytes()?, w, h, win as usize);
+    // Dark where src − mean ≤ −offset, as `adaptiveThreshold` decides it.
+    let mut out = Mat::new_rows_cols_with_default(
+        h as i32,
+        w as i32,
+        opencv::core::CV_8UC1,
+        opencv::core::Scalar::all(0.0),
+    )?;
+    let (sd, md) = (src.data_bytes()?, mean.data_bytes()?);
+    let od = out.data_bytes_mut()?;
+    // Each tile row's offsets spread over its pixels once, then a
+    // branch-free pass the compiler vectorises.
+    let mut row_off = vec![0i16; w];
+    for (y, ((sr, mr), or)) in sd
+        .chunks_exact(w)
+        .zip(md.chunks_exact(w))
+        .zip(od.chunks_exact_mut(w))
+        .enumerate()
+    {
+        if y % RANGE_TILE_PX == 0 {
+            let tiles = &offsets[(y / RANGE_TILE_PX) * tw..][..tw];
+            for (x, o) in row_off.iter_mut().enumerate() {
+                *o = -i16::from(tiles[x / RANGE_TILE_PX]);
+            }
+        }
+        for (((ov, &sv), &mv), &neg) in or.iter_mut().zip(sr).zip(mr).zip(&row_off) {
+            *ov = u8::from(i16::from(sv) - i16::from(mv) <= neg) * 255;
+        }
+    }
+    *bin = out;
+    Ok(())
+}
+
+/// `f` (min or max) of the `tw` x `th` tile values `v` over the tiles
+/// within `r` of each, separably: along rows, then along columns.
+fn spread_tiles(
+    v: &[u8],
+    tw: usize,
+    th: usize,
+    r: usize,
+    f: impl Fn(u8, u8) -> u8 + Copy,
+) -> Vec<u8> {
+    let mut a = vec![0u8; v.len()];
+    for (ar, vr) in a.chunks_exact_mut(tw).zip(v.chunks_exact(tw)) {
+        for (tx, av) in ar.iter_mut().enumerate() {
+            let win = &vr[tx.saturating_sub(r)..=(tx + r).min(tw - 1)];
+            *av = win.iter().fold(win[0], |acc, &x| f(acc, x));
+        }
+    }
+    let mut b = vec![0u8; v.len()];
+    for (ty, br) in b.chunks_exact_mut(tw).enumerate() {
+        let (y0, y1) = (ty.saturating_sub(r), (ty + r).min(th - 1));
+        br.copy_from_slice(&a[y0 * tw..(y0 + 1) * tw]);
+        for yy in y0 + 1..=y1 {
+            for (bv, &av) in br.iter_mut().zip(&a[yy * tw..(yy + 1) * tw]) {
+                *bv = f(*bv, av);
             }
         }
     }
-    *bin = Mat::from_slice(&out)?.reshape(1, h as i32)?.try_clone()?;
-    Ok(())
+    b
 }
 
 /// The integer offset (as `adaptiveThreshold` floors it) of every
@@ -292,43 +334,29 @@ fn tile_offsets(
     w: usize,
     h: usize,
     win: usize,
-) -> Vec<i32> {
+) -> Vec<u8> {
     let t = RANGE_TILE_PX;
     let (tw, th) = (w.div_ceil(t), h.div_ceil(t));
     let (mut lo, mut hi) = (vec![u8::MAX; tw * th], vec![0u8; tw * th]);
-    for y in 0..h {
-        let row = &data[y * w..(y + 1) * w];
-        let trow = (y / t) * tw;
-        for (x, &v) in row.iter().enumerate() {
-            let k = trow + x / t;
-            lo[k] = lo[k].min(v);
-            hi[k] = hi[k].max(v);
+    for (y, row) in data.chunks_exact(w).take(h).enumerate() {
+        let k0 = (y / t) * tw;
+        let (lr, hr) = (&mut lo[k0..k0 + tw], &mut hi[k0..k0 + tw]);
+        for ((c, l), u) in row.chunks(t).zip(lr.iter_mut()).zip(hr.iter_mut()) {
+            let (mut a, mut b) = (*l, *u);
+            for &v in c {
+                a = a.min(v);
+                b = b.max(v);
+            }
+            *l = a;
+            *u = b;
         }
     }
     // Tiles within `r` of a tile, separably: rows, then columns.
     let r = ((win / 2 + t / 2) / t).max(1);
-    let spread = |v: &[u8], f: fn(u8, u8) -> u8| -> Vec<u8> {
-        let mut a = v.to_vec();
-        for ty in 0..th {
-            for tx in 0..tw {
-                let (x0, x1) = (tx.saturating_sub(r), (tx + r).min(tw - 1));
-                a[ty * tw + tx] = v[ty * tw + x0..=ty * tw + x1]
-                    .iter()
-                    .copied()
-                    .reduce(f)
-                    .unwrap_or(0);
-            }
-        }
-        let mut b = a.clone();
-        for ty in 0..th {
-            let (y0, y1) = (ty.saturating_sub(r), (ty + r).min(th - 1));
-            for tx in 0..tw {
-                b[ty * tw + tx] = (y0..=y1).map(|yy| a[yy * tw + tx]).reduce(f).unwrap_or(0);
-            }
-        }
-        b
-    };
-    let (lo, hi) = (spread(&lo, u8::min), spread(&hi, u8::max));
+    let (lo, hi) = (
+        spread_tiles(&lo, tw, th, r, u8::min),
+        spread_tiles(&hi, tw, th, r, u8::max),
+    );
     let fixed = params.threshold_offset;
     lo.iter()
         .zip(&hi)
@@ -339,7 +367,7 @@ fn tile_offsets(
             } else {
                 (rel.fraction * range).clamp(rel.min_dn.min(fixed), fixed)
             };
-            off.floor() as i32
+            off.floor() as u8
         })
         .collect()
 }
