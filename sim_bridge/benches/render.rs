@@ -9,6 +9,8 @@
 //! without noise, and the paper's 2448x2048 Eq. (3) camera.
 //!
 //! Run: `cargo bench -p shoal-sim-bridge --bench render`.
+//! On a loaded machine the CPU time per frame is steadier:
+//! `cargo run --release -p shoal-sim-bridge --example render_cpu -- 15`.
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use shoal_proto::config::Fleet;

@@ -340,12 +340,13 @@ fn pixel_is_uniform(
     let Some(plate) = objects.plates.get(o as usize) else {
         return true; // a hull: smooth shading
     };
-    let patches: Vec<u32> = corners
-        .iter()
-        .chain([centre])
-        .flatten()
-        .map(|h| h.patch)
-        .collect();
+    // All five hit (same object as the centre, which hit).
+    let patches: [u32; 5] = [0, 1, 2, 3, 4].map(|i| {
+        corners
+            .get(i)
+            .unwrap_or(centre)
+            .map_or(u32::MAX, |h| h.patch)
+    });
     let back = (plate.modules as u32 + 2).pow(2);
     if patches.iter().all(|&p| p == back) {
         return true;

@@ -5,12 +5,13 @@
 //! `docs/water-model.md`, "Camera effects". The OpenCV-backed ones (PSF
 //! convolution, codecs) are in `codec.rs`.
 
+use super::noise::{RowRng, Sensor};
 use crate::profile::{MarineSnow, SpotLamps};
 use crate::water::WaterParams;
 use nalgebra::Vector3;
-use rand::{Rng, SeedableRng};
+use rand::Rng;
 use rand_chacha::ChaCha8Rng;
-use rand_distr::{Distribution, Poisson, StandardNormal};
+use rand_distr::{Distribution, Poisson};
 use shoal_proto::CameraModel;
 
 /// A smooth per-pixel field `f(x, y)` of the in-air ray `(x, y, 1)`,
@@ -210,12 +211,11 @@ pub fn auto_gain(mean_dn: f64, target: f64, min: f64, max: f64) -> f64 {
 
 /// Poisson–Gaussian sensor noise with gain `g`, linear DN out, clipped to
 /// `0..=255`. The same model and random streams as the renderer's
-/// (`optics::quantize_with_noise`, row `y` from ChaCha8 stream `y`): below
+/// (`optics::quantize_with_noise`, row `y` from [`RowRng`] stream `y`): below
 /// 1 the gain is a shorter exposure (fewer electrons), above 1 an analog gain
 /// that amplifies the electrons' and the read noise alike.
 pub fn noisy_linear(dn: &[f32], w: usize, water: &WaterParams, g: f64, seed: u64) -> Vec<f32> {
-    let gain_e = water.gain_e_per_dn;
-    let read = water.read_noise_dn;
+    let sensor = Sensor::new(water.gain_e_per_dn, water.read_noise_dn);
     let (pre, post) = if g <= 1.0 { (g, 1.0) } else { (1.0, g) };
     let mut out = vec![0.0f32; dn.len()];
     for (y, (row_in, row_out)) in dn.chunks(w).zip(out.chunks_mut(w)).enumerate() {
@@ -225,27 +225,9 @@ pub fn noisy_linear(dn: &[f32], w: usize, water: &WaterParams, g: f64, seed: u64
             }
             continue;
         }
-        let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        rng.set_stream(y as u64);
+        let mut rng = RowRng::new(seed, y as u64);
         for (o, &v) in row_out.iter_mut().zip(row_in) {
-            let mean = f64::from(v).max(0.0) * pre;
-            let lambda = mean * gain_e;
-            let value = if lambda < 30.0 && lambda > 0.0 {
-                let shot = Poisson::new(lambda)
-                    .map(|p| p.sample(&mut rng))
-                    .unwrap_or(lambda)
-                    / gain_e;
-                let z: f64 = StandardNormal.sample(&mut rng);
-                shot + read * z
-            } else {
-                let var = if gain_e.is_finite() {
-                    mean / gain_e
-                } else {
-                    0.0
-                } + read * read;
-                let z: f64 = StandardNormal.sample(&mut rng);
-                mean + z * var.sqrt()
-            };
+            let value = sensor.value(f64::from(v) * pre, &mut rng);
             *o = (value * post).clamp(0.0, 255.0) as f32;
         }
     }
@@ -348,6 +330,7 @@ pub fn luma(rgb: &[Vec<f32>; 3]) -> Vec<f32> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use rand::SeedableRng;
 
     #[test]
     fn demosaicing_a_flat_colour_returns_it() {

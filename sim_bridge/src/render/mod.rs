@@ -30,6 +30,7 @@ mod frame_files;
 #[cfg(test)]
 mod geometry_tests;
 pub mod motion;
+pub mod noise;
 pub mod optics;
 mod par;
 mod rays;

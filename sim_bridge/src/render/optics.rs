@@ -3,10 +3,10 @@
 //! analytic veiling light and vignetting, the lamp's backscatter integral,
 //! and Poisson–Gaussian sensor noise. Equations: `docs/water-model.md`.
 
+use super::noise::{RowRng, Sensor};
 use crate::water::WaterParams;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use rand_distr::{Distribution, Poisson, StandardNormal};
 
 /// Γ(x) for x > 0 (Lanczos, g = 7, n = 9; relative error ~1e-15).
 pub fn gamma(x: f64) -> f64 {
@@ -393,8 +393,8 @@ impl Ambient {
 }
 
 /// Add Poisson–Gaussian noise to a frame in DN (floats) and quantize to 8 bits.
-/// Row `y` draws from ChaCha8 stream `y` of `seed`, so output is identical
-/// for a seed whatever the evaluation order.
+/// Row `y` draws from its own stream of `seed` ([`RowRng`]), so output is
+/// identical for a seed whatever the evaluation order.
 pub fn quantize_with_noise(dn: &[f32], w: usize, water: &WaterParams, seed: u64, out: &mut [u8]) {
     for (y, (row_in, row_out)) in dn.chunks(w).zip(out.chunks_mut(w)).enumerate() {
         quantize_row(row_in, y, water, seed, row_out);
@@ -409,28 +409,10 @@ pub fn quantize_row(row_in: &[f32], y: usize, water: &WaterParams, seed: u64, ro
         }
         return;
     }
-    let gain = water.gain_e_per_dn;
-    let read = water.read_noise_dn;
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    rng.set_stream(y as u64);
+    let sensor = Sensor::new(water.gain_e_per_dn, water.read_noise_dn);
+    let mut rng = RowRng::new(seed, y as u64);
     for (o, &v) in row_out.iter_mut().zip(row_in) {
-        let mean = v.max(0.0) as f64;
-        let lambda = mean * gain;
-        let value = if lambda < 30.0 && lambda > 0.0 {
-            // Few photo-electrons: exact Poisson, plus read noise.
-            let shot = Poisson::new(lambda)
-                .map(|p| p.sample(&mut rng))
-                .unwrap_or(lambda)
-                / gain;
-            let z: f64 = StandardNormal.sample(&mut rng);
-            shot + read * z
-        } else {
-            // Poisson ≈ Gaussian: one draw with the summed variance.
-            let var = if gain.is_finite() { mean / gain } else { 0.0 } + read * read;
-            let z: f64 = StandardNormal.sample(&mut rng);
-            mean + z * var.sqrt()
-        };
-        *o = round_to_u8(value);
+        *o = round_to_u8(sensor.value(f64::from(v), &mut rng));
     }
 }
 
