@@ -276,12 +276,10 @@ impl CameraPipeline {
             observer_from_target: best.pose,
             covariance: symmetric(best.covariance),
             reprojection_rms_px: solution.best.rms_px,
-            alternative: alternative.map(|(h, alt)| {
-                PoseHypothesis {
-                    observer_from_target: alt.pose,
-                    covariance: symmetric(alt.covariance),
-                    reprojection_rms_px: h.rms_px,
-                }
+            alternative: alternative.map(|(h, alt)| PoseHypothesis {
+                observer_from_target: alt.pose,
+                covariance: symmetric(alt.covariance),
+                reprojection_rms_px: h.rms_px,
             }),
             corner_count: det.corners_px.len() as u8,
             corners_px: det

@@ -414,7 +414,12 @@ pub fn calibration_covariance(
         // Scaled by σ: the column is the residuals' change for a 1-σ error.
         jk.set_column(c, &((rp - rm) * (*s / (2.0 * h))));
     }
-    let a = inv * Matrix6::from_iterator((j.transpose() * jk.clone() * jk.transpose() * &j).iter().copied()) * inv;
+    let a =
+        inv * Matrix6::from_iterator(
+            (j.transpose() * jk.clone() * jk.transpose() * &j)
+                .iter()
+                .copied(),
+        ) * inv;
     let cov = 0.5 * (a + a.transpose());
     cov.iter().all(|v| v.is_finite()).then_some(cov)
 }
