@@ -611,10 +611,12 @@ fn node_rate_quick_accounts_for_every_frame_offered_and_reads_markers() {
 /// profiles. Fails if the covariance is wildly off: for `ideal`, the mean
 /// NEES (6-DoF) must lie within 4x of the χ² band a consistent covariance
 /// gives (the band is the 95 % interval of the mean of the frames read; a
-/// factor 4 in NEES is a factor 2 in σ). Measured (2026-12-03): 1.38 /m
-/// and 3.92 /m, 15 frames each. For `realistic`, the stated calibration σ
-/// must lower the NEES (the term is applied), and the scale fitted on
-/// 1.38 /m must exist.
+/// factor 4 in NEES is a factor 2 in σ). Measured (2026-12-03): 2.73 at
+/// 1.38 /m (15 reads, band 4.4–7.9: conservative, the 0.05 px floor) and
+/// 15.0 at 3.92 /m (11 reads, band 4.1–8.2: overconfident, murky-water
+/// corners; `docs/results.md#nees`). For `realistic`, the stated calibration σ
+/// must lower the NEES (measured at 1.38 /m: 8 092 without, 20.8 with) and
+/// a scale must be fitted on 1.38 /m (measured 4.0).
 #[test]
 fn nees_quick_covariance_within_a_factor_4_of_its_chi2_band() {
     let (dir, s) = run_quick(Experiment::Nees);

@@ -882,6 +882,48 @@ markers = [ { codes = "shoal", id = 7, side_m = 0.1, body_from_marker = { xyz_m 
     }
 
     #[test]
+    fn a_calibration_sigma_is_read_and_bad_ones_are_named() {
+        let with = |sigma: &str| {
+            MINI.replace(
+                "rpy_deg = [90, 0, 90] } }",
+                &format!("rpy_deg = [90, 0, 90] }}, calibration_sigma = {{ {sigma} }} }}"),
+            )
+        };
+        let f = Fleet::parse(
+            &with("focal_rel = 0.002, principal_px = 1.5"),
+            Path::new("m.toml"),
+        )
+        .unwrap();
+        assert_eq!(
+            f.vehicle(1).unwrap().cameras[0].calibration_sigma,
+            Some(CalibrationSigma {
+                focal_rel: 0.002,
+                principal_px: 1.5,
+                k1: 0.0
+            })
+        );
+        assert_eq!(
+            Fleet::parse(MINI, Path::new("m.toml")).unwrap().vehicles[0].cameras[0]
+                .calibration_sigma,
+            None
+        );
+        let e = Fleet::parse(
+            &with("focal_rel = -0.002, principal_px = 1.5"),
+            Path::new("m.toml"),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("rigs.one.cameras[0].calibration_sigma") && e.contains("non-negative"),
+            "{e}"
+        );
+        let e = Fleet::parse(&with("focal_rel = 0.002"), Path::new("m.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("principal_px"), "{e}");
+    }
+
+    #[test]
     fn a_port_is_read_in_millimetres_with_default_indices_and_bad_ones_are_named() {
         let with = |port: &str| {
             MINI.replace(
