@@ -8,7 +8,7 @@
 use crate::detect::{
     CornerFitCounts, DetectError, DetectParams, Detection, MarkerDetector, ShoalDetector,
 };
-use crate::pose::{estimate_pose_with, Hypothesis, PoseError};
+use crate::pose::{calibration_covariance, estimate_pose_with, Hypothesis, PoseError};
 use crate::restore::{restorer, Method, RestoreError, RestoreParams, Restorer};
 use crate::track::{Track, TrackParams};
 use opencv::core::Mat;
@@ -220,25 +220,51 @@ impl CameraPipeline {
         })?;
         // Through the camera's flat port when the fleet file gives one;
         // otherwise its calibration is taken as an in-water pinhole.
+        let object_points = det.object_points(side_m);
         let solution = estimate_pose_with(
             &self.camera.model,
             self.camera.port.as_ref(),
-            &det.object_points(side_m),
+            &object_points,
             &det.corners_px,
             self.params.corner_sigma_px,
         )
         .map_err(|e: PoseError| format!("{}#{}: {e}", det.codes, det.id))?;
-        let to_body = |h: &Hypothesis| -> PoseWithCovariance {
+        // The error an uncertain calibration causes, at each hypothesis
+        // (systematic over the corners: the residuals cannot show it).
+        let calibration = |h: &Hypothesis| -> Result<Cov6, String> {
+            let Some(sigma) = &self.camera.calibration_sigma else {
+                return Ok(Cov6::zeros());
+            };
+            calibration_covariance(
+                &self.camera.model,
+                self.camera.port.as_ref(),
+                &object_points,
+                &h.camera_from_marker,
+                sigma,
+            )
+            .ok_or_else(|| {
+                format!(
+                    "{}#{}: no calibration covariance (degenerate geometry)",
+                    det.codes, det.id
+                )
+            })
+        };
+        let to_body = |h: &Hypothesis| -> Result<PoseWithCovariance, String> {
             let fixed = |p: Pose| PoseWithCovariance::new(p, Cov6::zeros());
-            let camera_from_marker = PoseWithCovariance::new(h.camera_from_marker, h.covariance);
+            let camera_from_marker =
+                PoseWithCovariance::new(h.camera_from_marker, h.covariance + calibration(h)?);
             let marker_from_target = owner
                 .map(|(_, body_from_marker)| body_from_marker.inverse())
                 .unwrap_or_else(Pose::identity);
-            fixed(self.camera.body_from_camera)
+            Ok(fixed(self.camera.body_from_camera)
                 .compose(&camera_from_marker)
-                .compose(&fixed(marker_from_target))
+                .compose(&fixed(marker_from_target)))
         };
-        let best = to_body(&solution.best);
+        let best = to_body(&solution.best)?;
+        let alternative = solution
+            .alternative
+            .map(|h| to_body(&h).map(|alt| (h, alt)))
+            .transpose()?;
         Ok(Observation {
             observer: self.observer,
             camera: self.camera.index,
@@ -250,13 +276,10 @@ impl CameraPipeline {
             observer_from_target: best.pose,
             covariance: symmetric(best.covariance),
             reprojection_rms_px: solution.best.rms_px,
-            alternative: solution.alternative.map(|h| {
-                let alt = to_body(&h);
-                PoseHypothesis {
-                    observer_from_target: alt.pose,
-                    covariance: symmetric(alt.covariance),
-                    reprojection_rms_px: h.rms_px,
-                }
+            alternative: alternative.map(|(h, alt)| PoseHypothesis {
+                observer_from_target: alt.pose,
+                covariance: symmetric(alt.covariance),
+                reprojection_rms_px: h.rms_px,
             }),
             corner_count: det.corners_px.len() as u8,
             corners_px: det

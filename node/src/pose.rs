@@ -16,6 +16,10 @@
 //!    pinhole: the lens's focal length times n_water).
 //! 3. **Covariance** `Σ = σ² (JᵀJ)⁻¹` with the corner noise σ given, or
 //!    estimated from the residuals (`σ̂² = SSR / (2n − 6)`).
+//! 4. When the camera's calibration is uncertain ([`CalibrationSigma`]),
+//!    [`calibration_covariance`] gives the pose error an error of the
+//!    intrinsics causes (systematic across the corners, so the residuals do
+//!    not show it); the node adds it to both hypotheses.
 //!
 //! Both hypotheses are returned, best (lowest RMS) first: the fusion service
 //! resolves the flip with other observations.
@@ -23,7 +27,7 @@
 use nalgebra::{DMatrix, DVector, Matrix6, Point3, Vector6};
 use opencv::core::{Mat, Vector};
 use opencv::prelude::*;
-use shoal_proto::camera::{CameraModel, FlatPort};
+use shoal_proto::camera::{CalibrationSigma, CameraModel, Distortion, FlatPort};
 use shoal_proto::geometry::{difference, perturb, Cov6, Pose};
 
 /// Errors of pose estimation.
@@ -346,4 +350,76 @@ fn hypothesis(
             covariance,
             rms_px,
         })
+}
+
+/// The pose covariance an uncertain calibration adds at `pose`: to first
+/// order, an error `δk` of the intrinsics (fx, fy relative; cx, cy; k1)
+/// moves the least-squares pose by `−(JᵀJ)⁻¹ Jᵀ J_k δk`, where `J` is the
+/// residuals' Jacobian in the pose and `J_k` in the intrinsics; with the
+/// intrinsics' covariance `Σ_k` (diagonal, from `sigma`) the pose's is
+/// `A Σ_k Aᵀ`, `A = (JᵀJ)⁻¹ Jᵀ J_k`. `cam` and `port` as in
+/// [`estimate_pose_with`]. `None` if the geometry is degenerate (a corner
+/// behind the camera, `JᵀJ` singular) or `sigma` is invalid.
+pub fn calibration_covariance(
+    cam: &CameraModel,
+    port: Option<&FlatPort>,
+    object_pts: &[Point3<f64>],
+    pose: &Pose,
+    sigma: &CalibrationSigma,
+) -> Option<Cov6> {
+    if sigma.problem().is_some() || object_pts.len() < 3 {
+        return None;
+    }
+    // The residuals' reference: the corners where `cam` projects them, so
+    // the residuals are zero at `pose` and only their derivatives matter.
+    let lens = Lens { cam, port };
+    let img: Vec<[f64; 2]> = object_pts
+        .iter()
+        .map(|p| lens.project(&(pose * p)).map(|q| [q.x, q.y]))
+        .collect::<Option<_>>()?;
+    let j = jacobian(lens, object_pts, &img, pose)?;
+    let jtj: Matrix6<f64> = Matrix6::from_iterator((j.transpose() * &j).iter().copied());
+    let inv = jtj.try_inverse()?;
+    // Intrinsics: fx and fy by a relative step, cx and cy in px, k1.
+    let terms: [(f64, f64); 5] = [
+        (1e-6, sigma.focal_rel),
+        (1e-6, sigma.focal_rel),
+        (1e-3, sigma.principal_px),
+        (1e-3, sigma.principal_px),
+        (1e-6, sigma.k1),
+    ];
+    let moved = |c: usize, h: f64| -> CameraModel {
+        let mut m = *cam;
+        match c {
+            0 => m.fx *= 1.0 + h,
+            1 => m.fy *= 1.0 + h,
+            2 => m.cx += h,
+            3 => m.cy += h,
+            _ => match &mut m.distortion {
+                Distortion::PlumbBob(k) => k[0] += h,
+                Distortion::Rational(k) => k[0] += h,
+                Distortion::Equidistant(k) => k[0] += h,
+            },
+        }
+        m
+    };
+    let mut jk = DMatrix::zeros(2 * object_pts.len(), 5);
+    for (c, (h, s)) in terms.iter().enumerate() {
+        if *s == 0.0 {
+            continue;
+        }
+        let (plus, minus) = (moved(c, *h), moved(c, -*h));
+        let rp = residuals(Lens { cam: &plus, port }, object_pts, &img, pose)?;
+        let rm = residuals(Lens { cam: &minus, port }, object_pts, &img, pose)?;
+        // Scaled by σ: the column is the residuals' change for a 1-σ error.
+        jk.set_column(c, &((rp - rm) * (*s / (2.0 * h))));
+    }
+    let a =
+        inv * Matrix6::from_iterator(
+            (j.transpose() * jk.clone() * jk.transpose() * &j)
+                .iter()
+                .copied(),
+        ) * inv;
+    let cov = 0.5 * (a + a.transpose());
+    cov.iter().all(|v| v.is_finite()).then_some(cov)
 }

@@ -193,3 +193,76 @@ fn production_covariance_is_conservative_within_a_factor_4_never_overconfident()
         );
     }
 }
+
+/// An error of the intrinsics is the same for every corner of a frame: the
+/// residuals do not show it and the corner-noise covariance alone is
+/// overconfident. Drawing the intrinsics' error from the stated σ,
+/// `calibration_covariance` added to the corner part must bring the mean
+/// NEES back to 6 (same tolerance as the corner-noise test: 400 trials,
+/// ±2 standard errors of the mean are about ±0.6), and without it the mean
+/// must be far above (measured ~40: the test fails if the term is ignored).
+#[test]
+fn calibration_error_is_covered_by_the_calibration_covariance() {
+    use shoal_node::pose::calibration_covariance;
+    use shoal_proto::camera::{CalibrationSigma, Distortion};
+    let truth_cam = CameraModel::vehicle_1440();
+    let truth = pose_from_xyz_rpy([0.06, -0.04, 0.9], [std::f64::consts::PI, 0.4, 0.3]);
+    let obj = CodeSet::Shoal.corners_3d(0.1);
+    let clean = project_all(&truth_cam, &truth, &obj);
+    let stated = CalibrationSigma {
+        focal_rel: 0.002,
+        principal_px: 1.2,
+        k1: 0.003,
+    };
+    let corner_sigma = 0.1;
+    let std = Normal::new(0.0, 1.0).unwrap();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+    let trials = 400;
+    let (mut with, mut without) = (0.0, 0.0);
+    for _ in 0..trials {
+        // The node's calibration: the true camera moved by one draw of the error.
+        let mut node = truth_cam;
+        node.fx *= 1.0 + stated.focal_rel * std.sample(&mut rng);
+        node.fy *= 1.0 + stated.focal_rel * std.sample(&mut rng);
+        node.cx += stated.principal_px * std.sample(&mut rng);
+        node.cy += stated.principal_px * std.sample(&mut rng);
+        if let Distortion::PlumbBob(k) = &mut node.distortion {
+            k[0] += stated.k1 * std.sample(&mut rng);
+        }
+        let img: Vec<[f64; 2]> = clean
+            .iter()
+            .map(|u| {
+                [
+                    u[0] + corner_sigma * std.sample(&mut rng),
+                    u[1] + corner_sigma * std.sample(&mut rng),
+                ]
+            })
+            .collect();
+        let sol = estimate_pose(&node, &obj, &img, Some(corner_sigma)).unwrap();
+        let est = sol.best.camera_from_marker;
+        let cal = calibration_covariance(&node, None, &obj, &est, &stated).unwrap();
+        // Rank ≤ 5 (five intrinsics): positive semi-definite, not definite.
+        let eig = cal.symmetric_eigen().eigenvalues;
+        assert!(eig.iter().all(|e| *e >= -1e-12 * eig.amax()), "{eig}");
+        let xi: Vector6<f64> = difference(&truth, &est);
+        let total = sol.best.covariance + cal;
+        with += (xi.transpose() * total.try_inverse().unwrap() * xi)[0];
+        without += (xi.transpose() * sol.best.covariance.try_inverse().unwrap() * xi)[0];
+    }
+    let (with, without) = (with / trials as f64, without / trials as f64);
+    eprintln!("mean NEES: {with:.2} with the calibration term, {without:.2} without");
+    assert!(
+        (5.2..6.8).contains(&with),
+        "with the calibration term: {with}"
+    );
+    assert!(without > 15.0, "without it: {without}");
+    // An invalid σ is refused, not propagated.
+    let bad = CalibrationSigma {
+        focal_rel: -1.0,
+        ..stated
+    };
+    assert_eq!(
+        calibration_covariance(&truth_cam, None, &obj, &truth, &bad),
+        None
+    );
+}

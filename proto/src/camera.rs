@@ -499,6 +499,46 @@ fn undistort_equidistant(k: [f64; 4], xd: f64, yd: f64) -> (f64, f64) {
     (xd * scale, yd * scale)
 }
 
+/// How uncertain a camera's calibration is (one standard deviation each,
+/// independent): what a lab's calibration report states, or what a
+/// deployment assumes. The node's PnP adds the pose error this causes to its
+/// covariance (`shoal_node::pose::calibration_covariance`): an error of the
+/// intrinsics is systematic (the same for every corner of a frame), which
+/// the corner noise does not describe.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CalibrationSigma {
+    /// Relative error of fx and of fy (0.0017 = 0.17 %), each.
+    pub focal_rel: f64,
+    /// Error of cx and of cy (px), each.
+    pub principal_px: f64,
+    /// Error of the first radial (or fisheye) coefficient k1.
+    #[serde(default)]
+    pub k1: f64,
+}
+
+impl CalibrationSigma {
+    /// What is wrong with it, if anything (each term finite, ≥ 0).
+    pub fn problem(&self) -> Option<String> {
+        let ok = |v: f64| v.is_finite() && v >= 0.0;
+        (!(ok(self.focal_rel) && ok(self.principal_px) && ok(self.k1))).then(|| {
+            format!(
+                "calibration sigma must be finite and non-negative (focal_rel {}, principal_px {}, k1 {})",
+                self.focal_rel, self.principal_px, self.k1
+            )
+        })
+    }
+
+    /// Every term times `k`.
+    pub fn scaled(&self, k: f64) -> CalibrationSigma {
+        CalibrationSigma {
+            focal_rel: self.focal_rel * k,
+            principal_px: self.principal_px * k,
+            k1: self.k1 * k,
+        }
+    }
+}
+
 /// A calibration made fit for a frame by [`CameraModel::for_frame`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum FrameCamera {

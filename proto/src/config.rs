@@ -6,7 +6,7 @@
 //! fields and reports the file, the field and the reason. See
 //! `configs/fleets/paper.toml` for a complete, commented example.
 
-use crate::camera::{CameraModel, Distortion, DISTORTION_MODELS};
+use crate::camera::{CalibrationSigma, CameraModel, Distortion, DISTORTION_MODELS};
 use crate::geometry::{pose_from_xyz_rpy, Pose};
 use crate::keys::Keys;
 use crate::marker::{CodeSet, MarkerId};
@@ -143,6 +143,11 @@ pub struct CameraSpec {
     /// calibration is taken as the in-water pinhole a lab would measure.
     #[serde(default)]
     pub port: Option<PortSpec>,
+    /// How uncertain the calibration is (one σ of fx and fy relative, of cx
+    /// and cy in px, of k1): the node's pose covariance then includes the
+    /// error it causes. Without it the calibration is taken as exact.
+    #[serde(default)]
+    pub calibration_sigma: Option<CalibrationSigma>,
 }
 
 /// A flat port as written in a fleet file: air inside, then the glass,
@@ -256,6 +261,9 @@ pub struct Camera {
     /// PnP then models its refraction instead of taking `model` as an
     /// in-water pinhole.
     pub port: Option<FlatPort>,
+    /// The calibration's uncertainty, when the fleet file states it
+    /// ([`CalibrationSigma`]); `None`: taken as exact.
+    pub calibration_sigma: Option<CalibrationSigma>,
 }
 
 /// A resolved marker mounted on a vehicle.
@@ -327,12 +335,16 @@ fn parse_rigs<'a>(
                 .map(|p| p.port())
                 .transpose()
                 .map_err(|r| invalid(format!("{field}.port"), r))?;
+            if let Some(p) = c.calibration_sigma.and_then(|s| s.problem()) {
+                return Err(invalid(format!("{field}.calibration_sigma"), p));
+            }
             cams.push(Camera {
                 index: i as u8,
                 name: c.name.clone(),
                 model,
                 body_from_camera: c.body_from_camera.pose(),
                 port,
+                calibration_sigma: c.calibration_sigma,
             });
         }
         rigs.insert(rig_name.as_str(), cams);
@@ -867,6 +879,48 @@ markers = [ { codes = "shoal", id = 7, side_m = 0.1, body_from_marker = { xyz_m 
         assert_eq!(f.marker_owner(CodeSet::Shoal, 7), MarkerOwner::Vehicle(2));
         assert_eq!(f.marker_owner(CodeSet::Shoal, 8), MarkerOwner::Unknown);
         assert_eq!(f.vehicle(1).unwrap().cameras[0].model.width, 1440);
+    }
+
+    #[test]
+    fn a_calibration_sigma_is_read_and_bad_ones_are_named() {
+        let with = |sigma: &str| {
+            MINI.replace(
+                "rpy_deg = [90, 0, 90] } }",
+                &format!("rpy_deg = [90, 0, 90] }}, calibration_sigma = {{ {sigma} }} }}"),
+            )
+        };
+        let f = Fleet::parse(
+            &with("focal_rel = 0.002, principal_px = 1.5"),
+            Path::new("m.toml"),
+        )
+        .unwrap();
+        assert_eq!(
+            f.vehicle(1).unwrap().cameras[0].calibration_sigma,
+            Some(CalibrationSigma {
+                focal_rel: 0.002,
+                principal_px: 1.5,
+                k1: 0.0
+            })
+        );
+        assert_eq!(
+            Fleet::parse(MINI, Path::new("m.toml")).unwrap().vehicles[0].cameras[0]
+                .calibration_sigma,
+            None
+        );
+        let e = Fleet::parse(
+            &with("focal_rel = -0.002, principal_px = 1.5"),
+            Path::new("m.toml"),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("rigs.one.cameras[0].calibration_sigma") && e.contains("non-negative"),
+            "{e}"
+        );
+        let e = Fleet::parse(&with("focal_rel = 0.002"), Path::new("m.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("principal_px"), "{e}");
     }
 
     #[test]

@@ -39,7 +39,7 @@ pub mod ros2;
 pub mod samples;
 pub mod splitmix;
 
-pub use camera::{CameraModel, Distortion};
+pub use camera::{CalibrationSigma, CameraModel, Distortion};
 pub use codec::{decode, encode, DecodeError, EncodeError};
 pub use geometry::{Cov6, Pose, PoseWithCovariance};
 pub use image::GrayImage;

@@ -13,7 +13,7 @@ use std::path::PathBuf;
 pub struct EvalArgs {
     #[command(subcommand)]
     command: Option<EvalCmd>,
-    /// features | accuracy | accuracy-yaw | accuracy-rmse | detection | restoration | calibrate-water | fit-noise | fusion | swarm | links | nav | real | refraction | node-rate | profiles
+    /// features | accuracy | accuracy-yaw | accuracy-rmse | detection | restoration | calibrate-water | fit-noise | fusion | swarm | links | nav | real | refraction | node-rate | profiles | nees
     #[arg(required = true)]
     experiment: Option<String>,
     /// Output directory: CSV of every trial, plots (PNG, SVG), summary.json.

@@ -22,6 +22,7 @@
 //! | `real`            | (real recordings)      | [`real`]        |
 //! | `refraction`      | (flat-port refraction) | [`refraction`]  |
 //! | `profiles`        | (camera profiles, #16) | [`profiles`]    |
+//! | `nees`            | (covariance, #16)      | [`nees`]        |
 //!
 //! `quick` runs a reduced version of each (seconds in a debug build) for CI.
 //! The development probes (`shoal eval probe <name>`) are in [`probe`].
@@ -33,6 +34,7 @@ pub mod features;
 pub mod fusion;
 pub mod links;
 pub mod nav;
+pub mod nees;
 pub mod node_rate;
 pub mod noise;
 pub mod plot;
@@ -72,10 +74,12 @@ pub enum Experiment {
     NodeRate,
     /// Issue #16: the ideal against the realistic camera profile.
     Profiles,
+    /// Issue #16: covariance honesty of the node as shipped.
+    Nees,
 }
 
 impl Experiment {
-    pub const ALL: [Experiment; 16] = [
+    pub const ALL: [Experiment; 17] = [
         Experiment::Features,
         Experiment::Accuracy,
         Experiment::AccuracyYaw,
@@ -92,6 +96,7 @@ impl Experiment {
         Experiment::Refraction,
         Experiment::NodeRate,
         Experiment::Profiles,
+        Experiment::Nees,
     ];
 
     pub fn name(self) -> &'static str {
@@ -112,6 +117,7 @@ impl Experiment {
             Experiment::Refraction => "refraction",
             Experiment::NodeRate => "node-rate",
             Experiment::Profiles => "profiles",
+            Experiment::Nees => "nees",
         }
     }
 }
@@ -276,6 +282,7 @@ pub fn run(experiment: Experiment, opts: &EvalOptions) -> Result<serde_json::Val
         Experiment::Refraction => refraction::run(opts)?,
         Experiment::NodeRate => node_rate::run(opts)?,
         Experiment::Profiles => profiles::run(opts)?,
+        Experiment::Nees => nees::run(opts)?,
     };
     if let Some(obj) = summary.as_object_mut() {
         obj.insert("experiment".into(), experiment.name().into());

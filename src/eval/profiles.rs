@@ -58,7 +58,9 @@ struct Row {
     sub_frames: usize,
 }
 
-fn scene_and_motion(range_m: f64, rng: &mut impl Rng) -> RigidMotion {
+/// A marker at `range_m` (off the axis, turned) and the camera drifting as a
+/// vehicle holding formation.
+pub(super) fn scene_and_motion(range_m: f64, rng: &mut impl Rng) -> RigidMotion {
     let mut u = |a: f64| rng.gen_range(-a..=a);
     let pose = facing_camera(
         [u(0.25 * range_m), u(0.18 * range_m), range_m],
@@ -77,13 +79,37 @@ fn scene_and_motion(range_m: f64, rng: &mut impl Rng) -> RigidMotion {
     }
 }
 
-fn camera_from_marker(tl: &RigidMotion, t: f64) -> Result<Pose, EvalError> {
+/// The marker's pose in the camera at time `t` of `tl`.
+pub(super) fn camera_from_marker(tl: &RigidMotion, t: f64) -> Result<Pose, EvalError> {
     let (world_from_camera, scene) = tl.at(t)?;
     let m = scene
         .markers
         .first()
         .ok_or_else(|| EvalError::Setup("the scene has no marker".into()))?;
     Ok(world_from_camera.inverse() * m.world_from_marker)
+}
+
+/// The calibration the node holds for `cam` under `profile` (seeded): the
+/// in-water pinhole itself for a profile without the port; with the port, a
+/// lab's in-water plumb-bob calibration through it; moved by the
+/// calibration error when that effect is on.
+pub(super) fn node_camera(
+    profile: &CameraProfile,
+    cam: &CameraModel,
+    seed: u64,
+) -> Result<CameraModel, EvalError> {
+    let base = if profile.is_on(Effect::Port) {
+        let port = profile.port()?;
+        super::refraction::calibrate_in_water(&lens_in_air(cam, &port), &port, LAB_VIEWS, seed)?
+            .camera
+    } else {
+        *cam
+    };
+    Ok(if profile.is_on(Effect::Calibration) {
+        calibration_error(&base, &profile.params.calibration, seed)
+    } else {
+        base
+    })
 }
 
 /// Run `profile` on `frames` frames of each seed at one condition.
@@ -101,23 +127,7 @@ fn run_profile(
     for s in 0..SEEDS {
         let seed = opts.seed + s;
         let profile = profile.clone().with_seed(seed);
-        let base = if profile.is_on(Effect::Port) {
-            let port = profile.port()?;
-            super::refraction::calibrate_in_water(
-                &lens_in_air(&cam, &port),
-                &port,
-                LAB_VIEWS,
-                seed,
-            )?
-            .camera
-        } else {
-            cam
-        };
-        let node_cam = if profile.is_on(Effect::Calibration) {
-            calibration_error(&base, &profile.params.calibration, seed)
-        } else {
-            base
-        };
+        let node_cam = node_camera(&profile, &cam, seed)?;
         let mut detector = MarkerMethod::Shoal.detector(&node_cam)?;
         let mut restorer = make_restorer(opts.restore, &opts.restore_params);
         for k in 0..frames {
@@ -157,7 +167,7 @@ fn run_profile(
 }
 
 /// Student's t at 97.5 % for `dof` degrees of freedom.
-fn t975(dof: usize) -> f64 {
+pub(super) fn t975(dof: usize) -> f64 {
     const T: [f64; 9] = [12.71, 4.30, 3.18, 2.78, 2.57, 2.45, 2.36, 2.31, 2.26];
     T.get(dof.wrapping_sub(1)).copied().unwrap_or(1.96)
 }
@@ -165,7 +175,7 @@ fn t975(dof: usize) -> f64 {
 /// Mean of per-seed values and its 95 % interval (Student's t), clipped to
 /// `bounds` (a recall lies in 0..=1, an error or a ratio is never negative);
 /// `None` without two seeds.
-fn mean_ci(per_seed: &[f64], bounds: (f64, f64)) -> Value {
+pub(super) fn mean_ci(per_seed: &[f64], bounds: (f64, f64)) -> Value {
     let v: Vec<f64> = per_seed.iter().copied().filter(|x| x.is_finite()).collect();
     let n = v.len() as f64;
     if v.len() < 2 {
@@ -180,7 +190,7 @@ fn mean_ci(per_seed: &[f64], bounds: (f64, f64)) -> Value {
 
 /// Bounds of a recall and of an error or ratio.
 const UNIT: (f64, f64) = (0.0, 1.0);
-const POSITIVE: (f64, f64) = (0.0, f64::INFINITY);
+pub(super) const POSITIVE: (f64, f64) = (0.0, f64::INFINITY);
 
 fn per_seed(rows: &[&Row], f: impl Fn(&[&Row]) -> Option<f64>) -> Vec<f64> {
     let mut seeds: Vec<u64> = rows.iter().map(|r| r.seed).collect();
