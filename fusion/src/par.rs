@@ -23,11 +23,14 @@ pub(crate) fn resolve_threads(requested: usize) -> usize {
     std::thread::available_parallelism().map_or(1, NonZeroUsize::get)
 }
 
+/// The pools made so far, by thread count.
+type Pools = Vec<(usize, Arc<rayon::ThreadPool>)>;
+
 /// One pool per thread count, shared by every fusion instance of the
 /// process (instances are many and short-lived in tests and evals; a pool's
 /// threads sleep while nothing runs on them).
 fn pool(threads: usize) -> Option<Arc<rayon::ThreadPool>> {
-    static POOLS: OnceLock<Mutex<Vec<(usize, Arc<rayon::ThreadPool>)>>> = OnceLock::new();
+    static POOLS: OnceLock<Mutex<Pools>> = OnceLock::new();
     let mut pools = POOLS
         .get_or_init(Mutex::default)
         .lock()

@@ -121,14 +121,11 @@ fn run_cell(n: usize, rate: f64, frames: usize, seed: u64) -> Result<Cell, EvalE
     };
     let mut synth = ObsSynth::new(&fleet, params, seed);
     let mut fusion = Fusion::new(&fleet, FusionParams::default(), "eval");
-    let mut serial = Fusion::new(
-        &fleet,
-        FusionParams {
-            threads: 1,
-            ..FusionParams::default()
-        },
-        "eval",
-    );
+    let one_thread = FusionParams {
+        threads: 1,
+        ..FusionParams::default()
+    };
+    let mut serial = Fusion::new(&fleet, one_thread, "eval");
     let mut labels: BTreeMap<ObsKey, OutlierKind> = BTreeMap::new();
     let mut observations = 0;
     let mut last_stamp = 0;
@@ -146,17 +143,7 @@ fn run_cell(n: usize, rate: f64, frames: usize, seed: u64) -> Result<Cell, EvalE
             let _ = fusion.ingest(s.obs.clone(), s.obs.observer, stamp);
         }
     }
-    let t0 = std::time::Instant::now();
-    let one = serial.solve(last_stamp);
-    let solve_1thread_ms = t0.elapsed().as_secs_f64() * 1e3;
-    let t0 = std::time::Instant::now();
-    let map = fusion.solve(last_stamp);
-    let solve_ms = t0.elapsed().as_secs_f64() * 1e3;
-    if (&one.vehicles, &one.edges) != (&map.vehicles, &map.edges) {
-        return Err(EvalError::Setup(format!(
-            "{n} vehicles: the map on one thread differs from the map on all cores"
-        )));
-    }
+    let (map, solve_ms, solve_1thread_ms) = solve_both(&mut serial, &mut fusion, last_stamp, n)?;
     let stats = fusion.stats().last_solve;
 
     // Map error against the truth, in the reference vehicle's frame.
@@ -244,6 +231,35 @@ fn run_cell(n: usize, rate: f64, frames: usize, seed: u64) -> Result<Cell, EvalE
         lm_ms: stats.lm_us as f64 * 1e-3,
         inlier_rejections,
     })
+}
+
+/// The window solved on one thread (`serial`) and on all cores (`fusion`,
+/// the same observations): the map, and the two wall times in ms. An error
+/// when the maps differ.
+fn solve_both(
+    serial: &mut Fusion,
+    fusion: &mut Fusion,
+    last_stamp: u64,
+    n: usize,
+) -> Result<(shoal_proto::FleetMap, f64, f64), EvalError> {
+    let t0 = std::time::Instant::now();
+    let one = serial.solve(last_stamp);
+    let solve_1thread_ms = t0.elapsed().as_secs_f64() * 1e3;
+    let t0 = std::time::Instant::now();
+    let map = fusion.solve(last_stamp);
+    let solve_ms = t0.elapsed().as_secs_f64() * 1e3;
+    // Bit for bit (a NaN chi2 of an unlocalized pair is not `==` itself),
+    // but for the wall time.
+    let same = |mut a: shoal_proto::FleetMap| {
+        a.solve_time_us = map.solve_time_us;
+        shoal_proto::encode(&a).ok() == shoal_proto::encode(&map).ok()
+    };
+    if !same(one) {
+        return Err(EvalError::Setup(format!(
+            "{n} vehicles: the map on one thread differs from the map on all cores"
+        )));
+    }
+    Ok((map, solve_ms, solve_1thread_ms))
 }
 
 /// The CSV row and JSON entry of one cell.

@@ -35,9 +35,8 @@ pub(crate) fn graph(
     let tree = &hyps.selection.trees[0];
     // One constraint per pair, independent: on up to `threads`.
     let per_pair = crate::par::map(&hyps.pairs, threads, 32, |pi, p| {
-        if hyps.selection.choice[pi].is_none() {
-            return None;
-        }
+        // Pairs without a chosen cluster give no constraint.
+        hyps.selection.choice[pi]?;
         if !tree.contains(p.a) || !tree.contains(p.b) {
             return None;
         }
