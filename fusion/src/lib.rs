@@ -144,6 +144,8 @@ pub struct FusionParams {
     /// Threads for the solve's per-observation steps (default 0: the
     /// machine's available parallelism; 1: the calling thread only). The
     /// map is bit for bit the same at any count; only the wall time changes.
+    /// On a machine whose cores are busy with other processes a second
+    /// thread gains nothing and costs a little (docs/results.md): use 1.
     #[serde(default)]
     pub threads: usize,
 }
