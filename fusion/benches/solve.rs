@@ -105,6 +105,8 @@ fn bench_fusion(c: &mut Criterion) {
         on / off
     );
 
+    one_thread_against_all(&fleet, &truth, synth, &plain, now);
+
     // The LM solve alone: 100 vehicles, one fused constraint per neighbouring pair, noisy start.
     let (_, truth) = scenario(100);
     let poses: BTreeMap<u32, shoal_proto::Pose> = truth
@@ -149,6 +151,46 @@ fn bench_fusion(c: &mut Criterion) {
     c.bench_function("lm_only_100_vehicles", |b| {
         b.iter(|| solver::solve(1, &init, &constraints, &SolverParams::default()).unwrap())
     });
+}
+
+/// The solve's per-observation steps on one thread against the machine's
+/// (`FusionParams::threads`, default: all cores), the window of `all_cores`,
+/// on alternate calls; the maps must be the same.
+fn one_thread_against_all(
+    fleet: &shoal_proto::config::Fleet,
+    truth: &[shoal_proto::VehicleTruth],
+    synth: ObsSynthParams,
+    all_cores: &shoal_fusion::Fusion,
+    now: u64,
+) {
+    let serial_params = FusionParams {
+        threads: 1,
+        ..FusionParams::default()
+    };
+    let (serial, _, _) = run_frames(fleet, truth, synth, serial_params, 1, 20);
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let (mut t_one, mut t_all) = (0.0, 0.0);
+    for _ in 0..10 {
+        let mut maps = Vec::new();
+        for (fusion, sum) in [(&serial, &mut t_one), (all_cores, &mut t_all)] {
+            let mut f = fusion.clone();
+            let t0 = std::time::Instant::now();
+            maps.push(f.solve(now));
+            *sum += t0.elapsed().as_secs_f64() * 1e3;
+        }
+        // Bit for bit (a NaN chi2 is not `==` itself), but for the wall time.
+        maps[0].solve_time_us = maps[1].solve_time_us;
+        assert!(
+            shoal_proto::encode(&maps[0]).unwrap() == shoal_proto::encode(&maps[1]).unwrap(),
+            "the map depends on the thread count"
+        );
+    }
+    eprintln!(
+        "100 vehicles, alternate calls: 1 thread {:.1} ms, {cores} threads {:.1} ms per solve, ratio {:.3} (maps identical)",
+        t_one / 10.0,
+        t_all / 10.0,
+        t_all / t_one
+    );
 }
 
 /// The 6×6 SPD inverse every hypothesis needs, shoal's written-out one

@@ -39,7 +39,7 @@ mod cycles;
 mod tree;
 
 pub use clique::cluster_pair;
-pub use cycles::vote_triangles;
+pub use cycles::{vote_triangles, vote_triangles_threads};
 pub use tree::{select, select_with_prior, Prior, Selection, Tree};
 
 use crate::solver::difference;

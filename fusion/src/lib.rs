@@ -82,6 +82,7 @@ pub mod formation;
 pub mod linalg;
 pub mod link;
 pub mod nav;
+mod par;
 mod solve;
 pub mod solver;
 mod sparse;
@@ -140,6 +141,13 @@ pub struct FusionParams {
     /// manoeuvring neighbour it sees itself is not outvoted by seconds-old news.
     #[serde(default = "default_link_window_s")]
     pub link_window_s: f64,
+    /// Threads for the solve's per-observation steps (default 0: the
+    /// machine's available parallelism; 1: the calling thread only). The
+    /// map is bit for bit the same at any count; only the wall time changes.
+    /// On a machine whose cores are busy with other processes a second
+    /// thread gains nothing and costs a little (docs/results.md): use 1.
+    #[serde(default)]
+    pub threads: usize,
 }
 
 fn default_link_window_s() -> f64 {
@@ -164,6 +172,7 @@ impl Default for FusionParams {
             motion: MotionModel::default(),
             nav: NavParams::default(),
             link_window_s: link::LINK_WINDOW_S,
+            threads: 0,
         }
     }
 }

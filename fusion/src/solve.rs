@@ -32,8 +32,17 @@ fn elapsed_us(t: Option<Instant>) -> u64 {
 
 impl Fusion {
     /// Fuse the window into a map at `now_ns` (the steps: see the crate docs).
+    /// Runs on [`FusionParams::threads`](crate::FusionParams::threads)
+    /// threads; the map is the same on any number.
     pub fn solve(&mut self, now_ns: u64) -> FleetMap {
         let started = self.params.record_solve_time.then(Instant::now);
+        let threads = crate::par::resolve_threads(self.params.threads);
+        crate::par::install(threads, |threads| self.solve_on(now_ns, started, threads))
+    }
+
+    /// [`Self::solve`] on `threads` threads of the current pool, its wall
+    /// clock started at `started`.
+    fn solve_on(&mut self, now_ns: u64, started: Option<Instant>, threads: usize) -> FleetMap {
         let window_ns = seconds_to_ns(self.params.window_s);
         let link_window_ns = seconds_to_ns(self.params.link_window_s);
         self.stats.expired += self.window.evict(now_ns, window_ns, link_window_ns) as u64;
@@ -45,24 +54,31 @@ impl Fusion {
         let consistency = &self.params.consistency;
         let entries: Vec<(&ObservationKey, &Stored)> = self.window.entries.iter().collect();
 
-        let mut frames = frames::measured(&entries, now_ns, &self.params.age_inflation);
+        let mut frames = frames::measured(&entries, now_ns, &self.params.age_inflation, threads);
         let (nav_verdicts, nav_stats) = nav::check(&mut frames, &self.nav, &self.params.nav);
         let frames_us = elapsed_us(started);
-        let mut groups =
-            groups::group_tracks(&frames, consistency.gate_chi2, consistency.fuse_tracks);
+        let group = |frames: &[frames::Frame]| {
+            groups::group_tracks(
+                frames,
+                consistency.gate_chi2,
+                consistency.fuse_tracks,
+                threads,
+            )
+        };
+        let mut groups = group(&frames);
         // Once pairs are seen to move, older frames describe the past to within
         // how far a pair moves in that time: grouped again with that known.
-        let mut fits = motion::fit_groups(&frames, &groups, &self.params.motion);
+        let mut fits = motion::fit_groups(&frames, &groups, &self.params.motion, threads);
         let moving = motion::pair_motion(&frames, &groups, &fits);
         if !moving.is_empty() {
-            frames::inflate_moving(&mut frames, &moving, now_ns);
-            groups = groups::group_tracks(&frames, consistency.gate_chi2, consistency.fuse_tracks);
-            fits = motion::fit_groups(&frames, &groups, &self.params.motion);
+            frames::inflate_moving(&mut frames, &moving, now_ns, threads);
+            groups = group(&frames);
+            fits = motion::fit_groups(&frames, &groups, &self.params.motion, threads);
         }
         let superseded = groups.superseded_frames(frames.len());
-        let moving_groups = motion::compensate(&mut frames, &groups, &fits);
+        let moving_groups = motion::compensate(&mut frames, &groups, &fits, threads);
         let groups_us = elapsed_us(started).saturating_sub(frames_us);
-        let pairs = hypotheses::pair_candidates(&frames, &groups, consistency);
+        let pairs = hypotheses::pair_candidates(&frames, &groups, consistency, threads);
         let prior = hypotheses::attitude_prior(&self.last_estimate, &pairs, now_ns, window_ns);
         let hyps = hypotheses::choose(
             pairs,
@@ -84,6 +100,7 @@ impl Fusion {
                 max_iterations: self.params.max_iterations,
                 ..solver::SolverParams::default()
             },
+            threads,
         };
         let mut gated = gate::solve_and_gate(&frames, &groups, &hyps, reference, &gate_params);
         let lm_us = elapsed_us(lm_started);
@@ -102,6 +119,7 @@ impl Fusion {
             &gated,
             &superseded,
             &nav_verdicts,
+            threads,
         );
         let in_window: BTreeSet<VehicleId> = entries
             .iter()

@@ -524,6 +524,57 @@ fn same_observations_in_any_order_give_bit_identical_maps() {
     );
 }
 
+/// A 64-vehicle grid in which every third vehicle drifts (so that the
+/// motion model moves groups and inflates old frames), 20 % wrong IDs and
+/// flips, 20 frames: the map on 1, 2 and 3 threads, bit for bit.
+#[test]
+fn the_map_is_the_same_on_any_number_of_threads() {
+    let fleet = synthetic_fleet(64, CodeSet::Aruco4x4_1000).unwrap();
+    let ids: Vec<u32> = (1..=64).collect();
+    let start = grid_formation(&ids, 8, 1.5, FormationJitter::default(), 3);
+    let maps: Vec<(Vec<u8>, shoal_fusion::SolveStats)> = [1usize, 2, 3]
+        .iter()
+        .map(|&threads| {
+            let params = FusionParams {
+                record_solve_time: false,
+                threads,
+                ..FusionParams::default()
+            };
+            let mut synth =
+                shoal_sim_bridge::obs_synth::ObsSynth::new(&fleet, outlier_params(0.1), 5);
+            let mut fusion = Fusion::new(&fleet, params, "central");
+            let mut now = T0_NS;
+            for k in 0..20 {
+                now = T0_NS + k * FRAME_NS;
+                let t_s = (now - T0_NS) as f64 * 1e-9;
+                let mut truth = start.clone();
+                for v in truth.iter_mut().filter(|v| v.vehicle % 3 == 0) {
+                    v.world_from_body.translation.vector.y += 0.08 * t_s;
+                }
+                for s in synth.observe(&truth, now) {
+                    let _ = fusion.ingest(s.obs.clone(), s.obs.observer, now);
+                }
+            }
+            let map = fusion.solve(now);
+            (
+                shoal_proto::encode(&map).unwrap(),
+                fusion.stats().last_solve,
+            )
+        })
+        .collect();
+    let (one, stats) = &maps[0];
+    // The motion model ran (groups moved), and every vehicle is in the map.
+    assert!(stats.moving_groups > 0, "{stats:?}");
+    assert_eq!(stats.localized, 64, "{stats:?}");
+    for (threads, (map, other)) in [2, 3].iter().zip(&maps[1..]) {
+        assert_eq!(other, stats, "{threads} threads");
+        assert!(
+            map == one,
+            "the map on {threads} threads differs from one thread's"
+        );
+    }
+}
+
 #[test]
 fn hundred_vehicles_localize_in_one_map() {
     let fleet = synthetic_fleet(100, CodeSet::Aruco4x4_1000).unwrap();

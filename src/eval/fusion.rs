@@ -49,6 +49,9 @@ struct Cell {
     flips_rejected: Option<f64>,
     observations: usize,
     solve_ms: f64,
+    /// The same solve with the per-observation steps on one thread
+    /// (`FusionParams::threads = 1`; `solve_ms` uses every core).
+    solve_1thread_ms: f64,
     /// Of the solve: the consistency checks and the LM solves (with gate rounds).
     consistency_ms: f64,
     lm_ms: f64,
@@ -118,6 +121,11 @@ fn run_cell(n: usize, rate: f64, frames: usize, seed: u64) -> Result<Cell, EvalE
     };
     let mut synth = ObsSynth::new(&fleet, params, seed);
     let mut fusion = Fusion::new(&fleet, FusionParams::default(), "eval");
+    let one_thread = FusionParams {
+        threads: 1,
+        ..FusionParams::default()
+    };
+    let mut serial = Fusion::new(&fleet, one_thread, "eval");
     let mut labels: BTreeMap<ObsKey, OutlierKind> = BTreeMap::new();
     let mut observations = 0;
     let mut last_stamp = 0;
@@ -131,12 +139,11 @@ fn run_cell(n: usize, rate: f64, frames: usize, seed: u64) -> Result<Cell, EvalE
                 s.outlier,
             );
             observations += 1;
+            let _ = serial.ingest(s.obs.clone(), s.obs.observer, stamp);
             let _ = fusion.ingest(s.obs.clone(), s.obs.observer, stamp);
         }
     }
-    let t0 = std::time::Instant::now();
-    let map = fusion.solve(last_stamp);
-    let solve_ms = t0.elapsed().as_secs_f64() * 1e3;
+    let (map, solve_ms, solve_1thread_ms) = solve_both(&mut serial, &mut fusion, last_stamp, n)?;
     let stats = fusion.stats().last_solve;
 
     // Map error against the truth, in the reference vehicle's frame.
@@ -219,10 +226,40 @@ fn run_cell(n: usize, rate: f64, frames: usize, seed: u64) -> Result<Cell, EvalE
         flips_rejected: (flips > 0).then(|| flips_rej as f64 / flips as f64),
         observations,
         solve_ms,
+        solve_1thread_ms,
         consistency_ms: stats.consistency_us as f64 * 1e-3,
         lm_ms: stats.lm_us as f64 * 1e-3,
         inlier_rejections,
     })
+}
+
+/// The window solved on one thread (`serial`) and on all cores (`fusion`,
+/// the same observations): the map, and the two wall times in ms. An error
+/// when the maps differ.
+fn solve_both(
+    serial: &mut Fusion,
+    fusion: &mut Fusion,
+    last_stamp: u64,
+    n: usize,
+) -> Result<(shoal_proto::FleetMap, f64, f64), EvalError> {
+    let t0 = std::time::Instant::now();
+    let one = serial.solve(last_stamp);
+    let solve_1thread_ms = t0.elapsed().as_secs_f64() * 1e3;
+    let t0 = std::time::Instant::now();
+    let map = fusion.solve(last_stamp);
+    let solve_ms = t0.elapsed().as_secs_f64() * 1e3;
+    // Bit for bit (a NaN chi2 of an unlocalized pair is not `==` itself),
+    // but for the wall time.
+    let same = |mut a: shoal_proto::FleetMap| {
+        a.solve_time_us = map.solve_time_us;
+        shoal_proto::encode(&a).ok() == shoal_proto::encode(&map).ok()
+    };
+    if !same(one) {
+        return Err(EvalError::Setup(format!(
+            "{n} vehicles: the map on one thread differs from the map on all cores"
+        )));
+    }
+    Ok((map, solve_ms, solve_1thread_ms))
 }
 
 /// The CSV row and JSON entry of one cell.
@@ -241,6 +278,7 @@ fn record(csv: &mut Csv, n: usize, r: f64, frames: usize, c: &Cell) -> Value {
         f(c.recall),
         f(c.flips_rejected),
         format!("{:.3}", c.solve_ms),
+        format!("{:.3}", c.solve_1thread_ms),
         format!("{:.3}", c.consistency_ms),
         format!("{:.3}", c.lm_ms),
     ]);
@@ -253,6 +291,7 @@ fn record(csv: &mut Csv, n: usize, r: f64, frames: usize, c: &Cell) -> Value {
         "id_outlier_recall": c.recall,
         "flips_rejected": c.flips_rejected,
         "solve_ms": c.solve_ms,
+        "solve_1thread_ms": c.solve_1thread_ms,
         "consistency_ms": c.consistency_ms,
         "lm_ms": c.lm_ms,
         "observations": c.observations,
@@ -290,6 +329,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
         "id_outlier_recall",
         "flips_rejected",
         "solve_ms",
+        "solve_1thread_ms",
         "consistency_ms",
         "lm_ms",
     ]);

@@ -9,6 +9,12 @@ use std::collections::{BTreeMap, BTreeSet};
 /// Step 2: votes from consistent triangles (see the module docs). `pairs` must
 /// have `a < b` and be unique per pair.
 pub fn vote_triangles(pairs: &mut [PairCandidates], gate_chi2: f64) {
+    vote_triangles_threads(pairs, gate_chi2, 1);
+}
+
+/// [`vote_triangles`] with the triangles checked on up to `threads` threads
+/// (the votes are the same at any count).
+pub fn vote_triangles_threads(pairs: &mut [PairCandidates], gate_chi2: f64, threads: usize) {
     let index: BTreeMap<(VehicleId, VehicleId), usize> = pairs
         .iter()
         .enumerate()
@@ -19,51 +25,25 @@ pub fn vote_triangles(pairs: &mut [PairCandidates], gate_chi2: f64) {
         neighbours.entry(p.a).or_default().insert(p.b);
         neighbours.entry(p.b).or_default().insert(p.a);
     }
-    let mut votes: Vec<Vec<usize>> = pairs.iter().map(|p| vec![0; p.clusters.len()]).collect();
+    // Every triangle (a < b < k) as its pairs' indices (ab, bk, ak).
+    let mut triangles: Vec<[usize; 3]> = Vec::new();
     for (&(a, b), &ab) in &index {
         let (Some(na), Some(nb)) = (neighbours.get(&a), neighbours.get(&b)) else {
             continue;
         };
         for &k in na.intersection(nb).filter(|&&k| k > b) {
-            let (bk, ak) = (index[&(b, k)], index[&(a, k)]);
-            let mut hit_ab = vec![false; pairs[ab].clusters.len()];
-            let mut hit_bk = vec![false; pairs[bk].clusters.len()];
-            let mut hit_ak = vec![false; pairs[ak].clusters.len()];
-            for (i, c_ab) in pairs[ab].clusters.iter().enumerate() {
-                for (j, c_bk) in pairs[bk].clusters.iter().enumerate() {
-                    let pose = c_ab.a_from_b * c_bk.a_from_b;
-                    let bound =
-                        compose_variance_bound(&c_ab.covariance, &c_bk.a_from_b, &c_bk.covariance);
-                    let mut composed: Option<PoseWithCovariance> = None;
-                    for (l, c_ak) in pairs[ak].clusters.iter().enumerate() {
-                        let r = difference(&pose, &c_ak.a_from_b);
-                        if r.norm_squared() > gate_chi2 * (bound + trace6(&c_ak.covariance)) {
-                            continue;
-                        }
-                        let composed = composed.get_or_insert_with(|| {
-                            compose(
-                                &PoseWithCovariance::new(c_ab.a_from_b, c_ab.covariance),
-                                &PoseWithCovariance::new(c_bk.a_from_b, c_bk.covariance),
-                            )
-                        });
-                        let d2 = mahalanobis2(
-                            &composed.pose,
-                            &composed.covariance,
-                            &c_ak.a_from_b,
-                            &c_ak.covariance,
-                        );
-                        if d2 <= gate_chi2 {
-                            hit_ab[i] = true;
-                            hit_bk[j] = true;
-                            hit_ak[l] = true;
-                        }
-                    }
-                }
-            }
-            for (p, hits) in [(ab, hit_ab), (bk, hit_bk), (ak, hit_ak)] {
-                for (c, h) in hits.into_iter().enumerate() {
-                    votes[p][c] += usize::from(h);
-                }
+            triangles.push([ab, index[&(b, k)], index[&(a, k)]]);
+        }
+    }
+    let shared: &[PairCandidates] = pairs;
+    let hits = crate::par::map(&triangles, threads, 64, |_, &t| {
+        triangle_hits(shared, t, gate_chi2)
+    });
+    let mut votes: Vec<Vec<usize>> = pairs.iter().map(|p| vec![0; p.clusters.len()]).collect();
+    for (t, hit) in triangles.iter().zip(hits) {
+        for (&p, hits) in t.iter().zip(hit) {
+            for (c, h) in hits.into_iter().enumerate() {
+                votes[p][c] += usize::from(h);
             }
         }
     }
@@ -72,6 +52,49 @@ pub fn vote_triangles(pairs: &mut [PairCandidates], gate_chi2: f64) {
             c.votes = n;
         }
     }
+}
+
+/// Which clusters of the triangle's pairs `[ab, bk, ak]` close a consistent
+/// cycle with some clusters of the other two.
+fn triangle_hits(
+    pairs: &[PairCandidates],
+    [ab, bk, ak]: [usize; 3],
+    gate_chi2: f64,
+) -> [Vec<bool>; 3] {
+    let mut hit_ab = vec![false; pairs[ab].clusters.len()];
+    let mut hit_bk = vec![false; pairs[bk].clusters.len()];
+    let mut hit_ak = vec![false; pairs[ak].clusters.len()];
+    for (i, c_ab) in pairs[ab].clusters.iter().enumerate() {
+        for (j, c_bk) in pairs[bk].clusters.iter().enumerate() {
+            let pose = c_ab.a_from_b * c_bk.a_from_b;
+            let bound = compose_variance_bound(&c_ab.covariance, &c_bk.a_from_b, &c_bk.covariance);
+            let mut composed: Option<PoseWithCovariance> = None;
+            for (l, c_ak) in pairs[ak].clusters.iter().enumerate() {
+                let r = difference(&pose, &c_ak.a_from_b);
+                if r.norm_squared() > gate_chi2 * (bound + trace6(&c_ak.covariance)) {
+                    continue;
+                }
+                let composed = composed.get_or_insert_with(|| {
+                    compose(
+                        &PoseWithCovariance::new(c_ab.a_from_b, c_ab.covariance),
+                        &PoseWithCovariance::new(c_bk.a_from_b, c_bk.covariance),
+                    )
+                });
+                let d2 = mahalanobis2(
+                    &composed.pose,
+                    &composed.covariance,
+                    &c_ak.a_from_b,
+                    &c_ak.covariance,
+                );
+                if d2 <= gate_chi2 {
+                    hit_ab[i] = true;
+                    hit_bk[j] = true;
+                    hit_ak[l] = true;
+                }
+            }
+        }
+    }
+    [hit_ab, hit_bk, hit_ak]
 }
 
 #[cfg(test)]

@@ -24,6 +24,8 @@ pub(crate) struct GateParams {
     /// Solve / gate rounds at most (at least one is run).
     pub max_rounds: usize,
     pub solver: SolverParams,
+    /// Threads for the graph's constraints and the gate's residuals.
+    pub threads: usize,
 }
 
 /// The solution after the last round, and what the gate decided.
@@ -63,7 +65,7 @@ pub(crate) fn solve_and_gate(
     };
     for round in 0..params.max_rounds.max(1) {
         out.rounds = round + 1;
-        let g = graph(hyps, groups, frames, &out.gated, reference);
+        let g = graph(hyps, groups, frames, &out.gated, reference, params.threads);
         let (solution, iterations) =
             optimize(reference, &g, &hyps.selection.trees[0], &params.solver);
         out.solution = solution;
@@ -77,6 +79,7 @@ pub(crate) fn solve_and_gate(
             &mut out.chi2,
             &out.solution,
             params.chi2_gate,
+            params.threads,
         );
         if newly == 0 {
             break;
@@ -133,14 +136,20 @@ fn gate_round(
     chi2: &mut [[Option<f64>; 2]],
     solution: &Poses,
     chi2_gate: f64,
+    threads: usize,
 ) -> usize {
     let mut newly = 0;
     chi2.iter_mut().for_each(|c| *c = [None; 2]);
-    for &(oi, h) in accepted.keys() {
-        if gated.contains(&(oi, h)) {
-            continue;
-        }
-        let x2 = frames[oi].chi2(usize::from(h), solution);
+    // The residuals (independent: on up to `threads`), then the verdicts.
+    let judged: Vec<(usize, u8)> = accepted
+        .keys()
+        .filter(|k| !gated.contains(k))
+        .copied()
+        .collect();
+    let residuals = crate::par::map(&judged, threads, 256, |_, &(oi, h)| {
+        frames[oi].chi2(usize::from(h), solution)
+    });
+    for (&(oi, h), x2) in judged.iter().zip(residuals) {
         chi2[oi][usize::from(h)] = Some(x2);
         if x2 > chi2_gate {
             gated.insert((oi, h));
@@ -173,13 +182,17 @@ mod tests {
         let accepted = BTreeMap::from([((0, 0), 0), ((1, 0), 0)]);
         let mut gated = BTreeSet::new();
         let mut chi2 = vec![[None; 2]; 2];
-        let newly = gate_round(&frames, &accepted, &mut gated, &mut chi2, &solution, 27.86);
+        let newly = gate_round(
+            &frames, &accepted, &mut gated, &mut chi2, &solution, 27.86, 2,
+        );
         assert_eq!(newly, 1);
         assert_eq!(gated, BTreeSet::from([(1, 0)]));
         assert!((chi2[0][0].unwrap() - 9.0).abs() < 1e-6, "{chi2:?}");
         assert!((chi2[1][0].unwrap() - 36.0).abs() < 1e-6, "{chi2:?}");
         // The next round does not judge a gated hypothesis again.
-        let newly = gate_round(&frames, &accepted, &mut gated, &mut chi2, &solution, 27.86);
+        let newly = gate_round(
+            &frames, &accepted, &mut gated, &mut chi2, &solution, 27.86, 2,
+        );
         assert_eq!((newly, chi2[1][0]), (0, None));
     }
 }

@@ -113,23 +113,60 @@ fn consistent(c: &Candidate, leader: &Candidate, gate_chi2: f64) -> bool {
 /// outvote the present. Only frames of the same camera and marker can
 /// supersede each other, so a misread ID or a flip never erases another
 /// track's evidence.
-pub(crate) fn group_tracks(frames: &[Frame], gate_chi2: f64, fuse: bool) -> TrackGroups {
-    let mut open: BTreeMap<TrackKey, Vec<OpenGroup>> = BTreeMap::new();
-    let mut groups: Vec<Vec<usize>> = Vec::new();
-    // Each track's group holding its newest frame.
-    let mut newest: BTreeMap<TrackKey, usize> = BTreeMap::new();
-    // Newest first (frames are in time order): a group's leaders are its
-    // most recent frames, so it describes the present.
+pub(crate) fn group_tracks(
+    frames: &[Frame],
+    gate_chi2: f64,
+    fuse: bool,
+    threads: usize,
+) -> TrackGroups {
+    // Each track's frames, newest first (frames are in time order): a
+    // group's leaders are its most recent frames, so it describes the
+    // present. A frame without a primary hypothesis has nothing to compare
+    // with: it stands alone.
+    let mut groups: Vec<(Vec<usize>, bool)> = Vec::new();
+    let mut tracks: BTreeMap<TrackKey, Vec<usize>> = BTreeMap::new();
     for (i, f) in frames.iter().enumerate().rev() {
         if f.hyps[0].is_none() {
-            // Nothing to compare with: the observation stands alone.
-            groups.push(vec![i]);
-            continue;
+            groups.push((vec![i], false));
+        } else {
+            tracks.entry(f.track).or_default().push(i);
         }
-        let list = open.entry(f.track).or_default();
+    }
+    // Tracks are independent of each other: grouped on up to `threads`.
+    let tracks: Vec<Vec<usize>> = tracks.into_values().collect();
+    let per_track = crate::par::map(&tracks, threads, TRACKS_PER_THREAD, |_, track| {
+        group_track(frames, track, gate_chi2, fuse)
+    });
+    groups.extend(per_track.into_iter().flatten());
+    // Groups in ascending order of their first frame (each frame is in one
+    // group, so the order is total), members ascending.
+    groups.iter_mut().for_each(|(m, _)| m.sort_unstable());
+    groups.sort_unstable_by_key(|(m, _)| m[0]);
+    let (members, superseded) = groups.into_iter().unzip();
+    TrackGroups {
+        members,
+        superseded,
+    }
+}
+
+/// Tracks per thread at least ([`crate::par`]).
+const TRACKS_PER_THREAD: usize = 64;
+
+/// One track's groups (`track`: its frames newest first), each with its
+/// members newest first and whether it is superseded ([`group_tracks`]).
+fn group_track(
+    frames: &[Frame],
+    track: &[usize],
+    gate_chi2: f64,
+    fuse: bool,
+) -> Vec<(Vec<usize>, bool)> {
+    let mut groups: Vec<Vec<usize>> = Vec::new();
+    let mut open: Vec<OpenGroup> = Vec::new();
+    for &i in track {
+        let f = &frames[i];
         let home = fuse
             .then(|| {
-                list.iter_mut().find(|(_, leaders)| {
+                open.iter_mut().find(|(_, leaders)| {
                     (0..2).all(|h| match (&f.hyps[h], leaders[h]) {
                         (Some(c), Some(l)) => frames[l].hyps[h]
                             .as_ref()
@@ -139,7 +176,7 @@ pub(crate) fn group_tracks(frames: &[Frame], gate_chi2: f64, fuse: bool) -> Trac
                 })
             })
             .flatten();
-        let g = match home {
+        match home {
             Some((g, leaders)) => {
                 groups[*g].push(i);
                 for h in 0..2 {
@@ -147,62 +184,43 @@ pub(crate) fn group_tracks(frames: &[Frame], gate_chi2: f64, fuse: bool) -> Trac
                         leaders[h] = Some(i);
                     }
                 }
-                *g
             }
             None => {
-                list.push((groups.len(), [Some(i), f.hyps[1].as_ref().map(|_| i)]));
+                open.push((groups.len(), [Some(i), f.hyps[1].as_ref().map(|_| i)]));
                 groups.push(vec![i]);
-                groups.len() - 1
             }
-        };
-        newest.entry(f.track).or_insert(g);
+        }
     }
-    let superseded = superseded_groups(frames, &groups, &open, &newest, gate_chi2);
-    // Groups in ascending order of their first frame, members ascending.
-    let mut order: Vec<usize> = (0..groups.len()).collect();
-    groups.iter_mut().for_each(|m| m.sort_unstable());
-    order.sort_by_key(|&g| groups[g][0]);
-    TrackGroups {
-        members: order.iter().map(|&g| groups[g].clone()).collect(),
-        superseded: order.iter().map(|&g| superseded[g]).collect(),
-    }
+    let superseded = superseded_groups(frames, &groups, gate_chi2);
+    groups.into_iter().zip(superseded).collect()
 }
 
-/// The motion rule of [`group_tracks`]: per group (members still newest
-/// first), whether the track's newest frame disagrees with it under every
-/// pairing of hypotheses.
-fn superseded_groups(
-    frames: &[Frame],
-    groups: &[Vec<usize>],
-    open: &BTreeMap<TrackKey, Vec<OpenGroup>>,
-    newest: &BTreeMap<TrackKey, usize>,
-    gate_chi2: f64,
-) -> Vec<bool> {
+/// The motion rule of [`group_tracks`] on one track's groups (members still
+/// newest first; group 0 holds the track's newest frame): per group, whether
+/// that newest frame disagrees with it under every pairing of hypotheses.
+fn superseded_groups(frames: &[Frame], groups: &[Vec<usize>], gate_chi2: f64) -> Vec<bool> {
     let mut superseded = vec![false; groups.len()];
-    for (track, list) in open {
-        let now = newest[track];
-        let Some(&latest) = groups[now].first() else {
+    let Some(&latest) = groups.first().and_then(|g| g.first()) else {
+        return superseded;
+    };
+    for (g, members) in groups.iter().enumerate().skip(1) {
+        let Some(&last) = members.first() else {
             continue;
         };
-        for &(g, _) in list {
-            let Some(&last) = groups[g].first() else {
-                continue;
-            };
-            // Only the past is superseded: two frames of one instant (a
-            // misread ID beside the marker itself) are for the consistency
-            // checks to judge, not for the motion rule.
-            if g == now || frames[last].stamp_ns >= frames[latest].stamp_ns {
-                continue;
-            }
-            let agrees = frames[last].hyps.iter().flatten().any(|old| {
-                frames[latest]
-                    .hyps
-                    .iter()
-                    .flatten()
-                    .any(|new| consistent(old, new, gate_chi2))
-            });
-            superseded[g] = !agrees;
+        // Only the past is superseded: two frames of one instant (a
+        // misread ID beside the marker itself) are for the consistency
+        // checks to judge, not for the motion rule.
+        if frames[last].stamp_ns >= frames[latest].stamp_ns {
+            continue;
         }
+        let agrees = frames[last].hyps.iter().flatten().any(|old| {
+            frames[latest]
+                .hyps
+                .iter()
+                .flatten()
+                .any(|new| consistent(old, new, gate_chi2))
+        });
+        superseded[g] = !agrees;
     }
     superseded
 }
@@ -225,7 +243,7 @@ mod tests {
         let frames: Vec<Frame> = (0..3)
             .map(|k| frame(k, 1, 2, k as u64 * FRAME_NS, at(0.001 * k as f64), None))
             .collect();
-        let g = group_tracks(&frames, GATE, true);
+        let g = group_tracks(&frames, GATE, true, 2);
         assert_eq!(g.members, vec![vec![0, 1, 2]]);
         assert_eq!(g.superseded, vec![false]);
         let c = g.candidate(&frames, 0, 0, &[]).unwrap();
@@ -247,14 +265,19 @@ mod tests {
             frame(1, 1, 2, FRAME_NS, at(0.0), None),
             frame(2, 1, 2, 2 * FRAME_NS, at(0.3), None),
         ];
-        let g = group_tracks(&frames, GATE, true);
+        let g = group_tracks(&frames, GATE, true, 2);
         assert_eq!(g.members, vec![vec![0, 1], vec![2]]);
         assert_eq!(g.superseded, vec![true, false]);
         assert_eq!(g.superseded_frames(3), vec![true, true, false]);
         // The same frames of another camera's track supersede nothing of this one.
         let mut other = frames[2].clone();
         other.track.camera = 1;
-        let g = group_tracks(&[frames[0].clone(), frames[1].clone(), other], GATE, true);
+        let g = group_tracks(
+            &[frames[0].clone(), frames[1].clone(), other],
+            GATE,
+            true,
+            2,
+        );
         assert_eq!(g.superseded, vec![false, false]);
     }
 
@@ -265,7 +288,7 @@ mod tests {
             frame(0, 1, 2, 0, truth, Some(twin)),
             frame(1, 1, 2, FRAME_NS, twin, Some(truth)),
         ];
-        let g = group_tracks(&frames, GATE, true);
+        let g = group_tracks(&frames, GATE, true, 2);
         assert_eq!(g.members, vec![vec![0], vec![1]]);
         assert_eq!(
             g.superseded,
@@ -274,7 +297,7 @@ mod tests {
         );
         // The observer being the pair's `b`, the candidate is inverted.
         let back = vec![frame(0, 2, 1, 0, truth, None)];
-        let g = group_tracks(&back, GATE, true);
+        let g = group_tracks(&back, GATE, true, 2);
         let c = g.candidate(&back, 0, 0, &[]).unwrap();
         assert!((c.a_from_b.translation.vector.x + 2.0).abs() < 1e-12);
     }
@@ -284,7 +307,7 @@ mod tests {
         let frames: Vec<Frame> = (0..3)
             .map(|k| frame(k, 1, 2, k as u64 * FRAME_NS, at(0.0), None))
             .collect();
-        let g = group_tracks(&frames, GATE, false);
+        let g = group_tracks(&frames, GATE, false, 2);
         assert_eq!(g.members, vec![vec![0], vec![1], vec![2]]);
     }
 }

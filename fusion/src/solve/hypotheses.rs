@@ -30,32 +30,42 @@ pub(crate) fn pair_candidates(
     frames: &[Frame],
     groups: &TrackGroups,
     params: &ConsistencyParams,
+    threads: usize,
 ) -> Vec<PairCandidates> {
-    let mut by_pair: BTreeMap<(VehicleId, VehicleId), Vec<Candidate>> = BTreeMap::new();
-    for (g, members) in groups.members.iter().enumerate() {
+    // Each group's fused candidates (independent: on up to `threads`), then
+    // gathered per pair in group order.
+    let per_group = crate::par::map(&groups.members, threads, 64, |g, _| {
+        let h = |h: u8| groups.candidate(frames, g, h, &[]);
         if groups.superseded[g] {
-            continue;
+            [None, None]
+        } else {
+            [h(0), h(1)]
         }
-        let f = &frames[members[0]];
-        for h in 0..2u8 {
-            if let Some(c) = groups.candidate(frames, g, h, &[]) {
-                by_pair.entry(f.pair()).or_default().push(c);
-            }
+    });
+    let mut by_pair: BTreeMap<(VehicleId, VehicleId), Vec<Candidate>> = BTreeMap::new();
+    for (members, cands) in groups.members.iter().zip(per_group) {
+        for c in cands.into_iter().flatten() {
+            by_pair
+                .entry(frames[members[0]].pair())
+                .or_default()
+                .push(c);
         }
     }
+    let by_pair: Vec<((VehicleId, VehicleId), Vec<Candidate>)> = by_pair.into_iter().collect();
+    let clusters = crate::par::map(&by_pair, threads, 16, |_, (_, candidates)| {
+        consistency::cluster_pair(candidates, params)
+    });
     let mut pairs: Vec<PairCandidates> = by_pair
         .into_iter()
-        .map(|((a, b), candidates)| {
-            let clusters = consistency::cluster_pair(&candidates, params);
-            PairCandidates {
-                a,
-                b,
-                candidates,
-                clusters,
-            }
+        .zip(clusters)
+        .map(|(((a, b), candidates), clusters)| PairCandidates {
+            a,
+            b,
+            candidates,
+            clusters,
         })
         .collect();
-    consistency::vote_triangles(&mut pairs, params.gate_chi2);
+    consistency::vote_triangles_threads(&mut pairs, params.gate_chi2, threads);
     pairs
 }
 
@@ -146,9 +156,9 @@ mod tests {
             frame(2, 1, 2, 200_000_000, truth, Some(twin)),
             frame(3, 2, 1, 200_000_000, truth.inverse(), None),
         ];
-        let groups = group_tracks(&frames, GATE, true);
+        let groups = group_tracks(&frames, GATE, true, 2);
         assert_eq!(groups.members, vec![vec![0, 1, 2], vec![3]]);
-        let pairs = pair_candidates(&frames, &groups, &ConsistencyParams::default());
+        let pairs = pair_candidates(&frames, &groups, &ConsistencyParams::default(), 2);
         assert_eq!(pairs.len(), 1);
         assert_eq!(
             pairs[0].candidates.len(),

@@ -30,15 +30,15 @@ pub(crate) fn graph(
     frames: &[Frame],
     gated: &BTreeSet<(usize, u8)>,
     reference: VehicleId,
+    threads: usize,
 ) -> Graph {
     let tree = &hyps.selection.trees[0];
-    let mut constraints = Vec::new();
-    for (pi, p) in hyps.pairs.iter().enumerate() {
-        if hyps.selection.choice[pi].is_none() {
-            continue;
-        }
+    // One constraint per pair, independent: on up to `threads`.
+    let per_pair = crate::par::map(&hyps.pairs, threads, 32, |pi, p| {
+        // Pairs without a chosen cluster give no constraint.
+        hyps.selection.choice[pi]?;
         if !tree.contains(p.a) || !tree.contains(p.b) {
-            continue;
+            return None;
         }
         // The accepted groups of the pair, each without its gated frames.
         let items: Vec<(Pose, Cov6)> = hyps.accepted_groups[pi]
@@ -57,15 +57,15 @@ pub(crate) fn graph(
             })
             .map(|cand| (cand.a_from_b, cand.information))
             .collect();
-        if let Some((pose, cov)) = consistency::fuse(&items) {
-            constraints.push(Constraint {
-                a: p.a,
-                b: p.b,
-                a_from_b: pose,
-                covariance: cov,
-            });
-        }
-    }
+        let (pose, cov) = consistency::fuse(&items)?;
+        Some(Constraint {
+            a: p.a,
+            b: p.b,
+            a_from_b: pose,
+            covariance: cov,
+        })
+    });
+    let mut constraints: Vec<Constraint> = per_pair.into_iter().flatten().collect();
     let connected = connected_to(reference, &constraints);
     constraints.retain(|c| connected.contains(&c.a));
     let initial = tree
@@ -108,8 +108,8 @@ mod tests {
     const GATE: f64 = 27.86;
 
     fn hypotheses(frames: &[Frame]) -> (TrackGroups, Hypotheses) {
-        let groups = group_tracks(frames, GATE, true);
-        let pairs = pair_candidates(frames, &groups, &ConsistencyParams::default());
+        let groups = group_tracks(frames, GATE, true, 2);
+        let pairs = pair_candidates(frames, &groups, &ConsistencyParams::default(), 2);
         let h = choose(pairs, frames, &groups, 1, GATE, &Prior::new());
         (groups, h)
     }
@@ -123,11 +123,11 @@ mod tests {
             frame(1, 1, 2, 100_000_000, off, None),
         ];
         let (groups, h) = hypotheses(&frames);
-        let all = graph(&h, &groups, &frames, &BTreeSet::new(), 1);
+        let all = graph(&h, &groups, &frames, &BTreeSet::new(), 1, 2);
         assert_eq!(all.constraints.len(), 1);
         let y = all.constraints[0].a_from_b.translation.vector.y;
         assert!((y - 0.01).abs() < 1e-9, "the mean of both: {y}");
-        let without = graph(&h, &groups, &frames, &BTreeSet::from([(1, 0)]), 1);
+        let without = graph(&h, &groups, &frames, &BTreeSet::from([(1, 0)]), 1, 2);
         let e = proto::geometry::difference(&without.constraints[0].a_from_b, &near);
         assert!(e.norm() < 1e-12, "the first frame alone: {e}");
         assert_eq!(
@@ -147,7 +147,7 @@ mod tests {
             2,
             "a second tree grows from vehicle 3"
         );
-        let g = graph(&h, &groups, &frames, &BTreeSet::new(), 1);
+        let g = graph(&h, &groups, &frames, &BTreeSet::new(), 1, 2);
         assert_eq!(g.constraints.len(), 1);
         assert_eq!((g.constraints[0].a, g.constraints[0].b), (1, 2));
         assert_eq!(g.initial.keys().copied().collect::<Vec<_>>(), vec![1, 2]);

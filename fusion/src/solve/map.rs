@@ -45,6 +45,7 @@ pub(crate) fn verdicts(
     gate: &GatedSolution,
     superseded: &[bool],
     nav: &[[Option<RejectReason>; 2]],
+    threads: usize,
 ) -> Verdicts {
     let mut out = Verdicts {
         edges: Vec::new(),
@@ -56,6 +57,19 @@ pub(crate) fn verdicts(
     // 100-vehicle solve).
     let is_gated = hypothesis_flags(entries.len(), gate.gated.iter().copied());
     let is_accepted = hypothesis_flags(entries.len(), accepted.keys().copied());
+    // Every hypothesis' residual against the solution (the gate's where it
+    // judged it), independent: on up to `threads`.
+    let chi2s = crate::par::map(entries, threads, 256, |i, _| {
+        let x2 = |h: usize| gate.chi2[i][h].unwrap_or_else(|| frames[i].chi2(h, &gate.solution));
+        [
+            x2(0),
+            if entries[i].1.obs.alternative.is_some() {
+                x2(1)
+            } else {
+                f64::NAN
+            },
+        ]
+    });
     for (i, (_, s)) in entries.iter().enumerate() {
         let o = &s.obs;
         let n_hyp: u8 = if o.alternative.is_some() { 2 } else { 1 };
@@ -75,8 +89,7 @@ pub(crate) fn verdicts(
             } else {
                 Some(RejectReason::Inconsistent)
             };
-            let chi2 = gate.chi2[i][usize::from(h)]
-                .unwrap_or_else(|| frames[i].chi2(usize::from(h), &gate.solution));
+            let chi2 = chi2s[i][usize::from(h)];
             match &verdict {
                 Some(r) => out.rejected.add(r),
                 None => out.accepted += 1,
@@ -300,6 +313,7 @@ mod tests {
             &gate,
             &[false, false, true, false],
             &[[None, None], [None, None], [None, None], [None, None]],
+            2,
         );
         let reasons: Vec<Option<RejectReason>> =
             v.edges.iter().map(|e| e.rejected.clone()).collect();

@@ -52,45 +52,64 @@ pub(crate) type GroupFits = Vec<[Option<(SVector<f64, 6>, Cov6)>; 2]>;
 /// [`GroupFits`] of every group (all `None` when the model is off): the one
 /// velocity fit per group and hypothesis that both [`pair_motion`] and
 /// [`compensate`] use.
-pub(crate) fn fit_groups(frames: &[Frame], groups: &TrackGroups, model: &MotionModel) -> GroupFits {
-    groups
-        .members
-        .iter()
-        .zip(&groups.superseded)
-        .map(|(members, &gone)| {
-            let mut fits = [None, None];
-            let newest = match members.last() {
-                Some(&n) if model.enabled && !gone && members.len() >= 2 => n,
-                _ => return fits,
+pub(crate) fn fit_groups(
+    frames: &[Frame],
+    groups: &TrackGroups,
+    model: &MotionModel,
+    threads: usize,
+) -> GroupFits {
+    crate::par::map(&groups.members, threads, GROUPS_PER_THREAD, |g, members| {
+        let gone = groups.superseded[g];
+        let mut fits = [None, None];
+        let newest = match members.last() {
+            Some(&n) if model.enabled && !gone && members.len() >= 2 => n,
+            _ => return fits,
+        };
+        let t_n = frames[newest].stamp_ns;
+        for (h, fit) in fits.iter_mut().enumerate() {
+            let Some(anchor) = frames[newest].hyps[h].map(|c| c.a_from_b) else {
+                continue;
             };
-            let t_n = frames[newest].stamp_ns;
-            for (h, fit) in fits.iter_mut().enumerate() {
-                let Some(anchor) = frames[newest].hyps[h].map(|c| c.a_from_b) else {
-                    continue;
-                };
-                let Some((v, cov_v, significance)) =
-                    fit_velocity(frames, members, h, t_n, &anchor, model)
-                else {
-                    continue;
-                };
-                if !significance.is_nan() && significance > model.significance_chi2 {
-                    *fit = Some((v, cov_v));
-                }
+            let Some((v, cov_v, significance)) =
+                fit_velocity(frames, members, h, t_n, &anchor, model)
+            else {
+                continue;
+            };
+            if !significance.is_nan() && significance > model.significance_chi2 {
+                *fit = Some((v, cov_v));
             }
-            fits
-        })
-        .collect()
+        }
+        fits
+    })
 }
+
+/// Groups per thread at least ([`crate::par`]).
+const GROUPS_PER_THREAD: usize = 64;
 
 /// [`MotionModel`] on every group with a significant velocity (`fits`, from
 /// [`fit_groups`] on these groups); returns how many groups were moved.
-pub(crate) fn compensate(frames: &mut [Frame], groups: &TrackGroups, fits: &GroupFits) -> usize {
-    groups
-        .members
-        .iter()
-        .zip(fits)
-        .map(|(members, fit)| usize::from(compensate_group(frames, members, fit)))
-        .sum()
+pub(crate) fn compensate(
+    frames: &mut [Frame],
+    groups: &TrackGroups,
+    fits: &GroupFits,
+    threads: usize,
+) -> usize {
+    // Each group's frames moved on up to `threads` (groups share no
+    // frame), then written back.
+    let moved = crate::par::map(&groups.members, threads, GROUPS_PER_THREAD, |g, members| {
+        compensate_group(frames, members, &fits[g])
+    });
+    let mut count = 0;
+    for (members, updates) in groups.members.iter().zip(moved) {
+        let Some(updates) = updates else {
+            continue;
+        };
+        count += 1;
+        for (&i, hyps) in members.iter().zip(updates) {
+            frames[i].hyps = hyps;
+        }
+    }
+    count
 }
 
 /// Per vehicle pair (lower ID first), the fastest relative motion fitted on
@@ -126,24 +145,23 @@ pub(crate) fn pair_motion(frames: &[Frame], groups: &TrackGroups, fits: &GroupFi
 }
 
 /// One group (`members` ascending in time) moved along its significant
-/// velocities (`fit`, per hypothesis) to its newest member's time. Returns
-/// whether any hypothesis was moved.
+/// velocities (`fit`, per hypothesis) to its newest member's time: the
+/// members' new hypotheses, in `members` order; `None` when nothing moved.
 fn compensate_group(
-    frames: &mut [Frame],
+    frames: &[Frame],
     members: &[usize],
     fit: &[Option<(SVector<f64, 6>, Cov6)>; 2],
-) -> bool {
-    let Some(&newest) = members.last() else {
-        return false;
-    };
+) -> Option<Vec<[Option<Candidate>; 2]>> {
+    let &newest = members.last()?;
     let t_n = frames[newest].stamp_ns;
-    let mut moved = false;
+    let mut moved: Option<Vec<[Option<Candidate>; 2]>> = None;
     for h in 0..2 {
         let (Some(anchor), Some((v, cov_v))) = (frames[newest].hyps[h].map(|c| c.a_from_b), fit[h])
         else {
             continue;
         };
-        for &i in members {
+        let out = moved.get_or_insert_with(|| members.iter().map(|&i| frames[i].hyps).collect());
+        for (&i, hyps) in members.iter().zip(out.iter_mut()) {
             let Some(c) = frames[i].hyps[h] else {
                 continue;
             };
@@ -151,9 +169,8 @@ fn compensate_group(
             let r = proto::geometry::difference(&c.a_from_b, &anchor);
             let pose = proto::geometry::perturb(&anchor, &(r - v * d));
             let grown = c.covariance + cov_v * (d * d);
-            frames[i].hyps[h] = Candidate::new(c.observation, c.hypothesis, pose, grown);
+            hyps[h] = Candidate::new(c.observation, c.hypothesis, pose, grown);
         }
-        moved = true;
     }
     moved
 }
@@ -237,12 +254,12 @@ mod tests {
         // 2 cm/s over 20 frames: 3.8 cm of drift, 3.8σ (one group: within
         // the gate of the newest frame), a velocity ~5σ from zero (significant).
         let mut frames = drifting(20, 0.02);
-        let groups = group_tracks(&frames, 27.86, true);
+        let groups = group_tracks(&frames, 27.86, true, 2);
         assert_eq!(groups.members.len(), 1);
         assert_eq!(
             {
-                let fits = fit_groups(&frames, &groups, &MotionModel::default());
-                compensate(&mut frames, &groups, &fits)
+                let fits = fit_groups(&frames, &groups, &MotionModel::default(), 2);
+                compensate(&mut frames, &groups, &fits, 2)
             },
             1
         );
@@ -261,11 +278,11 @@ mod tests {
     fn a_still_track_and_a_disabled_model_move_nothing() {
         let mut frames = drifting(20, 0.0);
         let before = frames.clone();
-        let groups = group_tracks(&frames, 27.86, true);
+        let groups = group_tracks(&frames, 27.86, true, 2);
         assert_eq!(
             {
-                let fits = fit_groups(&frames, &groups, &MotionModel::default());
-                compensate(&mut frames, &groups, &fits)
+                let fits = fit_groups(&frames, &groups, &MotionModel::default(), 2);
+                compensate(&mut frames, &groups, &fits, 2)
             },
             0
         );
@@ -275,11 +292,11 @@ mod tests {
             enabled: false,
             ..MotionModel::default()
         };
-        let groups = group_tracks(&moving, 27.86, true);
+        let groups = group_tracks(&moving, 27.86, true, 2);
         assert_eq!(
             {
-                let fits = fit_groups(&moving, &groups, &off);
-                compensate(&mut moving, &groups, &fits)
+                let fits = fit_groups(&moving, &groups, &off, 2);
+                compensate(&mut moving, &groups, &fits, 2)
             },
             0
         );
@@ -294,11 +311,11 @@ mod tests {
             frames.push(frame(20 + k, 1, 3, k as u64 * FRAME_NS, p, None));
         }
         frames.sort_by_key(|f| f.stamp_ns);
-        let groups = group_tracks(&frames, 27.86, true);
+        let groups = group_tracks(&frames, 27.86, true, 2);
         let moving = pair_motion(
             &frames,
             &groups,
-            &fit_groups(&frames, &groups, &MotionModel::default()),
+            &fit_groups(&frames, &groups, &MotionModel::default(), 2),
         );
         assert_eq!(moving.keys().copied().collect::<Vec<_>>(), vec![(1, 2)]);
         let (speed, turn) = moving[&(1, 2)];
@@ -309,11 +326,11 @@ mod tests {
             enabled: false,
             ..MotionModel::default()
         };
-        assert!(pair_motion(&frames, &groups, &fit_groups(&frames, &groups, &off)).is_empty());
+        assert!(pair_motion(&frames, &groups, &fit_groups(&frames, &groups, &off, 2)).is_empty());
 
         let before = frames.clone();
         let now = 19 * FRAME_NS;
-        crate::solve::frames::inflate_moving(&mut frames, &moving, now);
+        crate::solve::frames::inflate_moving(&mut frames, &moving, now, 2);
         for (a, b) in frames.iter().zip(&before) {
             let (ca, cb) = (a.hyps[0].unwrap().covariance, b.hyps[0].unwrap().covariance);
             let age = (now - a.stamp_ns) as f64 * 1e-9;
