@@ -639,3 +639,49 @@ fn nees_quick_covariance_within_a_factor_4_of_its_chi2_band() {
     );
     assert!(num(&s["calibration_scale"]["fitted"]) > 0.0);
 }
+
+/// `profiles --quick`: clear water at 1 m (three seeds, two frames each) and
+/// the motion-blur ablation. Measured in the full run (seeds 1-5): the ideal
+/// camera reads every frame with a 0.05 mm median position error; the
+/// realistic one 6.3 mm, mostly the lab's in-water pinhole behind the flat
+/// port (5.3 mm alone) and the calibration error (3.2 mm alone).
+#[test]
+fn profiles_quick_the_realistic_camera_costs_millimetres_the_ideal_does_not() {
+    let (dir, s) = run_quick(Experiment::Profiles);
+    assert_files(
+        &dir,
+        &[
+            "summary.json",
+            "frames.csv",
+            "profiles-recall.png",
+            "profiles-position.png",
+        ],
+    );
+    let r = &s;
+    assert_eq!(num(&r["seeds"]), 3.0, "{r}");
+    let c = &r["conditions"]["c0.50_r1"];
+    let (ideal, real) = (&c["ideal"], &c["realistic"]);
+    assert_eq!(num(&ideal["recall"]["mean"]), 1.0, "{ideal}");
+    // An interval over three seeds, and it holds the mean.
+    let ci = ideal["median_position_mm"]["ci95"]
+        .as_array()
+        .expect("interval over seeds");
+    let mean = num(&ideal["median_position_mm"]["mean"]);
+    assert!(num(&ci[0]) <= mean && mean <= num(&ci[1]), "{ideal}");
+    // 0.05 mm measured: a tenth of a millimetre leaves room for three seeds.
+    assert!(mean < 0.5, "ideal {mean} mm");
+    let real_mm = num(&real["median_position_mm"]["mean"]);
+    // The port alone costs millimetres at 1 m (refraction experiment: 3.5 mm).
+    assert!(real_mm > 1.0 && real_mm < 50.0, "realistic {real_mm} mm");
+    assert!(
+        num(&real["position_ratio_to_ideal"]["mean"]) > 5.0,
+        "{real}"
+    );
+    // Motion blur alone integrates several sub-frames over the exposure.
+    let blur = &r["each_effect_alone"]["profiles"]["motion-blur"];
+    assert!(num(&blur["sub_frames_mean"]) > 1.0, "{blur}");
+    assert_eq!(
+        num(&r["each_effect_alone"]["profiles"]["ideal"]["sub_frames_mean"]),
+        1.0
+    );
+}

@@ -17,6 +17,8 @@
 //! ([`super::refraction::calibrate_in_water`], one per seed), moved by the
 //! calibration error when that effect is on.
 
+use super::features::plot_or_warn;
+use super::plot::{self, Grouped};
 use super::scene::{
     frame_rng, locate, make_restorer, pose_errors, restore, MarkerMethod, FRAME_INTERVAL_S,
     MARKER_ID, MARKER_SIDE_M,
@@ -124,7 +126,7 @@ fn run_profile(
     let cam = CameraModel::vehicle_1440();
     let water = opts.presets()?.get(c_per_m)?;
     let mut renderer = Renderer::new();
-    for s in 0..SEEDS {
+    for s in 0..seeds(opts) {
         let seed = opts.seed + s;
         let profile = profile.clone().with_seed(seed);
         let node_cam = node_camera(&profile, &cam, seed)?;
@@ -244,6 +246,30 @@ fn summarize(rows: &[Row], profile: &str, c: f64, r: f64, ideal: Option<&str>) -
     out
 }
 
+/// The summary's key of a condition, e.g. `c0.50_r1`.
+fn condition_key(c_per_m: f64, range_m: f64) -> String {
+    format!("c{}_r{range_m}", water_key(c_per_m))
+}
+
+/// Seeds per condition: [`SEEDS`], three in `--quick` (still an interval).
+fn seeds(opts: &EvalOptions) -> u64 {
+    if opts.quick {
+        3
+    } else {
+        SEEDS
+    }
+}
+
+/// The main comparison's conditions: all of [`CONDITIONS`], the first (clear
+/// water at 1 m) in `--quick`.
+fn conditions(opts: &EvalOptions) -> &'static [(f64, f64)] {
+    if opts.quick {
+        &CONDITIONS[..1]
+    } else {
+        &CONDITIONS
+    }
+}
+
 /// `shoal eval profiles`.
 pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     let frames = opts.count(2, 6);
@@ -256,10 +282,10 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
             .filter(|e| !opts.quick || **e == Effect::MotionBlur)
             .map(|e| CameraProfile::only(&[*e])),
     );
-    let total = CONDITIONS.len() * main.len() + ablation.len();
+    let total = conditions(opts).len() * main.len() + ablation.len();
     let bar = opts.bar(total, "profiles");
     let mut rows = Vec::new();
-    for (ci, cond) in CONDITIONS.iter().enumerate() {
+    for (ci, cond) in conditions(opts).iter().enumerate() {
         for p in &main {
             run_profile(opts, p, *cond, ci as u64, frames, &mut rows)?;
             bar.inc(1);
@@ -273,11 +299,10 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     bar.finish_and_clear();
     write_csv(opts, rows.iter().chain(&ablation_rows))?;
 
-    let mut conditions = Map::new();
-    for &(c, r) in &CONDITIONS {
-        let key = format!("c{}_r{r}", water_key(c));
-        conditions.insert(
-            key,
+    let mut summaries = Map::new();
+    for &(c, r) in conditions(opts) {
+        summaries.insert(
+            condition_key(c, r),
             json!({
                 "ideal": summarize(&rows, "ideal", c, r, None),
                 "realistic": summarize(&rows, "realistic", c, r, Some("ideal")),
@@ -292,10 +317,12 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
             summarize(&ablation_rows, &p.name, ABLATION.0, ABLATION.1, base),
         );
     }
+    let plots = plot_profiles(opts, &summaries);
     Ok(json!({
-        "seeds": SEEDS,
+        "plots": plots,
+        "seeds": seeds(opts),
         "frames_per_seed": frames,
-        "conditions": conditions,
+        "conditions": summaries,
         "each_effect_alone": {
             "c_per_m": ABLATION.0,
             "range_m": ABLATION.1,
@@ -304,6 +331,55 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
         },
         "restore": opts.restore.to_string(),
     }))
+}
+
+/// Recall and median position error of both profiles at every condition
+/// (the means over seeds; the intervals are in `summary.json`).
+fn plot_profiles(opts: &EvalOptions, summaries: &Map<String, Value>) -> Value {
+    let conds = conditions(opts);
+    let categories: Vec<String> = conds
+        .iter()
+        .map(|(c, r)| format!("{} /m, {r} m", water_key(*c)))
+        .collect();
+    let series = ["ideal", "realistic"];
+    let values = |field: &str| -> Vec<Vec<Option<f64>>> {
+        series
+            .iter()
+            .map(|p| {
+                conds
+                    .iter()
+                    .map(|(c, r)| {
+                        summaries.get(&condition_key(*c, *r))?[*p][field]["mean"].as_f64()
+                    })
+                    .collect()
+            })
+            .collect()
+    };
+    let spec = |title: &str, y: &str| Grouped {
+        title: title.into(),
+        x_label: "water c (1/m), range (m)".into(),
+        y_label: y.into(),
+        categories: categories.clone(),
+        series: series.iter().map(|s| (*s).to_string()).collect(),
+    };
+    json!([
+        plot_or_warn(plot::bars(
+            &opts.out.join("profiles-recall"),
+            &spec(
+                "Markers read: ideal vs realistic camera",
+                "recall (mean over seeds)"
+            ),
+            &values("recall"),
+        )),
+        plot_or_warn(plot::bars(
+            &opts.out.join("profiles-position"),
+            &spec(
+                "Median position error: ideal vs realistic camera",
+                "median position error (mm, mean over seeds)",
+            ),
+            &values("median_position_mm"),
+        )),
+    ])
 }
 
 fn write_csv<'a>(opts: &EvalOptions, rows: impl Iterator<Item = &'a Row>) -> Result<(), EvalError> {

@@ -5,22 +5,25 @@
 //! camera sliding sideways at 0.3 m/s and turning at 8°/s, in 1.38 /m water.
 //! Tiles (300x300 crops at full resolution, left to right, top to bottom):
 //! ideal; each image effect alone in `Effect::ALL` order; all of them
-//! (the realistic profile); the clean twin. Calibration error changes no
-//! pixel and has no tile.
+//! (the realistic profile); the clean twin. Each tile is named in a strip
+//! above it. Calibration error changes no pixel and has no tile.
 
+use super::restore_sheet::{imwrite, label};
 use crate::eval::EvalError;
 use nalgebra::Vector3;
 use shoal_proto::{CameraModel, CodeSet, GrayImage, Pose};
 use shoal_sim_bridge::profile::{CameraProfile, Effect};
 use shoal_sim_bridge::render::motion::{RigidMotion, Twist};
 use shoal_sim_bridge::render::realistic::render_profiled;
-use shoal_sim_bridge::render::{facing_camera, write_png, Renderer, Scene};
+use shoal_sim_bridge::render::{facing_camera, Renderer, Scene};
 use shoal_sim_bridge::water::WaterPresets;
 use std::path::PathBuf;
 
 const TILE: usize = 300;
 const GAP: usize = 6;
 const COLS: usize = 7;
+/// Height of the name strip above each tile.
+const LABEL_H: usize = 24;
 
 /// The effects with a tile of their own, in sheet order: every one but the
 /// calibration error, which changes no pixel.
@@ -64,7 +67,7 @@ pub fn run(a: &EffectsSheetArgs) -> Result<(), EvalError> {
     let rows = tiles.div_ceil(COLS);
     let (w, h) = (
         COLS * TILE + (COLS - 1) * GAP,
-        rows * TILE + (rows - 1) * GAP,
+        rows * (LABEL_H + TILE) + (rows - 1) * GAP,
     );
     let mut sheet = GrayImage::filled(w as u32, h as u32, 255);
     let centre = cam
@@ -79,7 +82,8 @@ pub fn run(a: &EffectsSheetArgs) -> Result<(), EvalError> {
         for y in 0..TILE {
             for x in 0..TILE {
                 let v = img.get((x0 + x) as u32, (y0 + y) as u32);
-                sheet.data[(row * (TILE + GAP) + y) * w + col * (TILE + GAP) + x] = v;
+                sheet.data
+                    [(row * (LABEL_H + TILE + GAP) + LABEL_H + y) * w + col * (TILE + GAP) + x] = v;
             }
         }
     };
@@ -106,7 +110,21 @@ pub fn run(a: &EffectsSheetArgs) -> Result<(), EvalError> {
     if let Some(c) = clean {
         blit(&c, profiles.len());
     }
-    write_png(&sheet, &a.out)?;
+    let mut sheet = shoal_node::mat::gray_to_mat(&sheet)
+        .map_err(|e| EvalError::Setup(format!("effects sheet: {e}")))?;
+    let names = profiles
+        .iter()
+        .map(|p| p.name.as_str())
+        .chain(["clean twin"]);
+    for (k, name) in names.enumerate() {
+        let (col, row) = (k % COLS, k / COLS);
+        let at = opencv::core::Point::new(
+            (col * (TILE + GAP) + 4) as i32,
+            (row * (LABEL_H + TILE + GAP) + LABEL_H - 7) as i32,
+        );
+        label(&mut sheet, name, at, 0.55)?;
+    }
+    imwrite(&a.out, &sheet)?;
     crate::outln!("wrote {}", a.out.display());
     Ok(())
 }

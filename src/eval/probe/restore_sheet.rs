@@ -57,7 +57,7 @@ fn tile(img: &Mat, crop: Rect) -> Result<Mat, EvalError> {
     Ok(out)
 }
 
-fn imwrite(path: &std::path::Path, m: &Mat) -> Result<(), EvalError> {
+pub(super) fn imwrite(path: &std::path::Path, m: &Mat) -> Result<(), EvalError> {
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).map_err(|source| EvalError::Io {
             path: dir.to_path_buf(),
@@ -70,7 +70,7 @@ fn imwrite(path: &std::path::Path, m: &Mat) -> Result<(), EvalError> {
     Ok(())
 }
 
-fn label(sheet: &mut Mat, text: &str, at: Point, scale: f64) -> Result<(), EvalError> {
+pub(super) fn label(sheet: &mut Mat, text: &str, at: Point, scale: f64) -> Result<(), EvalError> {
     imgproc::put_text(
         sheet,
         text,
