@@ -178,8 +178,13 @@ fn production_mean_nees(c_per_m: f64, seed: u64) -> (f64, usize) {
     (sum / n.max(1) as f64, n)
 }
 
+/// Clear and light water only (0.126 and 1.38 /m), where the production
+/// covariance errs on the cautious side. In murky water (3.92-8.22 /m) it is
+/// overconfident (mean NEES 18-57, `shoal eval nees`, docs/results.md#nees):
+/// the corners' errors there are correlated and the residuals do not show
+/// them. That is an open finding of issue #16, not covered here.
 #[test]
-fn production_covariance_is_conservative_within_a_factor_4_never_overconfident() {
+fn production_covariance_in_clear_water_is_conservative_within_a_factor_4() {
     for (c, seed) in [(0.126, 5), (1.38, 6)] {
         let (mean, n) = production_mean_nees(c, seed);
         eprintln!("production path at {c} /m: mean NEES {mean:.2} over {n} frames");
