@@ -94,6 +94,13 @@ pub struct Detection {
     pub corners_px: Vec<[f64; 2]>,
     /// Index of each corner into [`CodeSet::corners_3d`].
     pub corner_ids: Vec<u8>,
+    /// Covariance (px², x then y of each corner of `corners_px`) when the
+    /// fit that gave the corners states one: the whole-pattern fit, whose
+    /// corners all follow the same four outer corners, so their errors are
+    /// correlated and the pose's residuals cannot show them
+    /// ([`crate::pose::corner_covariance`]). `None`: independent corner
+    /// errors, estimated from the residuals.
+    pub corner_covariance: Option<nalgebra::DMatrix<f64>>,
     /// Bits corrected when decoding.
     pub hamming: u32,
     /// Mean module size in pixels.
@@ -267,6 +274,7 @@ impl ShoalDetector {
                     id: marker.id,
                     corners_px: fitted.corners_px,
                     corner_ids: fitted.corner_ids,
+                    corner_covariance: fitted.covariance,
                     hamming: marker.hamming,
                     module_px: marker.module_px,
                     corner_fit: fitted.choice,

@@ -668,6 +668,7 @@ mod tests {
             id: 17,
             corners_px,
             corner_ids,
+            corner_covariance: None,
             hamming: 0,
             module_px: 20.0,
             corner_fit: crate::detect::CornerChoice::baseline(),

@@ -8,7 +8,9 @@
 use crate::detect::{
     CornerFitCounts, DetectError, DetectParams, Detection, MarkerDetector, ShoalDetector,
 };
-use crate::pose::{calibration_covariance, estimate_pose_with, Hypothesis, PoseError};
+use crate::pose::{
+    calibration_covariance, corner_covariance, estimate_pose_with, Hypothesis, PoseError,
+};
 use crate::restore::{restorer, Method, RestoreError, RestoreParams, Restorer};
 use crate::track::{Track, TrackParams};
 use opencv::core::Mat;
@@ -249,10 +251,36 @@ impl CameraPipeline {
                 )
             })
         };
+        // The error correlated corners cause (one whole-pattern fit moves
+        // them together: the residuals cannot show it either).
+        let corners = |h: &Hypothesis| -> Result<Cov6, String> {
+            let Some(cov) = &det.corner_covariance else {
+                return Ok(Cov6::zeros());
+            };
+            corner_covariance(
+                &self.camera.model,
+                self.camera.port.as_ref(),
+                &object_points,
+                &h.camera_from_marker,
+                cov,
+            )
+            .ok_or_else(|| {
+                format!(
+                    "{}#{}: no corner covariance ({} corners, a {}x{} covariance)",
+                    det.codes,
+                    det.id,
+                    object_points.len(),
+                    cov.nrows(),
+                    cov.ncols()
+                )
+            })
+        };
         let to_body = |h: &Hypothesis| -> Result<PoseWithCovariance, String> {
             let fixed = |p: Pose| PoseWithCovariance::new(p, Cov6::zeros());
-            let camera_from_marker =
-                PoseWithCovariance::new(h.camera_from_marker, h.covariance + calibration(h)?);
+            let camera_from_marker = PoseWithCovariance::new(
+                h.camera_from_marker,
+                h.covariance + calibration(h)? + corners(h)?,
+            );
             let marker_from_target = owner
                 .map(|(_, body_from_marker)| body_from_marker.inverse())
                 .unwrap_or_else(Pose::identity);

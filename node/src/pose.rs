@@ -16,7 +16,10 @@
 //!    pinhole: the lens's focal length times n_water).
 //! 3. **Covariance** `Σ = σ² (JᵀJ)⁻¹` with the corner noise σ given, or
 //!    estimated from the residuals (`σ̂² = SSR / (2n − 6)`).
-//! 4. When the camera's calibration is uncertain ([`CalibrationSigma`]),
+//! 4. When the corners' errors are correlated (one whole-pattern fit gave
+//!    them all), [`corner_covariance`] gives the pose error their stated
+//!    covariance causes; the node adds it to both hypotheses.
+//! 5. When the camera's calibration is uncertain ([`CalibrationSigma`]),
 //!    [`calibration_covariance`] gives the pose error an error of the
 //!    intrinsics causes (systematic across the corners, so the residuals do
 //!    not show it); the node adds it to both hypotheses.
@@ -350,6 +353,43 @@ fn hypothesis(
             covariance,
             rms_px,
         })
+}
+
+/// The pose covariance that correlated corner errors add at `pose`: the
+/// least-squares pose moves by `−(JᵀJ)⁻¹ Jᵀ δu` for an error `δu` of the
+/// image corners, so a covariance `Σ_u` of the corners (px², x then y of
+/// each, `2n`x`2n`) gives the pose `A Σ_u Aᵀ`, `A = (JᵀJ)⁻¹ Jᵀ`. For the
+/// corners of one whole-pattern fit ([`crate::detect::Detection::corner_covariance`]):
+/// they move together, so the residuals stay small while the pose moves.
+/// `cam` and `port` as in [`estimate_pose_with`]. `None` if the sizes do not
+/// match, `Σ_u` is not finite or the geometry is degenerate.
+pub fn corner_covariance(
+    cam: &CameraModel,
+    port: Option<&FlatPort>,
+    object_pts: &[Point3<f64>],
+    pose: &Pose,
+    corners_cov: &DMatrix<f64>,
+) -> Option<Cov6> {
+    let n = 2 * object_pts.len();
+    if object_pts.len() < 3
+        || corners_cov.shape() != (n, n)
+        || !corners_cov.iter().all(|v| v.is_finite())
+    {
+        return None;
+    }
+    let lens = Lens { cam, port };
+    let img: Vec<[f64; 2]> = object_pts
+        .iter()
+        .map(|p| lens.project(&(pose * p)).map(|q| [q.x, q.y]))
+        .collect::<Option<_>>()?;
+    let j = jacobian(lens, object_pts, &img, pose)?;
+    let jtj: Matrix6<f64> = Matrix6::from_iterator((j.transpose() * &j).iter().copied());
+    let inv = jtj.try_inverse()?;
+    let jt = j.transpose();
+    let middle = &jt * corners_cov * &j;
+    let c = inv * Matrix6::from_iterator(middle.iter().copied()) * inv.transpose();
+    let c = 0.5 * (c + c.transpose());
+    c.iter().all(|v| v.is_finite()).then_some(c)
 }
 
 /// The pose covariance an uncertain calibration adds at `pose`: to first

@@ -271,3 +271,101 @@ fn calibration_error_is_covered_by_the_calibration_covariance() {
         None
     );
 }
+
+/// The homography taking the four points `src` to `dst` (8x8 solve, h33 = 1).
+fn homography(src: &[[f64; 2]; 4], dst: &[[f64; 2]; 4]) -> nalgebra::Matrix3<f64> {
+    let mut a = nalgebra::SMatrix::<f64, 8, 8>::zeros();
+    let mut b = nalgebra::SVector::<f64, 8>::zeros();
+    for i in 0..4 {
+        let ([x, y], [u, v]) = (src[i], dst[i]);
+        let r = 2 * i;
+        a.row_mut(r)
+            .copy_from_slice(&[x, y, 1.0, 0.0, 0.0, 0.0, -u * x, -u * y]);
+        a.row_mut(r + 1)
+            .copy_from_slice(&[0.0, 0.0, 0.0, x, y, 1.0, -v * x, -v * y]);
+        b[r] = u;
+        b[r + 1] = v;
+    }
+    let h = a.lu().solve(&b).unwrap();
+    nalgebra::Matrix3::new(h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], 1.0)
+}
+
+fn apply_h(h: &nalgebra::Matrix3<f64>, p: [f64; 2]) -> [f64; 2] {
+    let q = h * nalgebra::Vector3::new(p[0], p[1], 1.0);
+    [q.x / q.z, q.y / q.z]
+}
+
+/// Corners that one whole-pattern fit gives move together: the fit's
+/// error is one of its four outer corners, and every other corner follows
+/// through the homography. The residuals then stay at the independent
+/// noise while the pose moves. Drawing the outer corners' error from a
+/// stated σ, `corner_covariance` of the corners' covariance (`G Σ Gᵀ`,
+/// `G` their Jacobian in the outer corners) added to the residual part must
+/// bring the mean NEES to 6 (±2 standard errors of 400 trials, as above),
+/// and without it the mean must be far above (measured ~60).
+#[test]
+fn correlated_corner_errors_are_covered_by_the_corner_covariance() {
+    use shoal_node::pose::corner_covariance;
+    let cam = CameraModel::vehicle_1440();
+    let truth = pose_from_xyz_rpy([0.05, 0.03, 1.2], [std::f64::consts::PI, 0.35, 0.2]);
+    let obj = CodeSet::Shoal.corners_3d(0.1);
+    let clean = project_all(&cam, &truth, &obj);
+    let outer: [[f64; 2]; 4] = [clean[0], clean[1], clean[2], clean[3]];
+    let moved = |d: &[f64; 8]| -> Vec<[f64; 2]> {
+        let mut o = outer;
+        for (k, v) in d.iter().enumerate() {
+            o[k / 2][k % 2] += v;
+        }
+        let h = homography(&outer, &o);
+        clean.iter().map(|&u| apply_h(&h, u)).collect()
+    };
+    // G: the corners' Jacobian in the outer corners (central differences).
+    let n = 2 * clean.len();
+    let mut g = nalgebra::DMatrix::zeros(n, 8);
+    for c in 0..8 {
+        let mut d = [0.0; 8];
+        d[c] = 1e-4;
+        let plus = moved(&d);
+        d[c] = -1e-4;
+        let minus = moved(&d);
+        for k in 0..clean.len() {
+            g[(2 * k, c)] = (plus[k][0] - minus[k][0]) / 2e-4;
+            g[(2 * k + 1, c)] = (plus[k][1] - minus[k][1]) / 2e-4;
+        }
+    }
+    let (outer_sigma, corner_sigma) = (0.3, 0.05);
+    let cov_u = &g * g.transpose() * (outer_sigma * outer_sigma);
+    let std = Normal::new(0.0, 1.0).unwrap();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(21);
+    let trials = 400;
+    let (mut with, mut without) = (0.0, 0.0);
+    for _ in 0..trials {
+        let d: [f64; 8] = std::array::from_fn(|_| outer_sigma * std.sample(&mut rng));
+        let img: Vec<[f64; 2]> = moved(&d)
+            .iter()
+            .map(|u| {
+                [
+                    u[0] + corner_sigma * std.sample(&mut rng),
+                    u[1] + corner_sigma * std.sample(&mut rng),
+                ]
+            })
+            .collect();
+        let sol = estimate_pose(&cam, &obj, &img, Some(corner_sigma)).unwrap();
+        let est = sol.best.camera_from_marker;
+        let extra = corner_covariance(&cam, None, &obj, &est, &cov_u).unwrap();
+        let xi: Vector6<f64> = difference(&truth, &est);
+        let total = sol.best.covariance + extra;
+        with += (xi.transpose() * total.try_inverse().unwrap() * xi)[0];
+        without += (xi.transpose() * sol.best.covariance.try_inverse().unwrap() * xi)[0];
+    }
+    let (with, without) = (with / trials as f64, without / trials as f64);
+    eprintln!("mean NEES: {with:.2} with the corner covariance, {without:.2} without");
+    assert!((5.2..6.8).contains(&with), "with the corner term: {with}");
+    assert!(without > 15.0, "without it: {without}");
+    // A covariance of the wrong size or not finite is refused.
+    let small = nalgebra::DMatrix::<f64>::identity(8, 8);
+    assert_eq!(corner_covariance(&cam, None, &obj, &truth, &small), None);
+    let mut nan = cov_u.clone();
+    nan[(0, 0)] = f64::NAN;
+    assert_eq!(corner_covariance(&cam, None, &obj, &truth, &nan), None);
+}

@@ -85,6 +85,9 @@ pub struct Row {
     pub contrast: Option<f64>,
     /// The PSF family the frame was blurred with (`model` for the renderer's own).
     pub psf: String,
+    /// The corners came from the whole-pattern fit (their covariance is
+    /// then the fit's, correlated across corners).
+    pub pattern_fit: bool,
     /// The error whitened by the corner-noise part of the covariance alone
     /// and by the calibration part alone are not separable; kept instead:
     /// the NEES with the calibration part scaled by each of [`SCALES`].
@@ -268,6 +271,8 @@ fn run_condition(
                     .and_then(|d| d.split_whitespace().next())
                     .unwrap_or("model")
                     .to_lowercase(),
+                pattern_fit: obs.is_some()
+                    && out.corner_fits.get(shoal_node::detect::CornerFit::Pattern) > 0,
                 nees6_scaled: Vec::new(),
             };
             if let Some(o) = obs {
@@ -650,6 +655,7 @@ fn write_csv(opts: &EvalOptions, rows: &[Row]) -> Result<(), EvalError> {
         "side_px",
         "contrast",
         "psf",
+        "pattern_fit",
         "nees6_at_scales",
     ]);
     for r in rows {
@@ -669,6 +675,7 @@ fn write_csv(opts: &EvalOptions, rows: &[Row]) -> Result<(), EvalError> {
             cell(r.side_px),
             cell(r.contrast),
             r.psf.clone(),
+            r.pattern_fit.to_string(),
             r.nees6_scaled
                 .iter()
                 .map(|v| format!("{v:.4}"))

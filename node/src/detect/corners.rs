@@ -27,6 +27,7 @@ use super::pattern::{self, PatternFitError};
 use super::refine::{self, Polarity};
 use super::{DetectParams, FitPattern, Images, Refinement};
 use crate::mat::GrayView;
+use nalgebra::DMatrix;
 use opencv::core::ToInputArray;
 use opencv::prelude::*;
 use shoal_proto::marker::{CodeSet, MarkerId};
@@ -354,6 +355,9 @@ pub(crate) struct MarkerCorners {
     pub corners_px: Vec<Px>,
     /// Index of each corner into [`CodeSet::corners_3d`].
     pub corner_ids: Vec<u8>,
+    /// Covariance (px²) of `corners_px` when the fit that gave them states
+    /// one (the whole-pattern fit).
+    pub covariance: Option<DMatrix<f64>>,
     pub choice: CornerChoice,
 }
 
@@ -399,10 +403,12 @@ pub(crate) fn fit_marker(
         .unwrap_or(CornerFit::Contour);
     let (wanted, mut reason) = pattern_wanted(params.fit_pattern, raw.is_some(), marker);
     let mut fit = sides;
+    let mut covariance = None;
     if let (true, Some(raw)) = (wanted, raw) {
         match pattern_corners(params, codes, raw, marker.id, &corners_px, &corner_ids) {
-            Ok(c) => {
+            Ok((c, cov)) => {
                 corners_px = c;
+                covariance = cov;
                 fit = CornerFit::Pattern;
             }
             Err(error) => reason = FitReason::PatternFailed { error },
@@ -419,6 +425,7 @@ pub(crate) fn fit_marker(
     MarkerCorners {
         corners_px,
         corner_ids,
+        covariance,
         choice: CornerChoice {
             fit,
             reason,
@@ -464,7 +471,8 @@ fn pattern_wanted(mode: FitPattern, has_raw: bool, marker: &Marker) -> (bool, Fi
 }
 
 /// The corners `ids` of marker `id` from one fit of its whole pattern to
-/// `raw`, started from the per-side corners `found`.
+/// `raw`, started from the per-side corners `found`, and their covariance
+/// (`None` if it is degenerate).
 fn pattern_corners(
     params: &DetectParams,
     codes: CodeSet,
@@ -472,7 +480,7 @@ fn pattern_corners(
     id: MarkerId,
     found: &[Px],
     ids: &[u8],
-) -> Result<Vec<Px>, PatternFitError> {
+) -> Result<(Vec<Px>, Option<DMatrix<f64>>), PatternFitError> {
     let m = codes.modules();
     let grid = codes
         .module_grid(id)
@@ -483,7 +491,10 @@ fn pattern_corners(
     let outer = [[0.0, 0.0], [mf, 0.0], [mf, mf], [0.0, mf]].map(|p| apply(&h, p));
     let lens = pattern::Lens(params.lens);
     let fit = pattern::fit_pattern(raw, &grid, m, &outer, lens)?;
-    Ok(module_xy.iter().map(|&p| fit.project(p)).collect())
+    Ok((
+        module_xy.iter().map(|&p| fit.project(p)).collect(),
+        fit.points_covariance(m, &module_xy),
+    ))
 }
 
 /// Module coordinates (column, row from the outer frame's top-left corner,

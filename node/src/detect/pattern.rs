@@ -82,6 +82,39 @@ impl PatternFit {
     pub fn project(&self, p: Px) -> Px {
         self.lens.pixel(apply(&self.homography, p))
     }
+
+    /// The covariance (px², `2n`x`2n`: x then y of each point) of
+    /// [`PatternFit::project`] at the module coordinates `pts` of an
+    /// `m`x`m` pattern, to first order from [`PatternFit::covariance`]: every
+    /// point is a function of the same four outer corners, so the points'
+    /// errors are correlated (the fit moves them together). `None` when the
+    /// homography is degenerate.
+    pub fn points_covariance(&self, m: usize, pts: &[Px]) -> Option<DMatrix<f64>> {
+        let unit = unit_corners(m as f64);
+        let outer = unit.map(|u| apply(&self.homography, u));
+        // Steps of 1e-4 px: the map is smooth, and far above rounding.
+        const STEP_PX: f64 = 1e-4;
+        let mut g = DMatrix::zeros(2 * pts.len(), GEOM);
+        for c in 0..GEOM {
+            let moved = |d: f64| {
+                let mut q = outer;
+                q[c / 2][c % 2] += d;
+                homography_4(&unit, &q)
+            };
+            let (plus, minus) = (moved(STEP_PX)?, moved(-STEP_PX)?);
+            for (k, &p) in pts.iter().enumerate() {
+                let (a, b) = (
+                    self.lens.pixel(apply(&plus, p)),
+                    self.lens.pixel(apply(&minus, p)),
+                );
+                g[(2 * k, c)] = (a[0] - b[0]) / (2.0 * STEP_PX);
+                g[(2 * k + 1, c)] = (a[1] - b[1]) / (2.0 * STEP_PX);
+            }
+        }
+        let s = DMatrix::from_iterator(GEOM, GEOM, self.covariance.iter().copied());
+        let cov = &g * s * g.transpose();
+        cov.iter().all(|v| v.is_finite()).then_some(cov)
+    }
 }
 
 /// Why a pattern fit was not made.
