@@ -41,6 +41,9 @@ impl<T: na::RealField> Factor<T> for WhitenedBetween {
     }
 }
 
+/// tiny-solver's values: a 7-vector per variable name.
+pub type Values = HashMap<String, na::DVector<f64>>;
+
 fn name(v: VehicleId) -> String {
     format!("x{v}")
 }
@@ -60,11 +63,7 @@ fn variables(edges: &[Edge]) -> BTreeSet<VehicleId> {
 }
 
 /// tiny-solver's problem and initial values for `graph`.
-pub fn build(
-    graph: &PoseGraph,
-    edges: &[Edge],
-    huber_k: f64,
-) -> (Problem, HashMap<String, na::DVector<f64>>) {
+pub fn build(graph: &PoseGraph, edges: &[Edge], huber_k: f64) -> (Problem, Values) {
     let mut problem = Problem::new();
     let mut initial = HashMap::new();
     for v in variables(edges) {
@@ -104,7 +103,7 @@ pub fn solve(
     huber_k: f64,
     max_iterations: usize,
     relative_tolerance: f64,
-) -> Option<(BTreeMap<VehicleId, Pose>, HashMap<String, na::DVector<f64>>)> {
+) -> Option<(BTreeMap<VehicleId, Pose>, Values)> {
     let (problem, initial) = build(graph, edges, huber_k);
     let options = OptimizerOptions {
         max_iteration: max_iterations,
@@ -127,7 +126,7 @@ pub fn solve(
 /// Jacobian at the solution.
 pub fn marginals(
     problem: &Problem,
-    values: &HashMap<String, na::DVector<f64>>,
+    values: &Values,
     poses: &BTreeMap<VehicleId, Pose>,
     reference: VehicleId,
     edges: &[Edge],
@@ -154,7 +153,7 @@ pub fn marginals(
 /// tiny-solver's own objective (`Problem::compute_cost`: Σ ρ over its
 /// whitened residuals) at `poses`.
 pub fn objective(problem: &Problem, poses: &BTreeMap<VehicleId, Pose>, edges: &[Edge]) -> f64 {
-    let values: HashMap<String, na::DVector<f64>> = variables(edges)
+    let values: Values = variables(edges)
         .into_iter()
         .map(|v| (name(v), vector(&poses[&v])))
         .collect();
