@@ -608,17 +608,19 @@ fn node_rate_quick_accounts_for_every_frame_offered_and_reads_markers() {
 }
 
 /// `nees` (issue #16): the node as shipped on the ideal and realistic
-/// profiles. Fails if the covariance is wildly off: for `ideal`, the mean
-/// NEES (6-DoF) must lie within 4x of the χ² band a consistent covariance
-/// gives (the band is the 95 % interval of the mean of the frames read; a
-/// factor 4 in NEES is a factor 2 in σ). Measured (2026-12-03): 2.73 at
-/// 1.38 /m (15 reads, band 4.4–7.9: conservative, the 0.05 px floor) and
-/// 15.0 at 3.92 /m (11 reads, band 4.1–8.2: overconfident, murky-water
-/// corners; `docs/results.md#nees`). For `realistic`, the stated calibration σ
-/// must lower the NEES (measured at 1.38 /m: 8 092 without, 20.8 with) and
-/// a scale must be fitted on 1.38 /m (measured 4.0).
+/// profiles. Fails if the covariance is off: for `ideal`, the mean NEES
+/// (6-DoF) must lie above a quarter of the lower end of the χ² band a
+/// consistent covariance gives (conservative by at most a factor 2 in σ:
+/// the 0.05 px floor makes clear water cautious) and below twice its upper
+/// end (overconfident by at most √2 in σ: fusion gates on it). The band is
+/// the 95 % interval of the mean of the frames read. Measured (2026-12-03):
+/// 3.52 at 1.38 /m (15 reads, band 4.4–7.9) and 4.29 at 3.92 /m (11 reads,
+/// 10 by the whole-pattern fit; band 4.1–8.2). Before the pattern fit's
+/// corner covariance reached the pose (`shoal_node::pose::corner_covariance`)
+/// 3.92 /m read 39.0 and fails here. For `realistic`, the stated
+/// calibration σ must lower the NEES and a scale must be fitted on 1.38 /m.
 #[test]
-fn nees_quick_covariance_within_a_factor_4_of_its_chi2_band() {
+fn nees_quick_covariance_neither_overconfident_nor_far_too_cautious() {
     let (dir, s) = run_quick(Experiment::Nees);
     assert_files(&dir, &["frames.csv", "summary.json"]);
     for c in ["1.38", "3.92"] {
@@ -628,7 +630,7 @@ fn nees_quick_covariance_within_a_factor_4_of_its_chi2_band() {
         let (lo, hi) = (num(&band[0]), num(&band[1]));
         let mean = num(&n["mean"]);
         assert!(
-            mean > lo / 4.0 && mean < hi * 4.0,
+            mean > lo / 4.0 && mean < hi * 2.0,
             "ideal {c}: mean NEES {mean} vs χ² band {lo}..{hi}"
         );
     }

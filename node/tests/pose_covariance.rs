@@ -302,7 +302,8 @@ fn apply_h(h: &nalgebra::Matrix3<f64>, p: [f64; 2]) -> [f64; 2] {
 /// stated σ, `corner_covariance` of the corners' covariance (`G Σ Gᵀ`,
 /// `G` their Jacobian in the outer corners) added to the residual part must
 /// bring the mean NEES to 6 (±2 standard errors of 400 trials, as above),
-/// and without it the mean must be far above (measured ~60).
+/// and without it the mean must be far above (measured 6.06 with, 542
+/// without).
 #[test]
 fn correlated_corner_errors_are_covered_by_the_corner_covariance() {
     use shoal_node::pose::corner_covariance;
