@@ -425,9 +425,8 @@ impl Fusion {
                     // Back to the oldest frame a Live pose may rest on (the
                     // window, or the link window for relayed news), plus the
                     // prediction span of an unseen vehicle.
-                    let span_s = predict_s
-                        + self.params.window_s.max(self.params.link_window_s)
-                        + 1.0;
+                    let span_s =
+                        predict_s + self.params.window_s.max(self.params.link_window_s) + 1.0;
                     // Enough samples for the whole span at 100 Hz.
                     let max = (span_s * 100.0) as usize;
                     self.odometry.add(&nav, seconds_to_ns(span_s), max);

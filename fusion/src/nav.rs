@@ -63,6 +63,9 @@ pub struct NavParams {
     /// grown likewise, so that a map published between camera frames says
     /// where the vehicles are now (default true; false: as of their frames).
     /// Without both vehicles' odometry over the interval the pose is left as solved.
+    /// The heading change is the difference of two compass samples: their
+    /// noise swings a vehicle metres away by it, which costs a formation
+    /// holding still what it gains on a moving one (docs/results.md, nav).
     #[serde(default = "default_propagate_live")]
     pub propagate_live: bool,
 }

@@ -552,7 +552,10 @@ mod tests {
             assert!(est[1].covariance[(i, i)] > 1e-4, "{}", est[1].covariance);
         }
         // What is remembered is the solved pose, as of its frame.
-        assert_eq!(last[&2], (Cruise::truth(as_of), Cov6::identity() * 1e-4, as_of));
+        assert_eq!(
+            last[&2],
+            (Cruise::truth(as_of), Cov6::identity() * 1e-4, as_of)
+        );
 
         // Off, or without the vehicle's odometry: the solved pose as it was.
         let (off, _) = cruise.estimates(false, as_of, now);
