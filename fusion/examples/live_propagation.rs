@@ -175,6 +175,9 @@ fn run(
     Ok((scored, maps))
 }
 
+/// One seed's [`summary`], propagation off and on.
+type SeedSummary = ([f64; 5], [f64; 5]);
+
 fn quantile(sorted: &[f64], q: f64) -> f64 {
     if sorted.is_empty() {
         return f64::NAN;
@@ -274,7 +277,7 @@ fn main() -> Result<(), String> {
         "all  {:>5} {:8} {:7} | {:6.1} {:5.1} {:5.1} {:5.2} {:5.1} | {:6.1} {:5.1} {:5.1} {:5.2} {:5.1}",
         "", pooled[0].len(), pooled[1].len(), a[0], a[1], a[2], a[3], a[4], b[0], b[1], b[2], b[3], b[4]
     );
-    let range = |f: &dyn Fn(&([f64; 5], [f64; 5])) -> f64| {
+    let range = |f: &dyn Fn(&SeedSummary) -> f64| {
         let v: Vec<f64> = per_seed.iter().map(f).collect();
         (
             v.iter().copied().fold(f64::INFINITY, f64::min),

@@ -194,7 +194,7 @@ impl Fusion {
             }),
             // A localized vehicle's frames are in the window: the window,
             // not `max_predict_s`, bounds how far it is carried.
-            live_predictor: (nav.enabled && nav.propagate_live).then(|| map::Predictor {
+            live_predictor: (nav.enabled && nav.propagate_live).then_some(map::Predictor {
                 odometry: &self.odometry,
                 max_predict_ns: u64::MAX,
                 max_gap_ns,

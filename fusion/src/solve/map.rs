@@ -440,6 +440,9 @@ mod tests {
 
     const S: u64 = 1_000_000_000;
 
+    /// What `vehicle_estimates` remembers per vehicle: pose, covariance, as of.
+    type LastEstimate = BTreeMap<VehicleId, (Pose, Cov6, u64)>;
+
     impl Cruise {
         /// World position, yaw and world velocity of each vehicle.
         fn motion(v: VehicleId) -> ([f64; 3], f64, [f64; 3]) {
@@ -501,7 +504,7 @@ mod tests {
             propagate: bool,
             as_of: u64,
             now: u64,
-        ) -> (Vec<VehicleEstimate>, BTreeMap<VehicleId, (Pose, Cov6, u64)>) {
+        ) -> (Vec<VehicleEstimate>, LastEstimate) {
             let alive = BTreeMap::new();
             let last_seen = BTreeMap::from([(1, now), (2, now)]);
             let in_window = BTreeSet::from([1, 2]);
