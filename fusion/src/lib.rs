@@ -51,7 +51,12 @@
 //! (alive but not localized in this solve, last localized at most
 //! [`NavParams::max_predict_s`] ago, and both it and the reference send nav
 //! with velocity and heading: its last fused pose carried forward by both
-//! vehicles' odometry, the covariance grown by the dead reckoning).
+//! vehicles' odometry, the covariance grown by the dead reckoning). With
+//! [`NavParams::propagate_live`] (default) and that nav, a `Live` vehicle's
+//! pose is likewise carried from the newest accepted frame it rests on to
+//! the map's `now_ns` (the map says where the vehicles are now, not at
+//! their last camera frame), the covariance grown the same way; without it
+//! the pose is as of its frames.
 //!
 //! Same inputs give a bit-identical map, whatever the order they arrived in
 //! (everything is kept in ordered maps keyed by capture time and identity), so
@@ -415,11 +420,16 @@ impl Fusion {
         match r {
             Ok(()) => {
                 self.stats.nav_ingested += 1;
-                if p.enabled && p.max_predict_s > 0.0 {
-                    let keep_ns = seconds_to_ns(p.max_predict_s + self.params.window_s + 1.0);
-                    // Enough samples for the whole prediction span at 100 Hz.
-                    let max = ((p.max_predict_s + self.params.window_s + 1.0) * 100.0) as usize;
-                    self.odometry.add(&nav, keep_ns, max);
+                let predict_s = p.max_predict_s.max(0.0);
+                if p.enabled && (predict_s > 0.0 || p.propagate_live) {
+                    // Back to the oldest frame a Live pose may rest on (the
+                    // window, or the link window for relayed news), plus the
+                    // prediction span of an unseen vehicle.
+                    let span_s =
+                        predict_s + self.params.window_s.max(self.params.link_window_s) + 1.0;
+                    // Enough samples for the whole span at 100 Hz.
+                    let max = (span_s * 100.0) as usize;
+                    self.odometry.add(&nav, seconds_to_ns(span_s), max);
                 }
             }
             Err(_) => self.stats.nav_rejected += 1,

@@ -58,6 +58,20 @@ pub struct NavParams {
     /// long after it was last localized, s (default 10; 0: never), state `Predicted`.
     #[serde(default = "default_max_predict_s")]
     pub max_predict_s: f64,
+    /// A localized (`Live`) vehicle's pose is carried by the same odometry
+    /// from the newest frame it rests on to the map's time, its covariance
+    /// grown likewise, so that a map published between camera frames says
+    /// where the vehicles are now (default true; false: as of their frames).
+    /// Without both vehicles' odometry over the interval the pose is left as solved.
+    /// The heading change is the difference of two compass samples: their
+    /// noise swings a vehicle metres away by it, which costs a formation
+    /// holding still what it gains on a moving one (docs/results.md, nav).
+    #[serde(default = "default_propagate_live")]
+    pub propagate_live: bool,
+}
+
+fn default_propagate_live() -> bool {
+    true
 }
 
 fn default_max_predict_s() -> f64 {
@@ -78,6 +92,7 @@ impl Default for NavParams {
             heading_gate_chi2: 15.14,
             max_samples_per_vehicle: 512,
             max_predict_s: default_max_predict_s(),
+            propagate_live: default_propagate_live(),
         }
     }
 }
@@ -386,7 +401,8 @@ impl Odometry {
 
     /// `vehicle`'s motion from `from_ns` to its newest sample, in its body
     /// frame at `from_ns` (`body_then_from_body_now`), with the position
-    /// variance integrated over it and the two samples' attitude variances;
+    /// variance integrated over it and the two samples' attitude variances
+    /// (none when both instants fall on one sample: the identity, exactly);
     /// `None` without samples within `max_gap_ns` of `from_ns` and of `now_ns`.
     pub fn motion(
         &self,
@@ -404,13 +420,19 @@ impl Odometry {
                 .flatten()
                 .min_by_key(|(s, _)| s.abs_diff(t))
                 .filter(|(s, _)| s.abs_diff(t) <= max_gap_ns)
-                .map(|(_, p)| *p)
+                .map(|(s, p)| (*s, *p))
         };
-        let (a, b) = (near(from_ns)?, near(now_ns)?);
+        let ((ta, a), (tb, b)) = (near(from_ns)?, near(now_ns)?);
+        // Both ends on one sample: no motion, and no attitude error in it.
+        let attitude_var = if ta == tb {
+            0.0
+        } else {
+            a.attitude_var + b.attitude_var
+        };
         Some((
             a.odo_from_body.inverse() * b.odo_from_body,
             (b.position_var - a.position_var).max(0.0),
-            a.attitude_var + b.attitude_var,
+            attitude_var,
         ))
     }
 }

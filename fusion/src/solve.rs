@@ -146,8 +146,9 @@ impl Fusion {
             hypotheses_us,
             map_us: 0,
         };
+        let as_of = map::newest_accepted(&verdicts.edges);
         let edges = map::merge_pending(verdicts.edges, std::mem::take(&mut self.pending));
-        let vehicles = self.estimates(now_ns, &in_window, &gated.solution);
+        let vehicles = self.estimates(now_ns, &in_window, &gated.solution, &as_of);
 
         self.seq += 1;
         self.stats.solves += 1;
@@ -173,9 +174,12 @@ impl Fusion {
         now_ns: u64,
         in_window: &BTreeSet<VehicleId>,
         solution: &gate::Poses,
+        as_of: &std::collections::BTreeMap<VehicleId, u64>,
     ) -> Vec<proto::VehicleEstimate> {
         let mut ids: Vec<VehicleId> = self.fleet.vehicles.iter().map(|v| v.id).collect();
         ids.sort_unstable();
+        let nav = &self.params.nav;
+        let max_gap_ns = seconds_to_ns(nav.max_gap_s);
         let evidence = map::Evidence {
             reference: self.fleet.reference_vehicle,
             alive: &self.alive,
@@ -183,13 +187,19 @@ impl Fusion {
             in_window,
             inflation: &self.params.age_inflation,
             now_ns,
-            predictor: (self.params.nav.enabled && self.params.nav.max_predict_s > 0.0).then(
-                || map::Predictor {
-                    odometry: &self.odometry,
-                    max_predict_ns: seconds_to_ns(self.params.nav.max_predict_s),
-                    max_gap_ns: seconds_to_ns(self.params.nav.max_gap_s),
-                },
-            ),
+            predictor: (nav.enabled && nav.max_predict_s > 0.0).then(|| map::Predictor {
+                odometry: &self.odometry,
+                max_predict_ns: seconds_to_ns(nav.max_predict_s),
+                max_gap_ns,
+            }),
+            // A localized vehicle's frames are in the window: the window,
+            // not `max_predict_s`, bounds how far it is carried.
+            live_predictor: (nav.enabled && nav.propagate_live).then_some(map::Predictor {
+                odometry: &self.odometry,
+                max_predict_ns: u64::MAX,
+                max_gap_ns,
+            }),
+            as_of,
         };
         map::vehicle_estimates(&ids, &evidence, solution, &mut self.last_estimate)
     }

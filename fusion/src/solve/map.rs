@@ -158,6 +158,30 @@ pub(crate) struct Evidence<'a> {
     pub now_ns: u64,
     /// Dead reckoning of vehicles no camera sees (`None`: off).
     pub predictor: Option<Predictor<'a>>,
+    /// Dead reckoning of localized vehicles from the newest frame their
+    /// pose rests on to `now_ns` (`None`: off).
+    pub live_predictor: Option<Predictor<'a>>,
+    /// Per vehicle, the newest capture stamp of an accepted observation
+    /// involving it (the time its solved pose describes, see
+    /// [`newest_accepted`]).
+    pub as_of: &'a BTreeMap<VehicleId, u64>,
+}
+
+/// Per vehicle (observer or target), the newest capture stamp among the
+/// accepted hypotheses in `edges`. A localized vehicle's solved pose
+/// describes this instant: a track seen to move is brought to its newest
+/// frame ([`super::motion`]), a track that is not has no motion to speak
+/// of. `last_seen` is not that time: it also counts observations the solve
+/// rejected (gated, flipped, a wrong ID) and ones it has not judged yet.
+pub(crate) fn newest_accepted(edges: &[EdgeReport]) -> BTreeMap<VehicleId, u64> {
+    let mut out = BTreeMap::new();
+    for e in edges.iter().filter(|e| e.rejected.is_none()) {
+        for v in std::iter::once(e.observer).chain(e.target_vehicle) {
+            let t = out.entry(v).or_insert(0);
+            *t = (*t).max(e.stamp_ns);
+        }
+    }
+    out
 }
 
 /// What carries an unseen vehicle forward.
@@ -209,7 +233,11 @@ impl Predictor<'_> {
 /// localized reports its last fused pose (`last_estimate`: pose, covariance,
 /// last seen) with the covariance grown by the time since, or the identity
 /// with [`NO_INFORMATION_VARIANCE`]. Every localized vehicle's estimate
-/// replaces its entry in `last_estimate`.
+/// replaces its entry in `last_estimate` (the solved pose, as of its newest
+/// accepted frame, `as_of`, or `last_seen` without one). With a
+/// `live_predictor`, a localized vehicle's pose is carried from that instant
+/// to `now_ns` by both vehicles' odometry (state unchanged); where the
+/// odometry does not cover the interval it is the solved pose.
 pub(crate) fn vehicle_estimates(
     ids: &[VehicleId],
     evidence: &Evidence<'_>,
@@ -228,8 +256,13 @@ pub(crate) fn vehicle_estimates(
         let (state, pose, covariance) = if v == evidence.reference {
             (live_or_stale, Pose::identity(), Cov6::zeros())
         } else if let Some((pose, cov)) = solution.get(&v) {
-            last_estimate.insert(v, (*pose, *cov, last_seen_ns));
-            (live_or_stale, *pose, *cov)
+            let as_of = evidence.as_of.get(&v).copied().unwrap_or(last_seen_ns);
+            last_estimate.insert(v, (*pose, *cov, as_of));
+            let carried = evidence.live_predictor.and_then(|p| {
+                p.predict(evidence.reference, v, (pose, cov, as_of), evidence.now_ns)
+            });
+            let (pose, cov) = carried.unwrap_or((*pose, *cov));
+            (live_or_stale, pose, cov)
         } else {
             let state = if !alive {
                 VehicleState::Stale
@@ -363,6 +396,8 @@ mod tests {
             inflation: &inflation,
             now_ns: now,
             predictor: None,
+            live_predictor: None,
+            as_of: &BTreeMap::new(),
         };
         let cov = Cov6::identity() * 1e-4;
         let solution = Poses::from([
@@ -395,5 +430,176 @@ mod tests {
         // Localized vehicles are remembered.
         assert_eq!(last[&2], (p, cov, now));
         assert!(!last.contains_key(&3));
+    }
+
+    /// Vehicles 1 (reference) and 2 cruising at constant world velocities
+    /// and headings, sending exact nav every 0.1 s from 0 to 1 s.
+    struct Cruise {
+        odometry: crate::nav::Odometry,
+    }
+
+    const S: u64 = 1_000_000_000;
+
+    /// What `vehicle_estimates` remembers per vehicle: pose, covariance, as of.
+    type LastEstimate = BTreeMap<VehicleId, (Pose, Cov6, u64)>;
+
+    impl Cruise {
+        /// World position, yaw and world velocity of each vehicle.
+        fn motion(v: VehicleId) -> ([f64; 3], f64, [f64; 3]) {
+            match v {
+                1 => ([0.0, 0.0, 5.0], 0.3, [0.4, 0.1, 0.0]),
+                _ => ([1.0, 2.0, 5.5], -0.2, [0.5, -0.15, 0.02]),
+            }
+        }
+
+        fn world(v: VehicleId, t_ns: u64) -> Pose {
+            let (p0, yaw, u) = Self::motion(v);
+            let t = t_ns as f64 * 1e-9;
+            pose_from_xyz_rpy(
+                [p0[0] + u[0] * t, p0[1] + u[1] * t, p0[2] + u[2] * t],
+                [0.0, 0.0, yaw],
+            )
+        }
+
+        fn truth(t_ns: u64) -> Pose {
+            Self::world(1, t_ns).inverse() * Self::world(2, t_ns)
+        }
+
+        fn new(vehicles: &[VehicleId]) -> Self {
+            let mut odometry = crate::nav::Odometry::default();
+            for k in 0..=10u64 {
+                let t = k * S / 10;
+                for &v in vehicles {
+                    let (_, yaw, u) = Self::motion(v);
+                    let w = Self::world(v, t);
+                    let body = w.rotation.inverse() * nalgebra::Vector3::from(u);
+                    let nav = proto::nav::NavState {
+                        vehicle: v,
+                        stamp_ns: t,
+                        depth: None,
+                        tilt: Some(proto::nav::Tilt {
+                            roll_rad: 0.0,
+                            pitch_rad: 0.0,
+                            covariance: [[1e-6, 0.0], [0.0, 1e-6]],
+                        }),
+                        heading: Some(proto::nav::Heading {
+                            yaw_rad: yaw,
+                            std_rad: 1e-3,
+                        }),
+                        velocity: Some(proto::nav::BodyVelocity {
+                            velocity_mps: body.into(),
+                            covariance: [[1e-4, 0.0, 0.0], [0.0, 1e-4, 0.0], [0.0, 0.0, 1e-4]],
+                        }),
+                    };
+                    odometry.add(&nav, 10 * S, 512);
+                }
+            }
+            Self { odometry }
+        }
+
+        /// The estimates at `now` of 1 and 2, 2 solved as of `as_of`
+        /// (`last_seen` later: a newer observation the solve rejected).
+        fn estimates(
+            &self,
+            propagate: bool,
+            as_of: u64,
+            now: u64,
+        ) -> (Vec<VehicleEstimate>, LastEstimate) {
+            let alive = BTreeMap::new();
+            let last_seen = BTreeMap::from([(1, now), (2, now)]);
+            let in_window = BTreeSet::from([1, 2]);
+            let inflation = AgeInflation::default();
+            let predictor = Predictor {
+                odometry: &self.odometry,
+                max_predict_ns: u64::MAX,
+                max_gap_ns: S / 2,
+            };
+            let accepted = BTreeMap::from([(1, as_of), (2, as_of)]);
+            let evidence = Evidence {
+                reference: 1,
+                alive: &alive,
+                last_seen: &last_seen,
+                in_window: &in_window,
+                inflation: &inflation,
+                now_ns: now,
+                predictor: Some(predictor),
+                live_predictor: propagate.then_some(predictor),
+                as_of: &accepted,
+            };
+            let solution = Poses::from([
+                (1, (Pose::identity(), Cov6::zeros())),
+                (2, (Self::truth(as_of), Cov6::identity() * 1e-4)),
+            ]);
+            let mut last = BTreeMap::new();
+            let est = vehicle_estimates(&[1, 2], &evidence, &solution, &mut last);
+            (est, last)
+        }
+    }
+
+    #[test]
+    fn a_live_vehicle_is_carried_to_now_by_both_vehicles_odometry() {
+        let cruise = Cruise::new(&[1, 2]);
+        // Solved as of 0.3 s (its newest accepted frame), the map at 0.8 s:
+        // the pair moved 5.2 cm apart since.
+        let (as_of, now) = (3 * S / 10, 8 * S / 10);
+        let (est, last) = cruise.estimates(true, as_of, now);
+        assert_eq!(est[0].reference_from_vehicle, Pose::identity());
+        assert_eq!(est[0].covariance, Cov6::zeros());
+        assert_eq!(est[1].state, VehicleState::Live);
+        let e = proto::geometry::difference(&est[1].reference_from_vehicle, &Cruise::truth(now));
+        assert!(e.norm() < 1e-9, "{e:?}");
+        let stale = proto::geometry::difference(&Cruise::truth(as_of), &Cruise::truth(now));
+        assert!(stale.fixed_rows::<3>(0).norm() > 0.05, "{stale:?}");
+        // The covariance grew, by the dead reckoning's variance.
+        for i in 0..6 {
+            assert!(est[1].covariance[(i, i)] > 1e-4, "{}", est[1].covariance);
+        }
+        // What is remembered is the solved pose, as of its frame.
+        assert_eq!(
+            last[&2],
+            (Cruise::truth(as_of), Cov6::identity() * 1e-4, as_of)
+        );
+
+        // Off, or without the vehicle's odometry: the solved pose as it was.
+        let (off, _) = cruise.estimates(false, as_of, now);
+        let (no_nav, _) = Cruise::new(&[1]).estimates(true, as_of, now);
+        for est in [off, no_nav] {
+            assert_eq!(est[1].state, VehicleState::Live);
+            assert_eq!(est[1].reference_from_vehicle, Cruise::truth(as_of));
+            assert_eq!(est[1].covariance, Cov6::identity() * 1e-4);
+        }
+        // Odometry that ends before `now` (beyond the 0.5 s gap) does not cover it.
+        let (beyond, _) = cruise.estimates(true, as_of, 16 * S / 10);
+        assert_eq!(beyond[1].reference_from_vehicle, Cruise::truth(as_of));
+        // Solved at `now` on one nav sample: unchanged (to rounding in the
+        // identity's composition), and no variance added.
+        let (fresh, _) = cruise.estimates(true, now, now);
+        let e = proto::geometry::difference(&fresh[1].reference_from_vehicle, &Cruise::truth(now));
+        assert!(e.norm() < 1e-12, "{e:?}");
+        assert_eq!(fresh[1].covariance, Cov6::identity() * 1e-4);
+    }
+
+    #[test]
+    fn a_pose_is_as_of_the_newest_accepted_frame_involving_the_vehicle() {
+        let report = |observer, target, stamp_ns, rejected| EdgeReport {
+            observer,
+            camera: 0,
+            target_marker: 0,
+            target_vehicle: Some(target),
+            stamp_ns,
+            frame_seq: 0,
+            rejected,
+            chi2: 0.0,
+        };
+        let edges = [
+            report(1, 2, 5, None),
+            report(2, 3, 7, None),
+            report(1, 2, 9, Some(RejectReason::ChiSquare)),
+            report(3, 4, 8, Some(RejectReason::FlippedHypothesis)),
+        ];
+        assert_eq!(
+            newest_accepted(&edges),
+            BTreeMap::from([(1, 5), (2, 7), (3, 7)])
+        );
     }
 }
