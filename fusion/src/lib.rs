@@ -52,7 +52,7 @@
 //! [`NavParams::max_predict_s`] ago, and both it and the reference send nav
 //! with velocity and heading: its last fused pose carried forward by both
 //! vehicles' odometry, the covariance grown by the dead reckoning). With
-//! [`NavParams::propagate_live`] (default) and that nav, a `Live` vehicle's
+//! [`NavParams::propagate_live`] (off by default) and that nav, a `Live` vehicle's
 //! pose is likewise carried from the newest accepted frame it rests on to
 //! the map's `now_ns` (the map says where the vehicles are now, not at
 //! their last camera frame), the covariance grown the same way; without it

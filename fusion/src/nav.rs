@@ -61,17 +61,20 @@ pub struct NavParams {
     /// A localized (`Live`) vehicle's pose is carried by the same odometry
     /// from the newest frame it rests on to the map's time, its covariance
     /// grown likewise, so that a map published between camera frames says
-    /// where the vehicles are now (default true; false: as of their frames).
+    /// where the vehicles are now (default false: as of their frames).
     /// Without both vehicles' odometry over the interval the pose is left as solved.
-    /// The heading change is the difference of two compass samples: their
-    /// noise swings a vehicle metres away by it, which costs a formation
-    /// holding still what it gains on a moving one (docs/results.md, nav).
+    /// Off by default: the heading change is the difference of two compass
+    /// samples, and their noise swings a vehicle metres away by it, which
+    /// costs a formation holding still more than it gains (median 2.6 → 20 mm
+    /// with 0.5° of compass noise) and pays only from ~0.1 m/s of relative
+    /// motion (47 → 32 mm at ~0.2 m/s; docs/results.md, nav). Turn it on for
+    /// a manoeuvring fleet or a smooth (filtered) heading.
     #[serde(default = "default_propagate_live")]
     pub propagate_live: bool,
 }
 
 fn default_propagate_live() -> bool {
-    true
+    false
 }
 
 fn default_max_predict_s() -> f64 {

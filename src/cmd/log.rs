@@ -198,6 +198,10 @@ pub struct FuseArgs {
     /// the same observations settled by votes alone, for comparison.
     #[arg(long)]
     no_nav: bool,
+    /// Carry each localized vehicle's pose by odometry to the map's time
+    /// (`NavParams::propagate_live`, as `shoal fusion --propagate-live`).
+    #[arg(long)]
+    propagate_live: bool,
     /// Also write the last map's pose graph as g2o (for g2o, gtsam, Ceres;
     /// format in `shoal_fusion::export`).
     #[arg(long, value_name = "FILE.g2o")]
@@ -207,6 +211,7 @@ pub struct FuseArgs {
 pub fn run_fuse(a: FuseArgs) -> anyhow::Result<()> {
     let mut params = FusionParams::default();
     params.nav.enabled = !a.no_nav;
+    params.nav.propagate_live = a.propagate_live;
     let opts = FuseOptions {
         params,
         solve_at: a.rate.map_or(SolveAt::OriginalMaps, SolveAt::RateHz),

@@ -193,6 +193,12 @@ pub struct FusionArgs {
     /// and navigation are still used in full.
     #[arg(long)]
     link: bool,
+    /// Carry each localized vehicle's pose by both vehicles' odometry from
+    /// its newest frame to the map's time (`NavParams::propagate_live`): for a
+    /// manoeuvring fleet; on a formation holding still the compass noise costs
+    /// more than it gains (docs/results.md, nav).
+    #[arg(long)]
+    propagate_live: bool,
     #[command(flatten)]
     ros2: Ros2Args,
     #[command(flatten)]
@@ -323,7 +329,11 @@ pub fn run_fusion(a: FusionArgs) -> anyhow::Result<()> {
         &bus,
         FusionConfig {
             fleet,
-            params: FusionParams::default(),
+            params: {
+                let mut p = FusionParams::default();
+                p.nav.propagate_live = a.propagate_live;
+                p
+            },
             placement,
             rate_hz: a.rate,
             queue_capacity: 4096,
