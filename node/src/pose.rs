@@ -355,6 +355,25 @@ fn hypothesis(
         })
 }
 
+/// The least-squares problem linearized at `pose`: the corners where `lens`
+/// projects `object_pts` (so the residuals are zero there and only their
+/// derivatives matter), the residuals' Jacobian `J` in the pose, and
+/// `(JᵀJ)⁻¹`. `None` if a corner is behind the camera or `JᵀJ` is singular.
+fn linearized(
+    lens: Lens<'_>,
+    object_pts: &[Point3<f64>],
+    pose: &Pose,
+) -> Option<(Vec<[f64; 2]>, DMatrix<f64>, Matrix6<f64>)> {
+    let img: Vec<[f64; 2]> = object_pts
+        .iter()
+        .map(|p| lens.project(&(pose * p)).map(|q| [q.x, q.y]))
+        .collect::<Option<_>>()?;
+    let j = jacobian(lens, object_pts, &img, pose)?;
+    let jtj: Matrix6<f64> = Matrix6::from_iterator((j.transpose() * &j).iter().copied());
+    let inv = jtj.try_inverse()?;
+    Some((img, j, inv))
+}
+
 /// The pose covariance that correlated corner errors add at `pose`: the
 /// least-squares pose moves by `−(JᵀJ)⁻¹ Jᵀ δu` for an error `δu` of the
 /// image corners, so a covariance `Σ_u` of the corners (px², x then y of
@@ -378,13 +397,7 @@ pub fn corner_covariance(
         return None;
     }
     let lens = Lens { cam, port };
-    let img: Vec<[f64; 2]> = object_pts
-        .iter()
-        .map(|p| lens.project(&(pose * p)).map(|q| [q.x, q.y]))
-        .collect::<Option<_>>()?;
-    let j = jacobian(lens, object_pts, &img, pose)?;
-    let jtj: Matrix6<f64> = Matrix6::from_iterator((j.transpose() * &j).iter().copied());
-    let inv = jtj.try_inverse()?;
+    let (_, j, inv) = linearized(lens, object_pts, pose)?;
     let jt = j.transpose();
     let middle = &jt * corners_cov * &j;
     let c = inv * Matrix6::from_iterator(middle.iter().copied()) * inv.transpose();
@@ -410,16 +423,8 @@ pub fn calibration_covariance(
     if sigma.problem().is_some() || object_pts.len() < 3 {
         return None;
     }
-    // The residuals' reference: the corners where `cam` projects them, so
-    // the residuals are zero at `pose` and only their derivatives matter.
     let lens = Lens { cam, port };
-    let img: Vec<[f64; 2]> = object_pts
-        .iter()
-        .map(|p| lens.project(&(pose * p)).map(|q| [q.x, q.y]))
-        .collect::<Option<_>>()?;
-    let j = jacobian(lens, object_pts, &img, pose)?;
-    let jtj: Matrix6<f64> = Matrix6::from_iterator((j.transpose() * &j).iter().copied());
-    let inv = jtj.try_inverse()?;
+    let (img, j, inv) = linearized(lens, object_pts, pose)?;
     // Intrinsics: fx and fy by a relative step, cx and cy in px, k1.
     let terms: [(f64, f64); 5] = [
         (1e-6, sigma.focal_rel),

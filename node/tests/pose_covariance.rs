@@ -272,29 +272,6 @@ fn calibration_error_is_covered_by_the_calibration_covariance() {
     );
 }
 
-/// The homography taking the four points `src` to `dst` (8x8 solve, h33 = 1).
-fn homography(src: &[[f64; 2]; 4], dst: &[[f64; 2]; 4]) -> nalgebra::Matrix3<f64> {
-    let mut a = nalgebra::SMatrix::<f64, 8, 8>::zeros();
-    let mut b = nalgebra::SVector::<f64, 8>::zeros();
-    for i in 0..4 {
-        let ([x, y], [u, v]) = (src[i], dst[i]);
-        let r = 2 * i;
-        a.row_mut(r)
-            .copy_from_slice(&[x, y, 1.0, 0.0, 0.0, 0.0, -u * x, -u * y]);
-        a.row_mut(r + 1)
-            .copy_from_slice(&[0.0, 0.0, 0.0, x, y, 1.0, -v * x, -v * y]);
-        b[r] = u;
-        b[r + 1] = v;
-    }
-    let h = a.lu().solve(&b).unwrap();
-    nalgebra::Matrix3::new(h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], 1.0)
-}
-
-fn apply_h(h: &nalgebra::Matrix3<f64>, p: [f64; 2]) -> [f64; 2] {
-    let q = h * nalgebra::Vector3::new(p[0], p[1], 1.0);
-    [q.x / q.z, q.y / q.z]
-}
-
 /// Corners that one whole-pattern fit gives move together: the fit's
 /// error is one of its four outer corners, and every other corner follows
 /// through the homography. The residuals then stay at the independent
@@ -306,6 +283,7 @@ fn apply_h(h: &nalgebra::Matrix3<f64>, p: [f64; 2]) -> [f64; 2] {
 /// without).
 #[test]
 fn correlated_corner_errors_are_covered_by_the_corner_covariance() {
+    use shoal_node::detect::geom::{apply, homography_4};
     use shoal_node::pose::corner_covariance;
     let cam = CameraModel::vehicle_1440();
     let truth = pose_from_xyz_rpy([0.05, 0.03, 1.2], [std::f64::consts::PI, 0.35, 0.2]);
@@ -317,8 +295,8 @@ fn correlated_corner_errors_are_covered_by_the_corner_covariance() {
         for (k, v) in d.iter().enumerate() {
             o[k / 2][k % 2] += v;
         }
-        let h = homography(&outer, &o);
-        clean.iter().map(|&u| apply_h(&h, u)).collect()
+        let h = homography_4(&outer, &o).unwrap();
+        clean.iter().map(|&u| apply(&h, u)).collect()
     };
     // G: the corners' Jacobian in the outer corners (central differences).
     let n = 2 * clean.len();
