@@ -355,15 +355,18 @@ fn hypothesis(
         })
 }
 
+/// What [`linearized`] gives.
+struct Linearized {
+    img: Vec<[f64; 2]>,
+    j: DMatrix<f64>,
+    inv: Matrix6<f64>,
+}
+
 /// The least-squares problem linearized at `pose`: the corners where `lens`
 /// projects `object_pts` (so the residuals are zero there and only their
 /// derivatives matter), the residuals' Jacobian `J` in the pose, and
 /// `(JᵀJ)⁻¹`. `None` if a corner is behind the camera or `JᵀJ` is singular.
-fn linearized(
-    lens: Lens<'_>,
-    object_pts: &[Point3<f64>],
-    pose: &Pose,
-) -> Option<(Vec<[f64; 2]>, DMatrix<f64>, Matrix6<f64>)> {
+fn linearized(lens: Lens<'_>, object_pts: &[Point3<f64>], pose: &Pose) -> Option<Linearized> {
     let img: Vec<[f64; 2]> = object_pts
         .iter()
         .map(|p| lens.project(&(pose * p)).map(|q| [q.x, q.y]))
@@ -371,7 +374,7 @@ fn linearized(
     let j = jacobian(lens, object_pts, &img, pose)?;
     let jtj: Matrix6<f64> = Matrix6::from_iterator((j.transpose() * &j).iter().copied());
     let inv = jtj.try_inverse()?;
-    Some((img, j, inv))
+    Some(Linearized { img, j, inv })
 }
 
 /// The pose covariance that correlated corner errors add at `pose`: the
@@ -397,7 +400,7 @@ pub fn corner_covariance(
         return None;
     }
     let lens = Lens { cam, port };
-    let (_, j, inv) = linearized(lens, object_pts, pose)?;
+    let Linearized { j, inv, .. } = linearized(lens, object_pts, pose)?;
     let jt = j.transpose();
     let middle = &jt * corners_cov * &j;
     let c = inv * Matrix6::from_iterator(middle.iter().copied()) * inv.transpose();
@@ -424,7 +427,7 @@ pub fn calibration_covariance(
         return None;
     }
     let lens = Lens { cam, port };
-    let (img, j, inv) = linearized(lens, object_pts, pose)?;
+    let Linearized { img, j, inv } = linearized(lens, object_pts, pose)?;
     // Intrinsics: fx and fy by a relative step, cx and cy in px, k1.
     let terms: [(f64, f64); 5] = [
         (1e-6, sigma.focal_rel),
