@@ -402,11 +402,16 @@ impl Odometry {
         }
     }
 
-    /// `vehicle`'s motion from `from_ns` to its newest sample, in its body
-    /// frame at `from_ns` (`body_then_from_body_now`), with the position
-    /// variance integrated over it and the two samples' attitude variances
-    /// (none when both instants fall on one sample: the identity, exactly);
-    /// `None` without samples within `max_gap_ns` of `from_ns` and of `now_ns`.
+    /// `vehicle`'s motion from `from_ns` to `now_ns`, in its body frame at
+    /// `from_ns` (`body_then_from_body_now`), with the position variance
+    /// integrated over it and the two ends' attitude variances (none when
+    /// both ends rest on one sample: the attitude is the same, exactly).
+    /// An instant within the track is its nearest sample, if one is within
+    /// `max_gap_ns`; an instant past the newest sample (nav still in flight
+    /// when a map is made, or a slow nav rate) is dead-reckoned on from it by
+    /// the last velocity known, attitude held, for at most
+    /// [`MAX_ODOMETRY_GAP_S`], its variance grown as through a DVL dropout.
+    /// `None` when either end is not covered.
     pub fn motion(
         &self,
         vehicle: VehicleId,
@@ -415,6 +420,21 @@ impl Odometry {
         max_gap_ns: u64,
     ) -> Option<(proto::Pose, f64, f64)> {
         let track = self.tracks.get(&vehicle)?;
+        let (&newest_ns, &newest) = track.last_key_value()?;
+        let ahead = |t: u64| {
+            let ahead_s = t.checked_sub(newest_ns)? as f64 * 1e-9;
+            if ahead_s > MAX_ODOMETRY_GAP_S {
+                return None;
+            }
+            let (v, v_var) = self.velocity.get(&vehicle)?;
+            let step = newest.odo_from_body.rotation * v * ahead_s;
+            let mut point = newest;
+            point.odo_from_body.translation.vector += step;
+            point.position_var +=
+                (v_var + DROPOUT_VELOCITY_VAR_PER_S * ahead_s) * ahead_s * ahead_s
+                    + step.norm_squared() * newest.attitude_var;
+            Some((newest_ns, point))
+        };
         let near = |t: u64| {
             let before = track.range(..=t).next_back();
             let after = track.range(t..).next();
@@ -425,8 +445,9 @@ impl Odometry {
                 .filter(|(s, _)| s.abs_diff(t) <= max_gap_ns)
                 .map(|(s, p)| (*s, *p))
         };
-        let ((ta, a), (tb, b)) = (near(from_ns)?, near(now_ns)?);
-        // Both ends on one sample: no motion, and no attitude error in it.
+        let at = |t: u64| ahead(t).or_else(|| near(t));
+        let ((ta, a), (tb, b)) = (at(from_ns)?, at(now_ns)?);
+        // Both ends on one sample: its attitude at both, no error between them.
         let attitude_var = if ta == tb {
             0.0
         } else {

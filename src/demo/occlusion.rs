@@ -12,7 +12,8 @@ use shoal_proto::{FleetMap, SimTruth, VehicleState};
 use shoal_services::sim::Occlusion;
 use std::collections::VecDeque;
 
-/// The hidden vehicle over the maps stamped from one second into its span to its end.
+/// The hidden vehicle over the maps stamped from one second into its span
+/// until it is seen again.
 #[derive(Debug, Clone, Default, PartialEq, Serialize)]
 pub struct OcclusionReport {
     pub vehicle: u32,
@@ -54,10 +55,11 @@ pub(super) fn report(
     let Some(slot) = truths.front().and_then(relative) else {
         return r;
     };
-    let span = (occ.from_s + 1.0, occ.to_s);
+    // Hidden over [from, to) (`Occlusion::covers`): at `to` it is seen again.
+    let span = (occ.from_s + 1.0)..occ.to_s;
     for m in maps {
         let t_s = m.stamp_ns as f64 * 1e-9;
-        if !(span.0..=span.1).contains(&t_s) {
+        if !span.contains(&t_s) {
             continue;
         }
         let Some(est) = m.vehicles.iter().find(|v| v.vehicle == occ.vehicle) else {

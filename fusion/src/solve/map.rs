@@ -568,8 +568,26 @@ mod tests {
             assert_eq!(est[1].reference_from_vehicle, Cruise::truth(as_of));
             assert_eq!(est[1].covariance, Cov6::identity() * 1e-4);
         }
-        // Odometry that ends before `now` (beyond the 0.5 s gap) does not cover it.
-        let (beyond, _) = cruise.estimates(true, as_of, 16 * S / 10);
+        // Odometry that ends before `now` (the last samples at 1 s, nav still
+        // in flight) is dead-reckoned on by the last velocities: exact for
+        // this cruise, with the variance growing further...
+        let at_end = cruise.estimates(true, as_of, S).0;
+        let ahead = cruise.estimates(true, as_of, 16 * S / 10).0;
+        let e = proto::geometry::difference(
+            &ahead[1].reference_from_vehicle,
+            &Cruise::truth(16 * S / 10),
+        );
+        assert!(e.norm() < 1e-9, "{e:?}");
+        for i in 0..3 {
+            assert!(
+                ahead[1].covariance[(i, i)] > at_end[1].covariance[(i, i)],
+                "{} vs {}",
+                ahead[1].covariance,
+                at_end[1].covariance
+            );
+        }
+        // ...for at most the 2 s that break a track: beyond, not covered.
+        let (beyond, _) = cruise.estimates(true, as_of, 31 * S / 10);
         assert_eq!(beyond[1].reference_from_vehicle, Cruise::truth(as_of));
         // Solved at `now` on one nav sample: unchanged (to rounding in the
         // identity's composition), and no variance added.
