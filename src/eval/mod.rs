@@ -76,10 +76,12 @@ pub enum Experiment {
     Profiles,
     /// Issue #16: covariance honesty of the node as shipped.
     Nees,
+    /// Issue #16: the simulator set to a real recording's conditions, against it.
+    RealTwin,
 }
 
 impl Experiment {
-    pub const ALL: [Experiment; 17] = [
+    pub const ALL: [Experiment; 18] = [
         Experiment::Features,
         Experiment::Accuracy,
         Experiment::AccuracyYaw,
@@ -97,6 +99,7 @@ impl Experiment {
         Experiment::NodeRate,
         Experiment::Profiles,
         Experiment::Nees,
+        Experiment::RealTwin,
     ];
 
     pub fn name(self) -> &'static str {
@@ -118,6 +121,7 @@ impl Experiment {
             Experiment::NodeRate => "node-rate",
             Experiment::Profiles => "profiles",
             Experiment::Nees => "nees",
+            Experiment::RealTwin => "real-twin",
         }
     }
 }
@@ -283,6 +287,7 @@ pub fn run(experiment: Experiment, opts: &EvalOptions) -> Result<serde_json::Val
         Experiment::NodeRate => node_rate::run(opts)?,
         Experiment::Profiles => profiles::run(opts)?,
         Experiment::Nees => nees::run(opts)?,
+        Experiment::RealTwin => real::twin::run(opts)?,
     };
     if let Some(obj) = summary.as_object_mut() {
         obj.insert("experiment".into(), experiment.name().into());

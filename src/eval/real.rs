@@ -28,6 +28,7 @@
 mod manifest;
 mod score;
 mod stage;
+pub mod twin;
 
 pub use manifest::{
     data_root, find_recordings, load_manifest, Manifest, Recording, ReferenceMarker, Truth,
@@ -188,14 +189,46 @@ fn for_frames(
     Ok(n)
 }
 
-/// Runs every method over one split; CSV rows of every read.
+/// Each detection as a [`Read`]: its outer corners and, with a camera, PnP's
+/// pose and its planar alternative.
+fn reads_of(
+    found: &[shoal_node::detect::Detection],
+    camera: Option<&CameraModel>,
+    side_m: f64,
+) -> Vec<Read> {
+    found
+        .iter()
+        .map(|d| {
+            let outer_px = d
+                .corner_ids
+                .iter()
+                .zip(&d.corners_px)
+                .filter(|(cid, _)| **cid < 4)
+                .map(|(_, c)| *c)
+                .collect();
+            let solution = camera.and_then(|cam| {
+                estimate_pose(cam, &d.object_points(side_m), &d.corners_px, None).ok()
+            });
+            Read {
+                id: d.id,
+                outer_px,
+                camera_from_marker: solution.map(|s| s.best.camera_from_marker),
+                alternative: solution
+                    .and_then(|s| s.alternative)
+                    .map(|h| h.camera_from_marker),
+            }
+        })
+        .collect()
+}
+
+/// Runs every method over one split; CSV rows of every read (with `csv`).
 fn run_split(
     dir: &Path,
     m: &Manifest,
     split: &str,
     range: [usize; 2],
     opts: &EvalOptions,
-    csv: &mut Csv,
+    mut csv: Option<&mut Csv>,
 ) -> Result<BTreeMap<String, MethodRun>, EvalError> {
     let codes = CodeSet::from_name(&m.codes).map_err(|e| EvalError::Setup(e.to_string()))?;
     let camera = m.camera.map(CameraModel::from);
@@ -226,30 +259,11 @@ fn run_split(
             let started = Instant::now();
             let found = method.detect(gray, stamp_ns)?;
             let ms = started.elapsed().as_secs_f64() * 1e3;
-            let reads: Vec<Read> = found
-                .iter()
-                .map(|d| {
-                    let outer_px = d
-                        .corner_ids
-                        .iter()
-                        .zip(&d.corners_px)
-                        .filter(|(cid, _)| **cid < 4)
-                        .map(|(_, c)| *c)
-                        .collect();
-                    let solution = camera.as_ref().and_then(|cam| {
-                        estimate_pose(cam, &d.object_points(m.side_m), &d.corners_px, None).ok()
-                    });
-                    Read {
-                        id: d.id,
-                        outer_px,
-                        camera_from_marker: solution.map(|s| s.best.camera_from_marker),
-                        alternative: solution
-                            .and_then(|s| s.alternative)
-                            .map(|h| h.camera_from_marker),
-                    }
-                })
-                .collect();
+            let reads = reads_of(&found, camera.as_ref(), m.side_m);
             for r in &reads {
+                let Some(csv) = csv.as_deref_mut() else {
+                    break;
+                };
                 let t = r.camera_from_marker.map(|p| p.translation.vector);
                 let rv = r.camera_from_marker.map(|p| p.rotation.scaled_axis());
                 let num = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v:.5}"));
@@ -334,7 +348,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
             if opts.split.as_ref().is_some_and(|only| only != split) {
                 continue;
             }
-            let runs = run_split(dir, &m, split, *range, opts, &mut csv)?;
+            let runs = run_split(dir, &m, split, *range, opts, Some(&mut csv))?;
             let s = scores(&m, &runs);
             let cat = format!("{}/{split}", m.name);
             for (method, sc) in &s {

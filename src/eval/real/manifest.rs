@@ -39,6 +39,11 @@ pub struct Manifest {
     /// … image files, in order.
     #[serde(default)]
     pub images: Vec<String>,
+    /// How the frames were compressed on their way from the camera:
+    /// `h264` or `jpeg` (default: `h264` for a video, `jpeg` for images);
+    /// `eval real-twin` simulates that codec.
+    #[serde(default)]
+    pub codec: Option<String>,
     /// Named frame ranges `[first, end)` over the frame index.
     pub splits: BTreeMap<String, [usize; 2]>,
     pub truth: Truth,

@@ -1,0 +1,1426 @@
+//! `shoal eval real-twin` (issue #16): the simulator set to a real
+//! recording's conditions, run through the same detectors and the same
+//! scoring as the recording, so that what the simulator predicts (recall,
+//! jitter, the spread of pair distances) is checked against what the real
+//! frames gave.
+//!
+//! For each recording with a `layout` truth, a camera and a video:
+//!
+//! 1. **Geometry, from the real frames.** AprilTag 3 (decimate 1, a
+//!    detector family other than shoal's) reads every frame; per frame the
+//!    tags' measured centres are aligned to the layout (Kabsch, at least
+//!    three tags not in a line, one outlier dropped) for the camera's pose
+//!    in the layout's frame. Each tag's in-plane turn and which way it faces
+//!    are the medians over the frames. Frames without a pose are not
+//!    simulated (counted).
+//! 2. **Conditions, fitted on the `dev` split only.** The realistic camera
+//!    profile with the recording's codec (the manifest's `codec`, else H.264
+//!    for a video), its camera,
+//!    marker size and, from the geometry, distance and view. Three numbers
+//!    are fitted by bisection so that the simulated frames measure like the
+//!    real ones at the tags' outer edges (the same measurement on both: the
+//!    dark and light levels across each side's middle and the edge's width):
+//!    the veiling light of the clearest water preset (contrast, dark/light),
+//!    the auto-exposure's target (the light level) and the heavy-tailed
+//!    PSF's width (edge width).
+//! 3. **Every split simulated** with those conditions, several seeds, the
+//!    real frame's geometry and the camera's motion to the next frame; every
+//!    method reads the simulated frames as it read the real ones (the node's
+//!    calibration: a lab's through the port, off by the calibration error,
+//!    as in `eval profiles`), scored by the same code as `eval real`. The
+//!    real side is scored on the same frames.
+//!
+//! The verdict per method and figure: the simulated value over the real
+//! one, within a factor of 2 or not.
+
+use super::score::{scores, MethodRun, Scores};
+use super::{
+    data_root, find_recordings, for_frames, load_manifest, reads_of, run_split, runners,
+    verify_staged, Manifest, Truth, MANIFEST_DIR,
+};
+use crate::eval::plot::{self, Grouped};
+use crate::eval::profiles::{mean_ci, node_camera, POSITIVE};
+use crate::eval::table::{median, Csv};
+use crate::eval::{EvalError, EvalOptions};
+use nalgebra::{Matrix3, UnitQuaternion, Vector3};
+use opencv::core::Mat;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::Serialize;
+use serde_json::{json, Value};
+use shoal_node::mat::GrayView;
+use shoal_proto::camera::CameraModel;
+use shoal_proto::geometry::Pose;
+use shoal_proto::marker::CodeSet;
+use shoal_sim_bridge::profile::{CameraProfile, Effect};
+use shoal_sim_bridge::render::motion::{RigidMotion, Twist};
+use shoal_sim_bridge::render::realistic::render_profiled;
+use shoal_sim_bridge::render::{Renderer, Scene, SceneMarker};
+use shoal_sim_bridge::water::{WaterParams, WaterPresets};
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::time::Instant;
+
+/// The method whose reads give the geometry: not shoal's own detector.
+const GEOMETRY_METHOD: &str = "apriltag3-d1";
+/// Frames of the recordings' videos are this far apart (10 fps, as `eval real` assumes).
+const FRAME_INTERVAL_S: f64 = 0.1;
+/// A frame's alignment is kept when its tags fit the layout this well (RMS, m).
+const MAX_ALIGN_RMS_M: f64 = 0.05;
+/// A tag farther than this from the layout after alignment is dropped once (m).
+const OUTLIER_M: f64 = 0.1;
+/// The tags must span at least this much across their line (m): not collinear.
+const MIN_SPREAD_M: f64 = 0.05;
+/// Seeds of the simulated frames (issue #16: at least 5).
+const SEEDS: u64 = 5;
+const QUICK_SEEDS: u64 = 2;
+/// Dev frames the conditions are fitted on, and bisection steps per number.
+const FIT_FRAMES: usize = 24;
+const QUICK_FIT_FRAMES: usize = 3;
+const FIT_STEPS: usize = 7;
+const QUICK_FIT_STEPS: usize = 5;
+/// A figure is predicted when simulated / real lies within this factor.
+pub const FACTOR: f64 = 2.0;
+
+/// The camera's pose in the layout's frame per frame index.
+#[derive(Debug, Default)]
+struct Track {
+    layout_from_camera: BTreeMap<usize, Pose>,
+    rms_m: Vec<f64>,
+    /// Layout distance over measured distance per aligned frame.
+    scale: Vec<f64>,
+    /// Frames posed between two aligned ones.
+    interpolated: usize,
+    frames_without: usize,
+    /// The aligned frames' fits and the tags that fitted.
+    fits: BTreeMap<usize, Fit>,
+    inliers: BTreeMap<usize, Vec<u32>>,
+}
+
+/// The similarity taking each pair's first point onto its second (least
+/// squares, Umeyama): the rotation and translation as a pose, the scale, the
+/// RMS residual and the points' spread across their line (m).
+#[derive(Debug, Clone, Copy)]
+struct Fit {
+    pose: Pose,
+    scale: f64,
+    rms: f64,
+    spread: f64,
+}
+
+impl Fit {
+    fn map(&self, p: &Vector3<f64>) -> Vector3<f64> {
+        self.scale * (self.pose.rotation * p) + self.pose.translation.vector
+    }
+}
+
+fn kabsch(pairs: &[(Vector3<f64>, Vector3<f64>)]) -> Option<Fit> {
+    let n = pairs.len() as f64;
+    if pairs.len() < 3 {
+        return None;
+    }
+    let pc = pairs.iter().map(|p| p.0).sum::<Vector3<f64>>() / n;
+    let qc = pairs.iter().map(|p| p.1).sum::<Vector3<f64>>() / n;
+    let mut h = Matrix3::zeros();
+    for (p, q) in pairs {
+        h += (p - pc) * (q - qc).transpose();
+    }
+    let svd = h.svd(true, true);
+    let (u, v_t) = (svd.u?, svd.v_t?);
+    // Spread across the line through the points: the second singular value of the centred set.
+    let spread = {
+        let mut c = Matrix3::zeros();
+        for (p, _) in pairs {
+            c += (p - pc) * (p - pc).transpose();
+        }
+        let mut e = c.symmetric_eigenvalues().as_slice().to_vec();
+        e.sort_by(|a, b| b.total_cmp(a));
+        (e[1].max(0.0) / n).sqrt()
+    };
+    let v = v_t.transpose();
+    let d = (v * u.transpose()).determinant().signum();
+    let r = v * Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, d)) * u.transpose();
+    // Umeyama's scale: the measured distances may all be off by one factor
+    // (the recording's calibration); a uniformly scaled scene makes the same
+    // image, so the camera's position is the scaled fit's.
+    let var_p = pairs
+        .iter()
+        .map(|(p, _)| (p - pc).norm_squared())
+        .sum::<f64>()
+        / n;
+    let sv = svd.singular_values;
+    let scale = (sv[0] + sv[1] + d * sv[2]) / n / var_p;
+    let rotation = UnitQuaternion::from_matrix(&r);
+    let t = qc - scale * (rotation * pc);
+    let pose = Pose::from_parts(t.into(), rotation);
+    let rms = (pairs
+        .iter()
+        .map(|(p, q)| (scale * (rotation * p) + t - q).norm_squared())
+        .sum::<f64>()
+        / n)
+        .sqrt();
+    Some(Fit {
+        pose,
+        scale,
+        rms,
+        spread,
+    })
+}
+
+/// The measured centres (camera frame) and surveyed centres of the tags of
+/// the layout read in one frame.
+fn frame_pairs(
+    centres: &BTreeMap<u32, [f64; 3]>,
+    reads: &[super::score::Read],
+) -> Vec<(u32, Vector3<f64>, Vector3<f64>)> {
+    reads
+        .iter()
+        .filter_map(|r| {
+            let c = centres.get(&r.id)?;
+            Some((
+                r.id,
+                r.camera_from_marker?.translation.vector,
+                Vector3::from(*c),
+            ))
+        })
+        .collect()
+}
+
+/// The best alignment of one frame's tags: every three tags not in a line
+/// propose a similarity; the one that most tags fit within [`OUTLIER_M`]
+/// (then the smallest residual) is refitted on those tags. A misread ID or
+/// a wrong pose does not move the camera.
+fn align(pairs: &[(u32, Vector3<f64>, Vector3<f64>)]) -> Option<(Fit, Vec<u32>)> {
+    let pts: Vec<(Vector3<f64>, Vector3<f64>)> = pairs.iter().map(|p| (p.1, p.2)).collect();
+    let n = pts.len();
+    let mut best: Option<(usize, f64, Vec<usize>)> = None;
+    for i in 0..n {
+        for j in i + 1..n {
+            for k in j + 1..n {
+                let Some(f) = kabsch(&[pts[i], pts[j], pts[k]]) else {
+                    continue;
+                };
+                if f.spread < MIN_SPREAD_M || !(0.8..=1.25).contains(&f.scale) {
+                    continue;
+                }
+                let inliers: Vec<usize> = (0..n)
+                    .filter(|&q| (f.map(&pts[q].0) - pts[q].1).norm() <= OUTLIER_M)
+                    .collect();
+                let sub: Vec<_> = inliers.iter().map(|&q| pts[q]).collect();
+                let Some(refit) = kabsch(&sub) else { continue };
+                let better = best.as_ref().is_none_or(|(count, rms, _)| {
+                    inliers.len() > *count || (inliers.len() == *count && refit.rms < *rms)
+                });
+                if better {
+                    best = Some((inliers.len(), refit.rms, inliers));
+                }
+            }
+        }
+    }
+    let (_, _, inliers) = best?;
+    let sub: Vec<_> = inliers.iter().map(|&q| pts[q]).collect();
+    let fit = kabsch(&sub)?;
+    Some((fit, inliers.iter().map(|&q| pairs[q].0).collect()))
+}
+
+/// Frames between two aligned ones at most this far apart are interpolated (s).
+const MAX_INTERPOLATED_GAP_S: f64 = 1.0;
+
+fn camera_track(
+    centres: &BTreeMap<u32, [f64; 3]>,
+    run: &MethodRun,
+    frame_interval_s: f64,
+) -> Track {
+    let mut track = Track::default();
+    let mut fits: BTreeMap<usize, Fit> = BTreeMap::new();
+    for (idx, _, reads) in &run.frames {
+        let pairs = frame_pairs(centres, reads);
+        match align(&pairs) {
+            Some((f, inliers)) if f.rms <= MAX_ALIGN_RMS_M && inliers.len() >= 3 => {
+                fits.insert(*idx, f);
+                track.rms_m.push(f.rms);
+                track.scale.push(f.scale);
+                track.inliers.insert(*idx, inliers);
+            }
+            _ => {}
+        }
+    }
+    let max_gap = (MAX_INTERPOLATED_GAP_S / frame_interval_s).round() as usize;
+    for (idx, _, _) in &run.frames {
+        if let Some(f) = fits.get(idx) {
+            track.layout_from_camera.insert(*idx, f.pose);
+            continue;
+        }
+        let before = fits.range(..*idx).next_back();
+        let after = fits.range(*idx..).next();
+        match (before, after) {
+            (Some((&a, fa)), Some((&b, fb))) if b - a <= max_gap => {
+                let w = (*idx - a) as f64 / (b - a) as f64;
+                let t = fa
+                    .pose
+                    .translation
+                    .vector
+                    .lerp(&fb.pose.translation.vector, w);
+                let r = fa.pose.rotation.slerp(&fb.pose.rotation, w);
+                track
+                    .layout_from_camera
+                    .insert(*idx, Pose::from_parts(t.into(), r));
+                track.interpolated += 1;
+            }
+            _ => track.frames_without += 1,
+        }
+    }
+    track.fits = fits;
+    track
+}
+
+/// Each tag's pose in the layout's frame as the frames measured it (the
+/// layout as built): its centre the median over the aligned frames of its
+/// measured centre, facing the way most frames saw it, turned about the
+/// layout's z axis by the median of the frames' turns. The surveyed centres
+/// stay the truth the reads are scored against, so the survey's own error
+/// is in the simulated figures as in the real ones.
+fn tag_poses(
+    run: &MethodRun,
+    centres: &BTreeMap<u32, [f64; 3]>,
+    track: &Track,
+) -> BTreeMap<u32, Pose> {
+    #[derive(Default)]
+    struct Seen {
+        yaws: Vec<f64>,
+        facing: i64,
+        at: [Vec<f64>; 3],
+    }
+    let mut seen: BTreeMap<u32, Seen> = BTreeMap::new();
+    for (idx, _, reads) in &run.frames {
+        let (Some(fit), Some(inliers)) = (track.fits.get(idx), track.inliers.get(idx)) else {
+            continue;
+        };
+        for r in reads
+            .iter()
+            .filter(|r| inliers.contains(&r.id) && centres.contains_key(&r.id))
+        {
+            let Some(p) = r.camera_from_marker else {
+                continue;
+            };
+            let rot = fit.pose.rotation * p.rotation;
+            let x = rot * Vector3::x();
+            let z = rot * Vector3::z();
+            let at = fit.map(&p.translation.vector);
+            let e = seen.entry(r.id).or_default();
+            e.yaws.push(x.y.atan2(x.x));
+            e.facing += if z.z >= 0.0 { 1 } else { -1 };
+            for (k, v) in e.at.iter_mut().enumerate() {
+                v.push(at[k]);
+            }
+        }
+    }
+    seen.into_iter()
+        .filter_map(|(id, e)| {
+            // Median of the turns about their circular mean.
+            let (s, c) = e
+                .yaws
+                .iter()
+                .fold((0.0, 0.0), |a, y| (a.0 + y.sin(), a.1 + y.cos()));
+            let mean = s.atan2(c);
+            let wrap = |a: f64| {
+                (a + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU) - std::f64::consts::PI
+            };
+            let dev: Vec<f64> = e.yaws.iter().map(|y| wrap(y - mean)).collect();
+            let yaw = mean + median(&dev)?;
+            let mut rotation = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw);
+            if e.facing < 0 {
+                rotation *=
+                    UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI);
+            }
+            let at = Vector3::new(median(&e.at[0])?, median(&e.at[1])?, median(&e.at[2])?);
+            Some((id, Pose::from_parts(at.into(), rotation)))
+        })
+        .collect()
+}
+
+/// How one tag looks across its outer edge, averaged over the middle of its
+/// four sides: the black border's level, the light surround's, and the
+/// edge's width as the σ of a Gaussian blur (25–75 % rise / 1.349).
+#[derive(Debug, Clone, Copy, Serialize)]
+struct EdgeLook {
+    dark: f64,
+    light: f64,
+    sigma_px: f64,
+}
+
+fn edge_look(img: &GrayView<'_>, outer: &[[f64; 2]], modules: usize) -> Option<EdgeLook> {
+    if outer.len() != 4 {
+        return None;
+    }
+    let centre = outer
+        .iter()
+        .fold([0.0, 0.0], |a, c| [a[0] + c[0] / 4.0, a[1] + c[1] / 4.0]);
+    let side = (0..4)
+        .map(|k| {
+            let (a, b) = (outer[k], outer[(k + 1) % 4]);
+            (a[0] - b[0]).hypot(a[1] - b[1])
+        })
+        .sum::<f64>()
+        / 4.0;
+    let module = side / modules as f64;
+    // Out to 0.9 of a module each way: the black border inside, the light
+    // quiet zone (at least one module) outside.
+    let reach = 0.9 * module;
+    if reach < 3.0 {
+        return None;
+    }
+    let steps = (2.0 * reach / 0.25).round() as usize;
+    let mut profile = vec![0.0; steps + 1];
+    let mut lines = 0.0;
+    for k in 0..4 {
+        let (a, b) = (outer[k], outer[(k + 1) % 4]);
+        let (tx, ty) = ((b[0] - a[0]) / side, (b[1] - a[1]) / side);
+        let (mut nx, mut ny) = (-ty, tx);
+        let mid = [(a[0] + b[0]) / 2.0, (a[1] + b[1]) / 2.0];
+        if nx * (mid[0] - centre[0]) + ny * (mid[1] - centre[1]) < 0.0 {
+            (nx, ny) = (-nx, -ny);
+        }
+        for f in [0.35, 0.45, 0.55, 0.65] {
+            let p = [a[0] + (b[0] - a[0]) * f, a[1] + (b[1] - a[1]) * f];
+            let (x0, y0) = (p[0] - nx * reach, p[1] - ny * reach);
+            let (x1, y1) = (p[0] + nx * reach, p[1] + ny * reach);
+            if !img.contains(x0, y0, 1.0) || !img.contains(x1, y1, 1.0) {
+                continue;
+            }
+            for (j, v) in profile.iter_mut().enumerate() {
+                let s = -reach + j as f64 * 0.25;
+                *v += img.sample(p[0] + nx * s, p[1] + ny * s);
+            }
+            lines += 1.0;
+        }
+    }
+    if lines < 8.0 {
+        return None;
+    }
+    profile.iter_mut().for_each(|v| *v /= lines);
+    let q = steps / 4;
+    let dark = profile[..=q].iter().sum::<f64>() / (q + 1) as f64;
+    let light = profile[steps - q..].iter().sum::<f64>() / (q + 1) as f64;
+    if light - dark < 2.0 {
+        return None;
+    }
+    let crossing = |level: f64| {
+        let target = dark + level * (light - dark);
+        profile.windows(2).enumerate().find_map(|(j, w)| {
+            (w[0] < target && w[1] >= target).then(|| j as f64 + (target - w[0]) / (w[1] - w[0]))
+        })
+    };
+    let rise = (crossing(0.75)? - crossing(0.25)?) * 0.25;
+    Some(EdgeLook {
+        dark,
+        light,
+        sigma_px: rise / 1.349,
+    })
+}
+
+/// Medians over many tags' looks: dark / light, light, σ.
+#[derive(Debug, Clone, Copy, Serialize)]
+struct Looks {
+    tags: usize,
+    contrast: f64,
+    light: f64,
+    sigma_px: f64,
+}
+
+fn summarize(looks: &[EdgeLook]) -> Option<Looks> {
+    let ratio: Vec<f64> = looks.iter().map(|l| l.dark / l.light).collect();
+    let light: Vec<f64> = looks.iter().map(|l| l.light).collect();
+    let sigma: Vec<f64> = looks.iter().map(|l| l.sigma_px).collect();
+    Some(Looks {
+        tags: looks.len(),
+        contrast: median(&ratio)?,
+        light: median(&light)?,
+        sigma_px: median(&sigma)?,
+    })
+}
+
+/// What the simulator is set to.
+#[derive(Debug, Clone, Serialize)]
+struct Conditions {
+    /// The water preset by its attenuation coefficient, 1/m: the clearest
+    /// (a tank's water; the recordings in the set are clear).
+    c_per_m: f64,
+    /// The preset's veiling light (ambient and lamp backscatter) times this.
+    veil: f64,
+    /// Auto-exposure's target mean (linear).
+    exposure_target: f64,
+    /// The heavy-tailed PSF's FWHM, the middle of its per-frame range, px.
+    psf_fwhm_px: f64,
+}
+
+/// Everything a simulated frame needs besides its seed.
+struct Twin<'a> {
+    m: &'a Manifest,
+    codes: CodeSet,
+    camera: CameraModel,
+    track: &'a Track,
+    tags: &'a BTreeMap<u32, Pose>,
+    presets: WaterPresets,
+    up: Vector3<f64>,
+    frame_interval_s: f64,
+    /// The recording's codec is H.264 (else JPEG).
+    h264: bool,
+}
+
+impl<'a> Twin<'a> {
+    fn new(
+        m: &'a Manifest,
+        (codes, camera): (CodeSet, CameraModel),
+        (track, tags): (&'a Track, &'a BTreeMap<u32, Pose>),
+        opts: &EvalOptions,
+    ) -> Result<Twin<'a>, EvalError> {
+        let mean_cam_z = track
+            .layout_from_camera
+            .values()
+            .map(|p| p.translation.vector.z)
+            .sum::<f64>()
+            / track.layout_from_camera.len().max(1) as f64;
+        Ok(Twin {
+            m,
+            codes,
+            camera,
+            track,
+            tags,
+            presets: opts.presets()?,
+            up: Vector3::new(0.0, 0.0, (mean_cam_z - Self::layout_z(m)).signum()),
+            frame_interval_s: FRAME_INTERVAL_S,
+            h264: match m.codec.as_deref() {
+                Some("h264") => true,
+                Some("jpeg") => false,
+                None => m.video.is_some(),
+                Some(other) => {
+                    return Err(EvalError::Setup(format!(
+                        "{}: codec {other:?}: expected \"h264\" or \"jpeg\"",
+                        m.name
+                    )))
+                }
+            },
+        })
+    }
+
+    /// The surveyed layout's mean height.
+    fn layout_z(m: &Manifest) -> f64 {
+        match &m.truth {
+            Truth::Layout { centres_m } => {
+                centres_m.values().map(|c| c[2]).sum::<f64>() / centres_m.len().max(1) as f64
+            }
+            _ => 0.0,
+        }
+    }
+
+    /// The camera's median distance from the layout's plane, m.
+    fn distance_m_median(&self) -> Option<f64> {
+        let z = Self::layout_z(self.m);
+        let d: Vec<f64> = self
+            .track
+            .layout_from_camera
+            .values()
+            .map(|p| (p.translation.vector.z - z).abs())
+            .collect();
+        median(&d)
+    }
+
+    fn profile(&self, cond: &Conditions, seed: u64) -> CameraProfile {
+        let mut p = CameraProfile::realistic().with_seed(seed);
+        if self.h264 {
+            p.enabled.remove(&Effect::Jpeg);
+            p.enabled.insert(Effect::H264);
+        }
+        p.params.exposure.target_mean = cond.exposure_target;
+        // The tank's frames are dimmer than auto-exposure's usual floor allows.
+        p.params.exposure.min_gain = 0.01;
+        p.params.psf.fwhm_px = [0.75 * cond.psf_fwhm_px, 1.25 * cond.psf_fwhm_px];
+        p.name = "twin".into();
+        p
+    }
+
+    fn water(&self, cond: &Conditions) -> Result<WaterParams, EvalError> {
+        let mut w = self.presets.get(cond.c_per_m)?;
+        w.backscatter_inf *= cond.veil;
+        w.lamp_backscatter *= cond.veil;
+        Ok(w)
+    }
+
+    /// The scene and the camera's motion over frame `idx`.
+    fn timeline(&self, idx: usize) -> Option<RigidMotion> {
+        let pose = *self.track.layout_from_camera.get(&idx)?;
+        // The camera's motion from the poses two frames either side (one
+        // frame's pose error over 0.1 s would be a fast, false motion).
+        let near = |d: isize| {
+            let k = idx.checked_add_signed(d)?;
+            Some((d, *self.track.layout_from_camera.get(&k)?))
+        };
+        let before = near(-2).or_else(|| near(-1)).unwrap_or((0, pose));
+        let after = near(2).or_else(|| near(1)).unwrap_or((0, pose));
+        let span = (after.0 - before.0) as f64 * self.frame_interval_s;
+        let (a, b, dt) = if span > 0.0 {
+            (before.1, after.1, span)
+        } else {
+            (pose, pose, 1.0)
+        };
+        let step = a.inverse() * b;
+        let scene = Scene {
+            markers: self
+                .tags
+                .iter()
+                .map(|(id, p)| SceneMarker {
+                    codes: self.codes,
+                    id: *id,
+                    side_m: self.m.side_m,
+                    world_from_marker: *p,
+                    owner: 0,
+                })
+                .collect(),
+            hulls: Vec::new(),
+            up_world: self.up,
+        };
+        Some(RigidMotion {
+            world_from_camera: pose,
+            scene,
+            camera: Twist {
+                linear_mps: step.translation.vector / dt,
+                angular_radps: step.rotation.scaled_axis() / dt,
+            },
+            targets: Twist::default(),
+        })
+    }
+
+    /// Frame `idx` rendered under `cond` (its noise from `seed`).
+    fn render(
+        &self,
+        renderer: &mut Renderer,
+        profile: &CameraProfile,
+        water: &WaterParams,
+        idx: usize,
+        seed: u64,
+    ) -> Result<Option<(Mat, RigidMotion)>, EvalError> {
+        let Some(tl) = self.timeline(idx) else {
+            return Ok(None);
+        };
+        let noise_seed = ChaCha8Rng::seed_from_u64(seed ^ ((idx as u64) << 24)).gen();
+        let f = render_profiled(
+            renderer,
+            profile,
+            &self.camera,
+            None,
+            &tl,
+            water,
+            idx as f64 * self.frame_interval_s,
+            noise_seed,
+        )?;
+        let mat = shoal_node::mat::gray_to_mat(&f.output.image)
+            .map_err(shoal_node::detect::DetectError::from)?;
+        Ok(Some((mat, tl)))
+    }
+
+    /// The tags' true outer corners in frame `idx` (those wholly in view).
+    fn true_outlines(&self, tl: &RigidMotion) -> Vec<Vec<[f64; 2]>> {
+        let corners = self.codes.corners_3d(self.m.side_m);
+        self.tags
+            .values()
+            .filter_map(|p| {
+                let camera_from_marker = tl.world_from_camera.inverse() * p;
+                corners[..4]
+                    .iter()
+                    .map(|c| {
+                        let q = camera_from_marker * c;
+                        (q.z > 0.0)
+                            .then(|| self.camera.project(&q))
+                            .flatten()
+                            .map(|q| [q.x, q.y])
+                    })
+                    .collect::<Option<Vec<_>>>()
+            })
+            .collect()
+    }
+
+    /// The looks of the simulated `frames` under `cond`.
+    fn looks(
+        &self,
+        frames: &[usize],
+        cond: &Conditions,
+        seed: u64,
+    ) -> Result<Option<Looks>, EvalError> {
+        let profile = self.profile(cond, seed);
+        let water = self.water(cond)?;
+        let mut renderer = Renderer::new();
+        let mut looks = Vec::new();
+        for &idx in frames {
+            let Some((mat, tl)) = self.render(&mut renderer, &profile, &water, idx, seed)? else {
+                continue;
+            };
+            let view = GrayView::new(&mat).map_err(shoal_node::detect::DetectError::from)?;
+            looks.extend(
+                self.true_outlines(&tl)
+                    .iter()
+                    .filter_map(|o| edge_look(&view, o, self.codes.modules())),
+            );
+        }
+        Ok(summarize(&looks))
+    }
+}
+
+/// `x` in `[lo, hi]` (geometric steps when `log`) where `f(x)` meets
+/// `target`, `f` increasing in `x`; `steps` bisections.
+fn bisect(
+    (mut lo, mut hi): (f64, f64),
+    log: bool,
+    steps: usize,
+    target: f64,
+    mut f: impl FnMut(f64) -> Result<Option<f64>, EvalError>,
+) -> Result<f64, EvalError> {
+    for _ in 0..steps {
+        let mid = if log {
+            (lo * hi).sqrt()
+        } else {
+            0.5 * (lo + hi)
+        };
+        match f(mid)? {
+            Some(v) if v < target => lo = mid,
+            Some(_) => hi = mid,
+            // Nothing measurable (no tag edge): treat as past the target on the dim side.
+            None => lo = mid,
+        }
+    }
+    Ok(if log {
+        (lo * hi).sqrt()
+    } else {
+        0.5 * (lo + hi)
+    })
+}
+
+/// The real frames' looks at `run`'s reads (AprilTag 3's outlines).
+fn real_looks(
+    dir: &Path,
+    m: &Manifest,
+    frames: &[usize],
+    run: &MethodRun,
+    modules: usize,
+) -> Result<Option<Looks>, EvalError> {
+    let Some(&last) = frames.last() else {
+        return Ok(None);
+    };
+    let outlines: BTreeMap<usize, Vec<Vec<[f64; 2]>>> = run
+        .frames
+        .iter()
+        .filter(|(i, _, _)| frames.contains(i))
+        .map(|(i, _, reads)| (*i, reads.iter().map(|r| r.outer_px.clone()).collect()))
+        .collect();
+    let mut looks = Vec::new();
+    for_frames(dir, m, [frames[0], last + 1], |idx, _, gray| {
+        if let Some(o) = outlines.get(&idx) {
+            let view = GrayView::new(gray).map_err(shoal_node::detect::DetectError::from)?;
+            looks.extend(o.iter().filter_map(|o| edge_look(&view, o, modules)));
+        }
+        Ok(())
+    })?;
+    Ok(summarize(&looks))
+}
+
+/// Real frames beside their simulated twins (one row each), as a PNG.
+fn sheet(
+    dir: &Path,
+    twin: &Twin<'_>,
+    cond: &Conditions,
+    frames: &[usize],
+    seed: u64,
+    path: &Path,
+) -> Result<(), EvalError> {
+    let (Some(&first), Some(&last)) = (frames.first(), frames.last()) else {
+        return Ok(());
+    };
+    let mut real: BTreeMap<usize, shoal_proto::GrayImage> = BTreeMap::new();
+    for_frames(dir, twin.m, [first, last + 1], |idx, _, gray| {
+        if frames.contains(&idx) {
+            real.insert(
+                idx,
+                shoal_node::mat::mat_to_gray(gray)
+                    .map_err(shoal_node::detect::DetectError::from)?,
+            );
+        }
+        Ok(())
+    })?;
+    let profile = twin.profile(cond, seed);
+    let water = twin.water(cond)?;
+    let mut renderer = Renderer::new();
+    let (w, h) = (twin.camera.width as usize, twin.camera.height as usize);
+    let mut out = vec![0u8; 2 * w * h * frames.len()];
+    for (row, idx) in frames.iter().enumerate() {
+        let (Some(r), Some((sim, _))) = (
+            real.get(idx),
+            twin.render(&mut renderer, &profile, &water, *idx, seed)?,
+        ) else {
+            continue;
+        };
+        let sim =
+            shoal_node::mat::mat_to_gray(&sim).map_err(shoal_node::detect::DetectError::from)?;
+        for y in 0..h {
+            let o = (row * h + y) * 2 * w;
+            out[o..o + w].copy_from_slice(&r.data[y * w..(y + 1) * w]);
+            out[o + w..o + 2 * w].copy_from_slice(&sim.data[y * w..(y + 1) * w]);
+        }
+    }
+    let img = shoal_proto::GrayImage {
+        width: 2 * w as u32,
+        height: (h * frames.len()) as u32,
+        data: out,
+    };
+    shoal_sim_bridge::render::write_png(&img, path)?;
+    Ok(())
+}
+
+/// Keeps only the frames in `keep` of each run.
+fn restrict(
+    runs: &BTreeMap<String, MethodRun>,
+    keep: &BTreeMap<usize, Pose>,
+) -> BTreeMap<String, MethodRun> {
+    runs.iter()
+        .map(|(k, r)| {
+            (
+                k.clone(),
+                MethodRun {
+                    frames: r
+                        .frames
+                        .iter()
+                        .filter(|f| keep.contains_key(&f.0))
+                        .cloned()
+                        .collect(),
+                    detect_ms: Vec::new(),
+                },
+            )
+        })
+        .collect()
+}
+
+/// The figures compared: name, value.
+fn figures(s: &Scores) -> [(&'static str, Option<f64>); 4] {
+    [
+        ("recall", s.recall),
+        ("miss", s.recall.map(|r| 1.0 - r)),
+        ("jitter_mm", s.jitter_mm_median),
+        ("distance_iqr", s.distance_ratio_iqr),
+    ]
+}
+
+/// The camera's track and the tags as built, from `run`'s reads.
+fn geometry(
+    centres_m: &BTreeMap<u32, [f64; 3]>,
+    all_geometry: &MethodRun,
+) -> (Track, BTreeMap<u32, Pose>) {
+    // Aligned to the survey first; then, five times, to the layout as the frames
+    // built it (a survey error pulls each frame's alignment its own way,
+    // depending on which tags that frame saw). The survey stays the truth
+    // the reads are scored against.
+    let mut track = camera_track(centres_m, all_geometry, FRAME_INTERVAL_S);
+    let mut tags = tag_poses(all_geometry, centres_m, &track);
+    for _ in 0..5 {
+        let built: BTreeMap<u32, [f64; 3]> = tags
+            .iter()
+            .map(|(id, p)| (*id, p.translation.vector.into()))
+            .collect();
+        let next = camera_track(&built, all_geometry, FRAME_INTERVAL_S);
+        if next.layout_from_camera.len() < track.layout_from_camera.len() {
+            break;
+        }
+        let mut again = tag_poses(all_geometry, &built, &next);
+        // A tag no frame fitted this time (seen at the frame's edge only)
+        // keeps its place.
+        for (id, p) in &tags {
+            again.entry(*id).or_insert(*p);
+        }
+        tags = again;
+        track = next;
+    }
+    (track, tags)
+}
+
+/// The conditions under which `twin`'s `fit_frames` look like the real
+/// ones (`real`), by `steps` bisections per number.
+fn fit_conditions(
+    twin: &Twin<'_>,
+    real_fit_looks: &Looks,
+    fit_frames: &[usize],
+    steps: usize,
+    fit_seed: u64,
+) -> Result<Conditions, EvalError> {
+    let mut cond = Conditions {
+        c_per_m: twin.presets.min_c(),
+        veil: 1.0,
+        exposure_target: CameraProfile::realistic().params.exposure.target_mean,
+        psf_fwhm_px: 1.75,
+    };
+    // Contrast (the veil) and the edge (the PSF) first, twice round, as
+    // each moves the other a little; then the light level (the gain), which
+    // neither depends on (the gamma comes after the gain: dark/light in DN
+    // does not move with it) but the veil moves.
+    let fit_exposure = |cond: &mut Conditions| -> Result<(), EvalError> {
+        cond.exposure_target = bisect((0.01, 0.9), true, steps, real_fit_looks.light, |t| {
+            let probe = Conditions {
+                exposure_target: t,
+                ..cond.clone()
+            };
+            Ok(twin.looks(fit_frames, &probe, fit_seed)?.map(|l| l.light))
+        })?;
+        Ok(())
+    };
+    // A first gain so the edges are measured at about the real level.
+    fit_exposure(&mut cond)?;
+    for _ in 0..2 {
+        cond.veil = bisect((0.0, 2.0), false, steps, real_fit_looks.contrast, |k| {
+            let probe = Conditions {
+                veil: k,
+                ..cond.clone()
+            };
+            Ok(twin
+                .looks(fit_frames, &probe, fit_seed)?
+                .map(|l| l.contrast))
+        })?;
+        cond.psf_fwhm_px = bisect((0.3, 8.0), true, steps, real_fit_looks.sigma_px, |w| {
+            let probe = Conditions {
+                psf_fwhm_px: w,
+                ..cond.clone()
+            };
+            Ok(twin
+                .looks(fit_frames, &probe, fit_seed)?
+                .map(|l| l.sigma_px))
+        })?;
+    }
+    fit_exposure(&mut cond)?;
+    Ok(cond)
+}
+
+/// Every method's scores on `frames` simulated under `cond`, per seed.
+fn simulate(
+    twin: &Twin<'_>,
+    cond: &Conditions,
+    frames: &[usize],
+    (first_seed, seeds): (u64, u64),
+    bar: &indicatif::ProgressBar,
+) -> Result<Vec<BTreeMap<String, Scores>>, EvalError> {
+    let m = twin.m;
+    let water = twin.water(cond)?;
+    let mut sim_scores = Vec::new();
+    for s in 0..seeds {
+        let seed = first_seed + s;
+        let profile = twin.profile(cond, seed);
+        let node_cam = node_camera(&profile, &twin.camera, seed)?;
+        let mut methods = runners(m, twin.codes, Some(node_cam))?;
+        let mut runs: BTreeMap<String, MethodRun> = methods
+            .iter()
+            .map(|r| (r.name.clone(), MethodRun::default()))
+            .collect();
+        let mut renderer = Renderer::new();
+        for &idx in frames {
+            let Some((mat, _)) = twin.render(&mut renderer, &profile, &water, idx, seed)? else {
+                continue;
+            };
+            let stamp_ns = idx as u64 * 100_000_000;
+            for method in methods.iter_mut() {
+                let t0 = Instant::now();
+                let found = method.detect(&mat, stamp_ns)?;
+                let ms = t0.elapsed().as_secs_f64() * 1e3;
+                let reads = reads_of(&found, Some(&node_cam), m.side_m);
+                let run = runs.get_mut(&method.name).expect("a run per method");
+                run.frames.push((idx, format!("twin#{idx}"), reads));
+                run.detect_ms.push(ms);
+            }
+            bar.inc(1);
+        }
+        sim_scores.push(scores(m, &runs));
+    }
+    Ok(sim_scores)
+}
+
+/// Per plot (`recall`, `jitter_mm`): the methods, and per series (real or
+/// simulated, per split) a value per method.
+type Plots = BTreeMap<&'static str, (Vec<String>, BTreeMap<String, Vec<Option<f64>>>)>;
+
+/// One split's figures, real against simulated: the table's rows, the CSV's,
+/// the plots' values and the JSON per method.
+fn report_split(
+    m: &Manifest,
+    split: &str,
+    (real_scores, sim_scores): (&BTreeMap<String, Scores>, &[BTreeMap<String, Scores>]),
+    first_seed: u64,
+    (csv, table, plots): (&mut Csv, &mut String, &mut Plots),
+) -> serde_json::Map<String, Value> {
+    let mut methods_json = serde_json::Map::new();
+    for (method, real_s) in real_scores {
+        let mut figs = serde_json::Map::new();
+        let mut cells = Vec::new();
+        for (k, (name, real_v)) in figures(real_s).into_iter().enumerate() {
+            let per_seed: Vec<f64> = sim_scores
+                .iter()
+                .filter_map(|s| s.get(method).and_then(|s| figures(s)[k].1))
+                .collect();
+            let bounds = if matches!(name, "recall" | "miss") {
+                (0.0, 1.0)
+            } else {
+                POSITIVE
+            };
+            let sim = mean_ci(&per_seed, bounds);
+            let sim_mean = sim["mean"].as_f64();
+            let ratio = sim_mean
+                .zip(real_v)
+                .and_then(|(s, r)| (r > 0.0).then(|| s / r));
+            let within = ratio.map(|q| (1.0 / FACTOR..=FACTOR).contains(&q));
+            for (seed_k, v) in per_seed.iter().enumerate() {
+                csv.row(vec![
+                    m.name.clone(),
+                    split.to_string(),
+                    method.clone(),
+                    name.to_string(),
+                    real_v.map_or(String::new(), |v| format!("{v:.5}")),
+                    (first_seed + seed_k as u64).to_string(),
+                    format!("{v:.5}"),
+                ]);
+            }
+            let ci = sim["ci95"]
+                .as_array()
+                .and_then(|a| Some((a.first()?.as_f64()?, a.get(1)?.as_f64()?)));
+            let fmt = |v: Option<f64>| v.map_or("–".to_string(), |v| format!("{v:.3}"));
+            cells.push(format!(
+                "{} · {}{} · {}{}",
+                fmt(real_v),
+                fmt(sim_mean),
+                ci.map_or(String::new(), |(a, b)| format!(" ({a:.3}–{b:.3})")),
+                ratio.map_or("–".to_string(), |q| format!("{q:.2}x")),
+                match within {
+                    Some(true) => "",
+                    Some(false) => " **out**",
+                    None => "",
+                }
+            ));
+            if name == "recall" || name == "jitter_mm" {
+                let key = if name == "recall" {
+                    "recall"
+                } else {
+                    "jitter_mm"
+                };
+                let entry = plots.entry(key).or_default();
+                let cat = method.to_string();
+                if !entry.0.contains(&cat) {
+                    entry.0.push(cat.clone());
+                }
+                let pos = entry.0.iter().position(|c| *c == cat).unwrap_or(0);
+                for (series, v) in [
+                    (format!("real {split}"), real_v),
+                    (format!("sim {split}"), sim_mean),
+                ] {
+                    let col = entry.1.entry(series).or_default();
+                    if col.len() <= pos {
+                        col.resize(pos + 1, None);
+                    }
+                    col[pos] = v;
+                }
+            }
+            figs.insert(
+                name.to_string(),
+                json!({"real": real_v, "sim": sim, "ratio": ratio, "within_factor": within}),
+            );
+        }
+        *table += &format!(
+            "| {}/{split} | {method} | {} |\n",
+            m.name,
+            cells.join(" | ")
+        );
+        methods_json.insert(method.clone(), Value::Object(figs));
+    }
+    methods_json
+}
+
+/// What the conditions were fitted on and how close the fit came.
+struct Fitted {
+    conditions: Conditions,
+    split: String,
+    frames: Vec<usize>,
+    real: Looks,
+    sim: Option<Looks>,
+}
+
+/// The conditions fitted on the `dev` split's frames (the first split's
+/// without one), spread over it.
+fn fit_on_dev(
+    dir: &Path,
+    twin: &Twin<'_>,
+    real: &BTreeMap<String, BTreeMap<String, MethodRun>>,
+    opts: &EvalOptions,
+) -> Result<Fitted, EvalError> {
+    let (m, track, codes) = (twin.m, twin.track, twin.codes);
+    let fit_split = if m.splits.contains_key("dev") {
+        "dev"
+    } else {
+        m.splits.keys().next().map_or("dev", |s| s)
+    };
+    let dev_range = m.splits.get(fit_split).copied().unwrap_or([0, 0]);
+    let dev_frames: Vec<usize> = track
+        .layout_from_camera
+        .keys()
+        .copied()
+        .filter(|i| (dev_range[0]..dev_range[1]).contains(i))
+        .collect();
+    let n_fit = if opts.quick {
+        QUICK_FIT_FRAMES
+    } else {
+        FIT_FRAMES
+    };
+    let fit_frames: Vec<usize> = if dev_frames.len() <= n_fit {
+        dev_frames.clone()
+    } else {
+        (0..n_fit)
+            .map(|k| dev_frames[k * dev_frames.len() / n_fit])
+            .collect()
+    };
+    let real_fit_looks = real_looks(
+        dir,
+        m,
+        &fit_frames,
+        &real[fit_split][GEOMETRY_METHOD],
+        codes.modules(),
+    )?
+    .ok_or_else(|| {
+        EvalError::Setup(format!(
+            "{}: no tag edge measurable on the dev frames",
+            m.name
+        ))
+    })?;
+    let steps = if opts.quick {
+        QUICK_FIT_STEPS
+    } else {
+        FIT_STEPS
+    };
+    let fit_seed = opts.seed ^ 0x7_1171;
+    let cond = fit_conditions(twin, &real_fit_looks, &fit_frames, steps, fit_seed)?;
+    let sim_fit_looks = twin.looks(&fit_frames, &cond, fit_seed)?;
+    crate::errln!(
+        "{}: fitted on {} {fit_split} frames: water {:.2} /m with its veil x {:.2}, exposure target {:.3}, PSF FWHM {:.2} px; real looks {:?}, simulated {:?}",
+        m.name,
+        fit_frames.len(),
+        cond.c_per_m,
+        cond.veil,
+        cond.exposure_target,
+        cond.psf_fwhm_px,
+        real_fit_looks,
+        sim_fit_looks
+    );
+
+    Ok(Fitted {
+        conditions: cond,
+        split: fit_split.to_string(),
+        frames: fit_frames,
+        real: real_fit_looks,
+        sim: sim_fit_looks,
+    })
+}
+
+/// One recording's twin.
+fn twin_recording(
+    dir: &Path,
+    m: &Manifest,
+    opts: &EvalOptions,
+    csv: &mut Csv,
+    table: &mut String,
+    plots: &mut Plots,
+) -> Result<Value, EvalError> {
+    let Truth::Layout { centres_m } = &m.truth else {
+        unreachable!("filtered by the caller");
+    };
+    let codes = CodeSet::from_name(&m.codes).map_err(|e| EvalError::Setup(e.to_string()))?;
+    let camera: CameraModel = m
+        .camera
+        .map(CameraModel::from)
+        .ok_or_else(|| EvalError::Setup(format!("{}: a twin needs the camera", m.name)))?;
+    let started = Instant::now();
+    // 1. The real side, every split; the geometry from AprilTag 3's reads of all of it.
+    let mut real: BTreeMap<String, BTreeMap<String, MethodRun>> = BTreeMap::new();
+    for (split, range) in &m.splits {
+        real.insert(split.clone(), run_split(dir, m, split, *range, opts, None)?);
+    }
+    let mut all_geometry = MethodRun::default();
+    for runs in real.values() {
+        if let Some(r) = runs.get(GEOMETRY_METHOD) {
+            all_geometry.frames.extend(r.frames.iter().cloned());
+        }
+    }
+    if all_geometry.frames.is_empty() {
+        return Err(EvalError::Setup(format!(
+            "{}: no {GEOMETRY_METHOD} reads to take the geometry from",
+            m.name
+        )));
+    }
+    let (track, tags) = geometry(centres_m, &all_geometry);
+    let twin = Twin::new(m, (codes, camera), (&track, &tags), opts)?;
+    crate::errln!(
+        "{}: camera posed in {} frames ({} of them interpolated, {} without), {} tags placed, {:.1} s",
+        m.name,
+        track.layout_from_camera.len(),
+        track.interpolated,
+        track.frames_without,
+        tags.len(),
+        started.elapsed().as_secs_f64()
+    );
+
+    // 2. Conditions fitted on dev frames.
+    let fitted = fit_on_dev(dir, &twin, &real, opts)?;
+    let cond = fitted.conditions.clone();
+    let shown: Vec<usize> = [0.2, 0.5, 0.8]
+        .iter()
+        .filter_map(|f| {
+            let keys: Vec<usize> = track.layout_from_camera.keys().copied().collect();
+            keys.get(((keys.len() as f64 - 1.0) * f).round() as usize)
+                .copied()
+        })
+        .collect();
+    let sheet_path = opts.out.join(format!("twin-{}-frames.png", m.name));
+    sheet(dir, &twin, &cond, &shown, opts.seed, &sheet_path)?;
+
+    // 3. Every split simulated, several seeds, scored like the real frames.
+    let seeds = if opts.quick { QUICK_SEEDS } else { SEEDS };
+    let mut per_split = serde_json::Map::new();
+    for (split, range) in &m.splits {
+        let frames: Vec<usize> = track
+            .layout_from_camera
+            .keys()
+            .copied()
+            .filter(|i| (range[0]..range[1]).contains(i))
+            .filter(|i| {
+                real[split]
+                    .values()
+                    .next()
+                    .is_some_and(|r| r.frames.iter().any(|f| f.0 == *i))
+            })
+            .collect();
+        let real_runs = restrict(&real[split], &track.layout_from_camera);
+        let real_scores = scores(m, &real_runs);
+        let bar = opts.bar(
+            frames.len() * seeds as usize,
+            &format!("twin {}/{split}", m.name),
+        );
+        let sim_scores = simulate(&twin, &cond, &frames, (opts.seed, seeds), &bar)?;
+        bar.finish_and_clear();
+        let methods_json = report_split(
+            m,
+            split,
+            (&real_scores, &sim_scores),
+            opts.seed,
+            (&mut *csv, &mut *table, &mut *plots),
+        );
+        per_split.insert(
+            split.clone(),
+            json!({"frames": frames.len(), "seeds": seeds, "methods": methods_json}),
+        );
+    }
+    Ok(json!({
+        "frames_posed": track.layout_from_camera.len(),
+        "frames_interpolated": track.interpolated,
+        "frames_without_pose": track.frames_without,
+        "tags_as_built": tags.iter().map(|(id, p)| (id.to_string(), json!({
+            "centre_m": [p.translation.vector.x, p.translation.vector.y, p.translation.vector.z],
+            "surveyed_m": centres_m.get(id),
+        }))).collect::<serde_json::Map<_, _>>(),
+        "alignment_rms_m_median": median(&track.rms_m),
+        "alignment_scale_median": median(&track.scale),
+        "camera_distance_m_median": twin.distance_m_median(),
+        "fitted_on": {"split": fitted.split, "frames": fitted.frames},
+        "sheet": {"path": sheet_path.display().to_string(), "frames": shown},
+        "conditions": fitted.conditions,
+        "looks": {"real": fitted.real, "sim": fitted.sim},
+        "splits": per_split,
+        "elapsed_s": started.elapsed().as_secs_f64(),
+    }))
+}
+
+/// `shoal eval real-twin`.
+pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
+    let root = data_root(opts.data.as_deref())?;
+    let (recordings, _) = find_recordings(&root, Path::new(MANIFEST_DIR))?;
+    let mut csv = Csv::new(&[
+        "recording",
+        "split",
+        "method",
+        "figure",
+        "real",
+        "seed",
+        "sim",
+    ]);
+    let mut table = String::from(
+        "| recording / split | method | recall: real · sim (95 % CI) · sim/real | miss | jitter mm | distance IQR |\n|---|---|---|---|---|---|\n",
+    );
+    let mut plots = Plots::new();
+    let mut results = serde_json::Map::new();
+    for rec in &recordings {
+        let m = load_manifest(&rec.manifest)?;
+        let usable =
+            matches!(m.truth, Truth::Layout { .. }) && m.camera.is_some() && m.video.is_some();
+        if !usable {
+            continue;
+        }
+        verify_staged(&m, &rec.dir)?;
+        let v = twin_recording(&rec.dir, &m, opts, &mut csv, &mut table, &mut plots)?;
+        results.insert(m.name.clone(), v);
+    }
+    if results.is_empty() {
+        return Err(EvalError::Setup(format!(
+            "{}: no recording a twin can be made of (a video with a camera and a layout truth; docs/real-data.md)",
+            root.display()
+        )));
+    }
+    csv.write(&opts.out.join("twin.csv"))?;
+    std::fs::write(opts.out.join("twin.md"), &table).map_err(|source| EvalError::Io {
+        path: opts.out.join("twin.md"),
+        source,
+    })?;
+    let mut plot_paths = Vec::new();
+    for (key, (categories, cols)) in plots {
+        let (title, y) = match key {
+            "recall" => ("Real recording and its simulated twin: recall", "recall"),
+            _ => (
+                "Real recording and its simulated twin: jitter of a pair's distance",
+                "jitter (mm)",
+            ),
+        };
+        let series: Vec<String> = cols.keys().cloned().collect();
+        let values: Vec<Vec<Option<f64>>> = cols
+            .into_values()
+            .map(|mut v| {
+                v.resize(categories.len(), None);
+                v
+            })
+            .collect();
+        plot_paths.extend(plot::bars(
+            &opts.out.join(format!("twin-{key}")),
+            &Grouped {
+                title: title.into(),
+                x_label: "method".into(),
+                y_label: y.into(),
+                categories: categories.clone(),
+                series,
+            },
+            &values,
+        )?);
+    }
+    crate::errln!("{table}");
+    Ok(json!({
+        "data": root.display().to_string(),
+        "factor": FACTOR,
+        "results": results,
+        "table": opts.out.join("twin.md").display().to_string(),
+        "plots": plot_paths.iter().map(|p| p.display().to_string()).collect::<Vec<_>>(),
+    }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn kabsch_recovers_a_rigid_transform_and_flags_collinear_points() {
+        let truth = Pose::from_parts(
+            Vector3::new(0.3, -1.2, 2.0).into(),
+            UnitQuaternion::from_euler_angles(0.2, -0.4, 1.1),
+        );
+        let layout = [
+            [0.0, 0.0, 0.0],
+            [0.8, 0.0, 0.0],
+            [0.0, 0.8, 0.0],
+            [0.8, 0.8, 0.0],
+        ];
+        let pairs: Vec<_> = layout
+            .iter()
+            .map(|q| {
+                let q = nalgebra::Point3::from(Vector3::from(*q));
+                ((truth.inverse() * q).coords, q.coords)
+            })
+            .collect();
+        let fit = kabsch(&pairs).expect("a fit");
+        assert!(fit.rms < 1e-9, "{fit:?}");
+        assert!(fit.spread > 0.3, "{fit:?}");
+        assert!((fit.scale - 1.0).abs() < 1e-9, "{fit:?}");
+        let e = shoal_proto::geometry::difference(&fit.pose, &truth);
+        assert!(e.norm() < 1e-9, "{e:?}");
+        // Measured 5 % short: the same pose, scale 1/0.95.
+        let short: Vec<_> = pairs.iter().map(|(p, q)| (p * 0.95, *q)).collect();
+        let fit = kabsch(&short).expect("a fit");
+        assert!(
+            fit.rms < 1e-9 && (fit.scale - 1.0 / 0.95).abs() < 1e-9,
+            "{fit:?}"
+        );
+        let e = shoal_proto::geometry::difference(&fit.pose, &truth);
+        assert!(e.norm() < 1e-9, "{e:?}");
+        // Three points on a line: no spread across it.
+        let line = kabsch(&[
+            pairs[0],
+            pairs[1],
+            (pairs[1].0 * 2.0 - pairs[0].0, pairs[1].1 * 2.0 - pairs[0].1),
+        ])
+        .expect("a fit");
+        assert!(line.spread < 1e-6, "{line:?}");
+    }
+
+    /// A dark square of 60 px (6 modules of 10 px), levels 40 and 160,
+    /// blurred by a Gaussian of `sigma` px, and its look.
+    fn look_of_square(sigma: f64) -> EdgeLook {
+        let (w, h) = (160usize, 160usize);
+        let erf_step = |d: f64| 0.5 * (1.0 + libm_erf(d / (sigma * std::f64::consts::SQRT_2)));
+        let mut data = vec![0u8; w * h];
+        for y in 0..h {
+            for x in 0..w {
+                // Distance outside the square [50, 110]² (negative inside).
+                let dx = (50.0 - x as f64).max(x as f64 - 110.0);
+                let dy = (50.0 - y as f64).max(y as f64 - 110.0);
+                data[y * w + x] = (40.0 + 120.0 * erf_step(dx.max(dy))).round() as u8;
+            }
+        }
+        let view = GrayView {
+            data: &data,
+            width: w,
+            height: h,
+            stride: w,
+        };
+        edge_look(
+            &view,
+            &[[50.0, 50.0], [110.0, 50.0], [110.0, 110.0], [50.0, 110.0]],
+            6,
+        )
+        .expect("a look")
+    }
+
+    #[test]
+    fn edge_look_measures_the_levels_and_the_blur_of_a_step() {
+        for sigma in [0.8, 1.5, 2.5] {
+            let look = look_of_square(sigma);
+            assert!((look.dark - 40.0).abs() < 2.0, "{sigma}: {look:?}");
+            assert!((look.light - 160.0).abs() < 2.0, "{sigma}: {look:?}");
+            assert!(
+                (look.sigma_px - sigma).abs() < 0.1 * sigma + 0.1,
+                "{sigma}: {look:?}"
+            );
+        }
+    }
+
+    /// Abramowitz–Stegun 7.1.26 (|error| < 1.5e-7), enough for a test image.
+    fn libm_erf(x: f64) -> f64 {
+        let t = 1.0 / (1.0 + 0.327_591_1 * x.abs());
+        let y = 1.0
+            - (((((1.061_405_429 * t - 1.453_152_027) * t) + 1.421_413_741) * t - 0.284_496_736)
+                * t
+                + 0.254_829_592)
+                * t
+                * (-x * x).exp();
+        y.copysign(x)
+    }
+
+    #[test]
+    fn bisection_finds_where_an_increasing_function_meets_its_target() {
+        let x = bisect((0.01, 100.0), true, 30, 4.0, |x| Ok(Some(x * x))).unwrap();
+        assert!((x - 2.0).abs() < 1e-3, "{x}");
+        let x = bisect((0.0, 10.0), false, 30, 3.0, |x| Ok(Some(x + 1.0))).unwrap();
+        assert!((x - 2.0).abs() < 1e-3, "{x}");
+    }
+}
