@@ -504,11 +504,14 @@ fn separate_processes_in_namespaces_survive_kills_restarts_and_a_cut_link() {
     // 4. Cut the link between the sides, then heal it. The vehicles' side
     // keeps its own full map (decentralized fusion on vehicle 10); the
     // ground station keeps the last poses, Stale.
-    mon_a.poll(Duration::from_millis(500));
-    assert!(
-        mon_a.last.as_ref().is_some_and(all_live),
-        "on-vehicle map before the cut: {:?}",
-        mon_a.last.as_ref().map(|m| &m.vehicles)
+    // Every vehicle localized on the vehicles' side first. Not one poll: on
+    // a loaded machine a single map may miss a vehicle for a moment (seen
+    // once in CI: 15 and 17 carried as Predicted for one map while another
+    // run's builds held the cores).
+    mon_a.wait(
+        Duration::from_secs(10),
+        "every vehicle Live on the vehicles' side before the cut",
+        all_live,
     );
     mon_a.phase = "on-vehicle, link cut";
     mon.phase = "link cut";

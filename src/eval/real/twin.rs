@@ -8,11 +8,18 @@
 //!
 //! 1. **Geometry, from the real frames.** AprilTag 3 (decimate 1, a
 //!    detector family other than shoal's) reads every frame; per frame the
-//!    tags' measured centres are aligned to the layout (Kabsch, at least
-//!    three tags not in a line, one outlier dropped) for the camera's pose
-//!    in the layout's frame. Each tag's in-plane turn and which way it faces
-//!    are the medians over the frames. Frames without a pose are not
-//!    simulated (counted).
+//!    tags' measured centres are aligned to the layout by a similarity
+//!    (Umeyama; every three tags not in a line propose one, the one most
+//!    tags fit within 10 cm is refitted on them: a misread ID does not move
+//!    the camera), for the camera's pose in the layout's frame; frames up to
+//!    1 s between two aligned ones are interpolated. Each tag is placed
+//!    where the frames measured it (the median of its aligned centres: the
+//!    layout as built), facing and turned as most frames saw it; the frames
+//!    are then aligned to that layout instead of the survey, five rounds, so
+//!    that a survey error does not pull each frame its own way. The survey
+//!    stays the truth the reads are scored against, so its error is in the
+//!    simulated figures as in the real ones. Frames without a pose are not
+//!    simulated, and not scored on the real side either (counted).
 //! 2. **Conditions, fitted on the `dev` split only.** The realistic camera
 //!    profile with the recording's codec (the manifest's `codec`, else H.264
 //!    for a video), its camera,
@@ -67,7 +74,7 @@ const GEOMETRY_METHOD: &str = "apriltag3-d1";
 const FRAME_INTERVAL_S: f64 = 0.1;
 /// A frame's alignment is kept when its tags fit the layout this well (RMS, m).
 const MAX_ALIGN_RMS_M: f64 = 0.05;
-/// A tag farther than this from the layout after alignment is dropped once (m).
+/// A tag farther than this from the layout after alignment is not used (m).
 const OUTLIER_M: f64 = 0.1;
 /// The tags must span at least this much across their line (m): not collinear.
 const MIN_SPREAD_M: f64 = 0.05;
@@ -114,7 +121,7 @@ impl Fit {
     }
 }
 
-fn kabsch(pairs: &[(Vector3<f64>, Vector3<f64>)]) -> Option<Fit> {
+fn umeyama(pairs: &[(Vector3<f64>, Vector3<f64>)]) -> Option<Fit> {
     let n = pairs.len() as f64;
     if pairs.len() < 3 {
         return None;
@@ -197,7 +204,7 @@ fn align(pairs: &[(u32, Vector3<f64>, Vector3<f64>)]) -> Option<(Fit, Vec<u32>)>
     for i in 0..n {
         for j in i + 1..n {
             for k in j + 1..n {
-                let Some(f) = kabsch(&[pts[i], pts[j], pts[k]]) else {
+                let Some(f) = umeyama(&[pts[i], pts[j], pts[k]]) else {
                     continue;
                 };
                 if f.spread < MIN_SPREAD_M || !(0.8..=1.25).contains(&f.scale) {
@@ -207,7 +214,7 @@ fn align(pairs: &[(u32, Vector3<f64>, Vector3<f64>)]) -> Option<(Fit, Vec<u32>)>
                     .filter(|&q| (f.map(&pts[q].0) - pts[q].1).norm() <= OUTLIER_M)
                     .collect();
                 let sub: Vec<_> = inliers.iter().map(|&q| pts[q]).collect();
-                let Some(refit) = kabsch(&sub) else { continue };
+                let Some(refit) = umeyama(&sub) else { continue };
                 let better = best.as_ref().is_none_or(|(count, rms, _)| {
                     inliers.len() > *count || (inliers.len() == *count && refit.rms < *rms)
                 });
@@ -219,7 +226,7 @@ fn align(pairs: &[(u32, Vector3<f64>, Vector3<f64>)]) -> Option<(Fit, Vec<u32>)>
     }
     let (_, _, inliers) = best?;
     let sub: Vec<_> = inliers.iter().map(|&q| pts[q]).collect();
-    let fit = kabsch(&sub)?;
+    let fit = umeyama(&sub)?;
     Some((fit, inliers.iter().map(|&q| pairs[q].0).collect()))
 }
 
@@ -1320,7 +1327,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn kabsch_recovers_a_rigid_transform_and_flags_collinear_points() {
+    fn umeyama_recovers_a_similarity_and_flags_collinear_points() {
         let truth = Pose::from_parts(
             Vector3::new(0.3, -1.2, 2.0).into(),
             UnitQuaternion::from_euler_angles(0.2, -0.4, 1.1),
@@ -1338,7 +1345,7 @@ mod tests {
                 ((truth.inverse() * q).coords, q.coords)
             })
             .collect();
-        let fit = kabsch(&pairs).expect("a fit");
+        let fit = umeyama(&pairs).expect("a fit");
         assert!(fit.rms < 1e-9, "{fit:?}");
         assert!(fit.spread > 0.3, "{fit:?}");
         assert!((fit.scale - 1.0).abs() < 1e-9, "{fit:?}");
@@ -1346,7 +1353,7 @@ mod tests {
         assert!(e.norm() < 1e-9, "{e:?}");
         // Measured 5 % short: the same pose, scale 1/0.95.
         let short: Vec<_> = pairs.iter().map(|(p, q)| (p * 0.95, *q)).collect();
-        let fit = kabsch(&short).expect("a fit");
+        let fit = umeyama(&short).expect("a fit");
         assert!(
             fit.rms < 1e-9 && (fit.scale - 1.0 / 0.95).abs() < 1e-9,
             "{fit:?}"
@@ -1354,7 +1361,7 @@ mod tests {
         let e = shoal_proto::geometry::difference(&fit.pose, &truth);
         assert!(e.norm() < 1e-9, "{e:?}");
         // Three points on a line: no spread across it.
-        let line = kabsch(&[
+        let line = umeyama(&[
             pairs[0],
             pairs[1],
             (pairs[1].0 * 2.0 - pairs[0].0, pairs[1].1 * 2.0 - pairs[0].1),
