@@ -205,6 +205,8 @@ fn the_twin_of_a_known_recording_finds_its_geometry_and_conditions_and_predicts_
         }
     }
     let mean = ratios.iter().map(|r| r.1).sum::<f64>() / ratios.len() as f64;
+    // Its scale is the survey's: aligned to it, not left to drift.
+    assert!((mean - 1.0).abs() < 0.05, "as-built scale {mean:.3}: {r:#}");
     for ((a, b), q) in &ratios {
         assert!(
             (q / mean - 1.0).abs() < AS_BUILT_TOL,

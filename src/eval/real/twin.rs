@@ -157,7 +157,14 @@ fn umeyama(pairs: &[(Vector3<f64>, Vector3<f64>)]) -> Option<Fit> {
         / n;
     let sv = svd.singular_values;
     let scale = (sv[0] + sv[1] + d * sv[2]) / n / var_p;
-    let rotation = UnitQuaternion::from_matrix(&r);
+    // `r` is orthonormal by construction (U and V are); nalgebra's iterative
+    // `from_matrix` would loop without end on a degenerate set's NaNs. A set
+    // without extent (one point) has no fit.
+    if !(r.iter().all(|x| x.is_finite()) && scale.is_finite() && var_p > 1e-12) {
+        return None;
+    }
+    let rotation =
+        UnitQuaternion::from_rotation_matrix(&nalgebra::Rotation3::from_matrix_unchecked(r));
     let t = qc - scale * (rotation * pc);
     let pose = Pose::from_parts(t.into(), rotation);
     let rms = (pairs
@@ -473,6 +480,12 @@ struct Twin<'a> {
     frame_interval_s: f64,
     /// The recording's codec is H.264 (else JPEG).
     h264: bool,
+    /// The tags' side as rendered: the manifest's times the alignment's
+    /// median scale. The world is in the survey's units, where the real
+    /// camera measured every distance 1/scale as long; a tag of this side
+    /// makes the image the real camera saw, and PnP with the manifest's side
+    /// then measures as short as it did on the real frames.
+    side_m: f64,
 }
 
 impl<'a> Twin<'a> {
@@ -497,6 +510,7 @@ impl<'a> Twin<'a> {
             presets: opts.presets()?,
             up: Vector3::new(0.0, 0.0, (mean_cam_z - Self::layout_z(m)).signum()),
             frame_interval_s: FRAME_INTERVAL_S,
+            side_m: m.side_m * median(&track.scale).unwrap_or(1.0),
             h264: match m.codec.as_deref() {
                 Some("h264") => true,
                 Some("jpeg") => false,
@@ -579,7 +593,7 @@ impl<'a> Twin<'a> {
                 .map(|(id, p)| SceneMarker {
                     codes: self.codes,
                     id: *id,
-                    side_m: self.m.side_m,
+                    side_m: self.side_m,
                     world_from_marker: *p,
                     owner: 0,
                 })
@@ -628,7 +642,7 @@ impl<'a> Twin<'a> {
 
     /// The tags' true outer corners in frame `idx` (those wholly in view).
     fn true_outlines(&self, tl: &RigidMotion) -> Vec<Vec<[f64; 2]>> {
-        let corners = self.codes.corners_3d(self.m.side_m);
+        let corners = self.codes.corners_3d(self.side_m);
         self.tags
             .values()
             .filter_map(|p| {
@@ -815,6 +829,13 @@ fn figures(s: &Scores) -> [(&'static str, Option<f64>); 4] {
     ]
 }
 
+/// The tags' centres.
+fn again_centres(tags: &BTreeMap<u32, Pose>) -> BTreeMap<u32, [f64; 3]> {
+    tags.iter()
+        .map(|(id, p)| (*id, p.translation.vector.into()))
+        .collect()
+}
+
 /// The camera's track and the tags as built, from `run`'s reads.
 fn geometry(
     centres_m: &BTreeMap<u32, [f64; 3]>,
@@ -827,10 +848,7 @@ fn geometry(
     let mut track = camera_track(centres_m, all_geometry, FRAME_INTERVAL_S);
     let mut tags = tag_poses(all_geometry, centres_m, &track);
     for _ in 0..5 {
-        let built: BTreeMap<u32, [f64; 3]> = tags
-            .iter()
-            .map(|(id, p)| (*id, p.translation.vector.into()))
-            .collect();
+        let built = again_centres(&tags);
         let next = camera_track(&built, all_geometry, FRAME_INTERVAL_S);
         if next.layout_from_camera.len() < track.layout_from_camera.len() {
             break;
@@ -841,8 +859,24 @@ fn geometry(
         for (id, p) in &tags {
             again.entry(*id).or_insert(*p);
         }
+        // The survey's frame and scale, kept: a layout aligned only to the
+        // previous round's is free to drift in scale (every scale is a
+        // fixed point), and the tags' own size would no longer match it.
+        let pairs: Vec<(Vector3<f64>, Vector3<f64>)> = again
+            .iter()
+            .filter_map(|(id, p)| Some((p.translation.vector, Vector3::from(*centres_m.get(id)?))))
+            .collect();
+        let Some(gauge) = umeyama(&pairs) else {
+            break;
+        };
+        for p in again.values_mut() {
+            *p = Pose::from_parts(
+                gauge.map(&p.translation.vector).into(),
+                gauge.pose.rotation * p.rotation,
+            );
+        }
         tags = again;
-        track = next;
+        track = camera_track(&again_centres(&tags), all_geometry, FRAME_INTERVAL_S);
     }
     (track, tags)
 }
@@ -1072,10 +1106,11 @@ fn fit_on_dev(
         .copied()
         .filter(|i| (dev_range[0]..dev_range[1]).contains(i))
         .collect();
-    let n_fit = if opts.quick {
-        QUICK_FIT_FRAMES
-    } else {
-        FIT_FRAMES
+    let n_fit = match (opts.quick, opts.frames) {
+        (true, _) => QUICK_FIT_FRAMES,
+        // `--frames N`: a quarter of the frames simulated per split.
+        (false, Some(n)) => (n / 4).clamp(1, FIT_FRAMES),
+        (false, None) => FIT_FRAMES,
     };
     let fit_frames: Vec<usize> = if dev_frames.len() <= n_fit {
         dev_frames.clone()
@@ -1202,8 +1237,15 @@ fn twin_recording(
                     .next()
                     .is_some_and(|r| r.frames.iter().any(|f| f.0 == *i))
             })
+            // `--frames N`: the first N posed frames of the split (consecutive,
+            // so that jitter is measured), on both sides.
+            .take(opts.frames.filter(|_| !opts.quick).unwrap_or(usize::MAX))
             .collect();
-        let real_runs = restrict(&real[split], &track.layout_from_camera);
+        let keep: BTreeMap<usize, Pose> = frames
+            .iter()
+            .map(|i| (*i, track.layout_from_camera[i]))
+            .collect();
+        let real_runs = restrict(&real[split], &keep);
         let real_scores = scores(m, &real_runs);
         let bar = opts.bar(
             frames.len() * seeds as usize,
@@ -1233,6 +1275,7 @@ fn twin_recording(
         }))).collect::<serde_json::Map<_, _>>(),
         "alignment_rms_m_median": median(&track.rms_m),
         "alignment_scale_median": median(&track.scale),
+        "side_rendered_m": twin.side_m,
         "camera_distance_m_median": twin.distance_m_median(),
         "fitted_on": {"split": fitted.split, "frames": fitted.frames},
         "sheet": {"path": sheet_path.display().to_string(), "frames": shown},
@@ -1368,6 +1411,9 @@ mod tests {
         ])
         .expect("a fit");
         assert!(line.spread < 1e-6, "{line:?}");
+        // Three times one point: no fit (and no endless iteration on NaNs).
+        let one = (Vector3::new(0.1, 0.2, 1.5), Vector3::new(0.5, 0.5, 0.0));
+        assert!(umeyama(&[one, one, one]).is_none());
     }
 
     /// A dark square of 60 px (6 modules of 10 px), levels 40 and 160,
