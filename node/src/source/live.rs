@@ -8,10 +8,13 @@
 //! - V4L2 gives each buffer's time on `CLOCK_MONOTONIC` (OpenCV's
 //!   `CAP_PROP_POS_MSEC`); it is moved to the wall clock by the current
 //!   `CLOCK_REALTIME − CLOCK_MONOTONIC` ([`StampSource::Driver`]).
-//! - GStreamer gives each buffer's presentation time on the pipeline's
-//!   running time, which starts near 0 when the pipeline starts; it is
-//!   placed on the wall clock by the earliest arrival seen
-//!   ([`PipelineClock`], [`StampSource::Pipeline`]).
+//! - GStreamer gives the pipeline's position on its running time, which
+//!   starts near 0 when the pipeline starts; it is placed on the wall clock
+//!   by the earliest arrival seen ([`PipelineClock`],
+//!   [`StampSource::Pipeline`]). OpenCV 4.6 answers `CAP_PROP_POS_MSEC` by
+//!   asking the `appsink` for its position (not the pulled buffer's time):
+//!   the buffer's time when the reader keeps up, up to the reader's lag
+//!   later when it does not.
 //! - Anything else, or a source time that disagrees with the arrival by more
 //!   than [`MAX_SOURCE_DISAGREEMENT_NS`], is stamped on arrival
 //!   ([`StampSource::Arrival`]).
