@@ -19,7 +19,9 @@
 //! depth). Gravity cannot see a twin turned about the vertical (a marker seen
 //! obliquely in azimuth from a level vehicle); when both vehicles also send a
 //! heading, the target's heading through the observer's attitude is gated
-//! against its own compass (χ²₁): [`RejectReason::Heading`](proto::RejectReason::Heading).
+//! against its own compass (χ²₁): [`RejectReason::Heading`](proto::RejectReason::Heading),
+//! each compass carried to the frame's capture by the turn rate its samples
+//! show (`NavAt::yaw_at_frame`).
 //! Vehicles without nav data are settled as before.
 
 use crate::window::Admission;
@@ -129,6 +131,21 @@ pub(crate) struct NavWindow {
 pub(crate) struct NavAt<'a> {
     pub state: &'a NavState,
     pub gap_s: f64,
+    /// The frame's time minus the sample's, s (`±gap_s`).
+    pub offset_s: f64,
+    /// The heading's turn rate between the nearest sample and the neighbour
+    /// across the frame (else the one before it), rad/s, where both have a
+    /// compass: the heading at the frame is the sample's turned on by it.
+    pub yaw_rate_rad_per_s: Option<f64>,
+}
+
+impl NavAt<'_> {
+    /// The compass heading carried to the frame's time by the turn rate the
+    /// samples show (the sample's own without a rate), rad.
+    pub fn yaw_at_frame(&self) -> Option<f64> {
+        let h = self.state.heading?;
+        Some(h.yaw_rad + self.yaw_rate_rad_per_s.unwrap_or(0.0) * self.offset_s)
+    }
 }
 
 impl NavWindow {
@@ -197,9 +214,26 @@ impl NavWindow {
             (Some(x), None) | (None, Some(x)) => x,
             (None, None) => return None,
         };
-        (gap(*nearest.0) <= max_gap_ns).then(|| NavAt {
+        if gap(*nearest.0) > max_gap_ns {
+            return None;
+        }
+        // The turn rate from the sample on the frame's other side, else the
+        // one before the nearest.
+        let other = match (before, after) {
+            (Some(b), Some(a)) if a.0 != b.0 => Some(if nearest.0 == a.0 { b } else { a }),
+            _ => list.range(..*nearest.0).next_back(),
+        };
+        let yaw_rate_rad_per_s = other.and_then(|(t, s)| {
+            let (h_other, h_nearest) = (s.heading?, nearest.1.heading?);
+            let dt = (*nearest.0 as f64 - *t as f64) * 1e-9;
+            (dt != 0.0)
+                .then(|| proto::geometry::wrap_angle(h_nearest.yaw_rad - h_other.yaw_rad) / dt)
+        });
+        Some(NavAt {
             state: nearest.1,
             gap_s: gap(*nearest.0) as f64 * 1e-9,
+            offset_s: (stamp_ns as f64 - *nearest.0 as f64) * 1e-9,
+            yaw_rate_rad_per_s,
         })
     }
 

@@ -81,19 +81,24 @@ fn check_one(
             return Some(RejectReason::Depth);
         }
     }
-    if let (Some(ot), Some(oh), Some(th), Some(ov)) = (
+    if let (Some(ot), Some(oh), Some(th), Some(o_yaw), Some(t_yaw), Some(ov)) = (
         o_tilt,
         observer.state.heading,
         target.state.heading,
+        observer.yaw_at_frame(),
+        target.yaw_at_frame(),
         tilt_var(observer),
     ) {
         stats.heading_checked += 1;
         // The target's attitude in the world through the observer's own,
-        // then its yaw against the target's compass.
+        // then its yaw against the target's compass; both compasses carried
+        // to the frame's time by the turn their samples show (a vehicle
+        // turns faster than it rolls: 18° in the 0.45 s to a sample at
+        // 40°/s), what is left of the gap's motion bounded by the tilt rate.
         let world_from_observer =
-            UnitQuaternion::from_euler_angles(ot.roll_rad, ot.pitch_rad, oh.yaw_rad);
+            UnitQuaternion::from_euler_angles(ot.roll_rad, ot.pitch_rad, o_yaw);
         let (_, _, yaw) = (world_from_observer * c.a_from_b.rotation).euler_angles();
-        let residual = wrap_angle(yaw - th.yaw_rad);
+        let residual = wrap_angle(yaw - t_yaw);
         let heading_var =
             |n: &NavAt<'_>, std: f64| std * std + (n.gap_s * p.tilt_rate_rad_per_s).powi(2);
         let var = (heading_var(observer, oh.std_rad)
@@ -288,5 +293,39 @@ mod tests {
         let mut frames = vec![frame(0, 10, 15, 10 * S, near, None)];
         let (verdicts, _) = check(&mut frames, &compass, &NavParams::default());
         assert_eq!(verdicts, vec![[None, None]]);
+    }
+
+    #[test]
+    fn a_target_turning_between_its_compass_samples_keeps_its_true_hypothesis() {
+        // 15 turns at 80°/s with nav once a second; the frame is 0.45 s
+        // before its nearest sample, so its heading then is 36° short of
+        // that sample's. Carried back by the turn the samples show, the
+        // compass keeps the truth and still refuses a twin 60° about the
+        // vertical.
+        let yaw_at = |t_s: f64| 0.2 + 80f64.to_radians() * t_s;
+        let w10 = pose_from_xyz_rpy([0.0, 0.0, 5.0], [0.0; 3]);
+        let w15_at = |t_s: f64| pose_from_xyz_rpy([2.0, 0.0, 5.0], [0.0, 0.0, yaw_at(t_s)]);
+        let truth = w10.inverse() * w15_at(9.55);
+        let twin = truth * pose_from_xyz_rpy([0.0; 3], [0.0, 0.0, -60f64.to_radians()]);
+        let nav = window(&[
+            with_compass(nav_of(10, &w10, 9 * S), &w10),
+            with_compass(nav_of(10, &w10, 10 * S), &w10),
+            with_compass(nav_of(15, &w15_at(9.0), 9 * S), &w15_at(9.0)),
+            with_compass(nav_of(15, &w15_at(10.0), 10 * S), &w15_at(10.0)),
+        ]);
+        let stamp = 9 * S + 55 * S / 100;
+        let mut frames = vec![frame(0, 10, 15, stamp, truth, Some(twin))];
+        let (verdicts, stats) = check(&mut frames, &nav, &NavParams::default());
+        assert_eq!(verdicts, vec![[None, Some(RejectReason::Heading)]]);
+        assert_eq!(stats.heading_checked, 2);
+        // With only the nearest sample the turn is unknown (the tilt rate,
+        // 10°/s, bounds it) and the true hypothesis, 36° off, is refused.
+        let nav = window(&[
+            with_compass(nav_of(10, &w10, 10 * S), &w10),
+            with_compass(nav_of(15, &w15_at(10.0), 10 * S), &w15_at(10.0)),
+        ]);
+        let mut frames = vec![frame(0, 10, 15, stamp, truth, None)];
+        let (verdicts, _) = check(&mut frames, &nav, &NavParams::default());
+        assert_eq!(verdicts, vec![[Some(RejectReason::Heading), None]]);
     }
 }
