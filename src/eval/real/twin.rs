@@ -28,8 +28,9 @@
 //!    real ones at the tags' outer edges (the same measurement on both: the
 //!    dark and light levels across each side's middle and the edge's width):
 //!    the veiling light of the clearest water preset (contrast, dark/light),
-//!    the auto-exposure's target (the light level) and the heavy-tailed
-//!    PSF's width (edge width).
+//!    the auto-exposure's target (the light level) and the PSF's width
+//!    (edge width; a Moffat of β 2.5–4.8, whose FWHM governs the edge down
+//!    to the camera's own blur, see [`twin_profile`]).
 //! 3. **Every split simulated** with those conditions, several seeds, the
 //!    real frame's geometry and the camera's motion to the next frame; every
 //!    method reads the simulated frames as it read the real ones (the node's
@@ -464,8 +465,37 @@ struct Conditions {
     veil: f64,
     /// Auto-exposure's target mean (linear).
     exposure_target: f64,
-    /// The heavy-tailed PSF's FWHM, the middle of its per-frame range, px.
+    /// The PSF's FWHM, the middle of its per-frame range, px.
     psf_fwhm_px: f64,
+}
+
+/// The range the PSF's FWHM is fitted in, px.
+const PSF_FWHM_RANGE_PX: (f64, f64) = (0.3, 8.0);
+/// The twin's Moffat exponents: a clear water's and a lens's PSF (2.5–4.8,
+/// as in astronomy), not a family the detector models.
+const TWIN_MOFFAT_BETA: [f64; 2] = [2.5, 4.8];
+
+/// The realistic profile under `cond`, with H.264 instead of JPEG when
+/// `h264`. Its PSF is a Moffat only: the realistic mix's generalized
+/// Gaussians of shape 0.6–1 (turbid water's heavy tails) spread an edge
+/// by over 1 px σ at any FWHM (at 0.3 px FWHM, p = 0.6 puts half its light
+/// beyond 2 px), so the FWHM fit had a floor above the tank's sharp edges
+/// (σ 1.49 px simulated against 1.18 real). A Moffat's FWHM governs its
+/// edge down to the camera's own blur.
+fn twin_profile(cond: &Conditions, h264: bool, seed: u64) -> CameraProfile {
+    let mut p = CameraProfile::realistic().with_seed(seed);
+    if h264 {
+        p.enabled.remove(&Effect::Jpeg);
+        p.enabled.insert(Effect::H264);
+    }
+    p.params.exposure.target_mean = cond.exposure_target;
+    // The tank's frames are dimmer than auto-exposure's usual floor allows.
+    p.params.exposure.min_gain = 0.01;
+    p.params.psf.fwhm_px = [0.75 * cond.psf_fwhm_px, 1.25 * cond.psf_fwhm_px];
+    p.params.psf.moffat_share = 1.0;
+    p.params.psf.moffat_beta = TWIN_MOFFAT_BETA;
+    p.name = "twin".into();
+    p
 }
 
 /// Everything a simulated frame needs besides its seed.
@@ -548,17 +578,7 @@ impl<'a> Twin<'a> {
     }
 
     fn profile(&self, cond: &Conditions, seed: u64) -> CameraProfile {
-        let mut p = CameraProfile::realistic().with_seed(seed);
-        if self.h264 {
-            p.enabled.remove(&Effect::Jpeg);
-            p.enabled.insert(Effect::H264);
-        }
-        p.params.exposure.target_mean = cond.exposure_target;
-        // The tank's frames are dimmer than auto-exposure's usual floor allows.
-        p.params.exposure.min_gain = 0.01;
-        p.params.psf.fwhm_px = [0.75 * cond.psf_fwhm_px, 1.25 * cond.psf_fwhm_px];
-        p.name = "twin".into();
-        p
+        twin_profile(cond, self.h264, seed)
     }
 
     fn water(&self, cond: &Conditions) -> Result<WaterParams, EvalError> {
@@ -640,27 +660,6 @@ impl<'a> Twin<'a> {
         Ok(Some((mat, tl)))
     }
 
-    /// The tags' true outer corners in frame `idx` (those wholly in view).
-    fn true_outlines(&self, tl: &RigidMotion) -> Vec<Vec<[f64; 2]>> {
-        let corners = self.codes.corners_3d(self.side_m);
-        self.tags
-            .values()
-            .filter_map(|p| {
-                let camera_from_marker = tl.world_from_camera.inverse() * p;
-                corners[..4]
-                    .iter()
-                    .map(|c| {
-                        let q = camera_from_marker * c;
-                        (q.z > 0.0)
-                            .then(|| self.camera.project(&q))
-                            .flatten()
-                            .map(|q| [q.x, q.y])
-                    })
-                    .collect::<Option<Vec<_>>>()
-            })
-            .collect()
-    }
-
     /// The looks of the simulated `frames` under `cond`.
     fn looks(
         &self,
@@ -671,16 +670,29 @@ impl<'a> Twin<'a> {
         let profile = self.profile(cond, seed);
         let water = self.water(cond)?;
         let mut renderer = Renderer::new();
+        // Measured at the outlines the same detector reads, as on the real
+        // frames: the projected truth at the frame's start is off the
+        // rendered edges by the motion over the exposure and the rolling
+        // shutter (about a pixel here), which, averaged over a tag's four
+        // sides, widened the simulated edges (σ 1.47 px at the narrowest
+        // PSF against 0.9 px on a still tag).
+        let mut geometry = runners(self.m, self.codes, None)?
+            .into_iter()
+            .find(|r| r.name == GEOMETRY_METHOD)
+            .ok_or_else(|| {
+                EvalError::Setup(format!("no {GEOMETRY_METHOD} detector for {}", self.codes))
+            })?;
         let mut looks = Vec::new();
         for &idx in frames {
-            let Some((mat, tl)) = self.render(&mut renderer, &profile, &water, idx, seed)? else {
+            let Some((mat, _)) = self.render(&mut renderer, &profile, &water, idx, seed)? else {
                 continue;
             };
+            let found = geometry.detect(&mat, idx as u64 * 100_000_000)?;
             let view = GrayView::new(&mat).map_err(shoal_node::detect::DetectError::from)?;
             looks.extend(
-                self.true_outlines(&tl)
+                reads_of(&found, None, self.side_m)
                     .iter()
-                    .filter_map(|o| edge_look(&view, o, self.codes.modules())),
+                    .filter_map(|r| edge_look(&view, &r.outer_px, self.codes.modules())),
             );
         }
         Ok(summarize(&looks))
@@ -922,7 +934,7 @@ fn fit_conditions(
                 .looks(fit_frames, &probe, fit_seed)?
                 .map(|l| l.contrast))
         })?;
-        cond.psf_fwhm_px = bisect((0.3, 8.0), true, steps, real_fit_looks.sigma_px, |w| {
+        cond.psf_fwhm_px = bisect(PSF_FWHM_RANGE_PX, true, steps, real_fit_looks.sigma_px, |w| {
             let probe = Conditions {
                 psf_fwhm_px: w,
                 ..cond.clone()
@@ -1469,6 +1481,105 @@ mod tests {
         y.copysign(x)
     }
 
+    /// The median edge σ of one tag of the tank recording's size and camera
+    /// (16h5, 15.55 cm at 1.5 m: ~115 px) rendered through `profile`, over
+    /// four frame seeds.
+    fn tank_tag_sigma(profile: &CameraProfile) -> f64 {
+        let codes = CodeSet::AprilTag16h5;
+        let camera = CameraModel {
+            width: 640,
+            height: 480,
+            fx: 1127.7,
+            fy: 1139.3,
+            cx: 314.7,
+            cy: 226.3,
+            distortion: shoal_proto::camera::Distortion::PlumbBob([0.0; 5]),
+        };
+        let presets = WaterPresets::builtin();
+        let water = presets.get(presets.min_c()).expect("the clearest preset");
+        let marker = Pose::from_parts(
+            Vector3::zeros().into(),
+            UnitQuaternion::from_euler_angles(0.0, 0.0, 0.3),
+        );
+        let world_from_camera = Pose::from_parts(
+            Vector3::new(0.01, 0.02, 1.5).into(),
+            UnitQuaternion::from_euler_angles(std::f64::consts::PI, 0.0, 0.0),
+        );
+        let tl = RigidMotion {
+            world_from_camera,
+            scene: Scene {
+                markers: vec![SceneMarker {
+                    codes,
+                    id: 3,
+                    side_m: 0.1555,
+                    world_from_marker: marker,
+                    owner: 0,
+                }],
+                hulls: Vec::new(),
+                up_world: Vector3::z(),
+            },
+            camera: Twist::default(),
+            targets: Twist::default(),
+        };
+        let outline: Vec<[f64; 2]> = codes.corners_3d(0.1555)[..4]
+            .iter()
+            .map(|c| {
+                let p = camera
+                    .project(&(world_from_camera.inverse() * (marker * c)))
+                    .expect("the tag is in view");
+                [p.x, p.y]
+            })
+            .collect();
+        let mut renderer = Renderer::new();
+        let sigmas: Vec<f64> = (0..4)
+            .map(|seed| {
+                let f = render_profiled(
+                    &mut renderer,
+                    profile,
+                    &camera,
+                    None,
+                    &tl,
+                    &water,
+                    0.0,
+                    seed,
+                )
+                .expect("a frame");
+                let mat = shoal_node::mat::gray_to_mat(&f.output.image).expect("a Mat");
+                let view = GrayView::new(&mat).expect("a view");
+                edge_look(&view, &outline, codes.modules())
+                    .expect("the tag's edges are measured")
+                    .sigma_px
+            })
+            .collect();
+        median(&sigmas).expect("four frames")
+    }
+
+    #[test]
+    fn the_twin_psf_width_governs_the_edge_down_to_the_cameras_own_blur() {
+        let cond = |psf_fwhm_px| Conditions {
+            c_per_m: 0.0,
+            veil: 1.0,
+            exposure_target: CameraProfile::realistic().params.exposure.target_mean,
+            psf_fwhm_px,
+        };
+        let mut without_psf = twin_profile(&cond(1.0), true, 7);
+        without_psf.enabled.remove(&Effect::Psf);
+        let camera_only = tank_tag_sigma(&without_psf);
+        let floor = tank_tag_sigma(&twin_profile(&cond(PSF_FWHM_RANGE_PX.0), true, 7));
+        let wide = tank_tag_sigma(&twin_profile(&cond(2.5), true, 7));
+        // At the fit's narrowest the PSF adds almost nothing (the realistic
+        // mix's heavy-tailed shapes added 0.4–0.8 px σ here), and a wider
+        // one widens the edge well past it.
+        assert!(
+            floor < camera_only + 0.1,
+            "σ {floor:.2} px at the narrowest PSF, {camera_only:.2} px without one"
+        );
+        assert!(
+            wide > floor + 0.4,
+            "σ {wide:.2} px at FWHM 2.5 px, {floor:.2} px at the narrowest"
+        );
+    }
+
     #[test]
     fn bisection_finds_where_an_increasing_function_meets_its_target() {
         let x = bisect((0.01, 100.0), true, 30, 4.0, |x| Ok(Some(x * x))).unwrap();
@@ -1477,3 +1588,4 @@ mod tests {
         assert!((x - 2.0).abs() < 1e-3, "{x}");
     }
 }
+
