@@ -49,35 +49,39 @@ pub fn find_quads(
     params: &DetectParams,
     gray: &(impl MatTraitConst + ToInputArray),
 ) -> Result<Vec<Quad>, DetectError> {
-    let (level, scale) = match without_edge_artefacts(gray)? {
-        Some(cleaned) => search_level(params, &cleaned)?,
-        None => search_level(params, gray)?,
-    };
     let mut quads: Vec<Quad> = Vec::new();
-    quads_of_level(params, &level, scale, [0.0, 0.0], &mut quads)?;
+    let cleaned = without_edge_artefacts(gray)?;
+    // The frame itself is searched in place (no copy) when it needs no halving.
+    match (cleaned, half_level(params, gray)?) {
+        (Some(cleaned), _) => match half_level(params, &cleaned)? {
+            Some(half) => quads_of_level(params, &half, 2.0, [0.0, 0.0], &mut quads)?,
+            None => quads_of_level(params, &cleaned, 1.0, [0.0, 0.0], &mut quads)?,
+        },
+        (None, Some(half)) => quads_of_level(params, &half, 2.0, [0.0, 0.0], &mut quads)?,
+        (None, None) => quads_of_level(params, gray, 1.0, [0.0, 0.0], &mut quads)?,
+    }
     Ok(quads)
 }
 
-/// The image the quads are searched in: `gray`, or half of it when wider
-/// than [`DetectParams::full_res_max_width`]; and its scale.
-fn search_level(
+/// Half of `gray` when it is wider than [`DetectParams::full_res_max_width`]
+/// (the quads are then searched at half size), else `None`.
+fn half_level(
     params: &DetectParams,
     gray: &(impl MatTraitConst + ToInputArray),
-) -> Result<(Mat, f64), DetectError> {
-    Ok(if gray.cols() > params.full_res_max_width {
-        let mut half = Mat::default();
-        imgproc::resize(
-            gray,
-            &mut half,
-            Size::new(gray.cols() / 2, gray.rows() / 2),
-            0.0,
-            0.0,
-            imgproc::INTER_AREA,
-        )?;
-        (half, 2.0)
-    } else {
-        (gray.try_clone()?, 1.0)
-    })
+) -> Result<Option<Mat>, DetectError> {
+    if gray.cols() <= params.full_res_max_width {
+        return Ok(None);
+    }
+    let mut half = Mat::default();
+    imgproc::resize(
+        gray,
+        &mut half,
+        Size::new(gray.cols() / 2, gray.rows() / 2),
+        0.0,
+        0.0,
+        imgproc::INTER_AREA,
+    )?;
+    Ok(Some(half))
 }
 
 /// An edge line at least this far (mean |difference|, grey levels) from
@@ -98,24 +102,26 @@ pub fn edge_line_artefacts(gray: &impl MatTraitConst) -> Result<[bool; 4], Detec
     if w < 8 || h < 8 || gray.typ() != opencv::core::CV_8UC1 {
         return Ok([false; 4]);
     }
-    let px =
-        |x: i32, y: i32| -> Result<f64, DetectError> { Ok(f64::from(*gray.at_2d::<u8>(y, x)?)) };
+    // Rows as slices (a strided Mat is read row by row as well).
+    let rows: Vec<&[u8]> = (0..h)
+        .map(|y| gray.at_row::<u8>(y))
+        .collect::<Result<_, _>>()?;
     // Mean |a − b| between lines `a` and `b` (rows when `rows`, else columns).
-    let diff = |rows: bool, a: i32, b: i32| -> Result<f64, DetectError> {
-        let n = if rows { w } else { h };
-        let mut sum = 0.0;
-        for i in 0..n {
-            let (pa, pb) = if rows {
-                (px(i, a)?, px(i, b)?)
-            } else {
-                (px(a, i)?, px(b, i)?)
-            };
-            sum += (pa - pb).abs();
-        }
-        Ok(sum / f64::from(n))
+    let diff = |by_rows: bool, a: i32, b: i32| -> Result<f64, DetectError> {
+        let sum: u64 = if by_rows {
+            let (ra, rb) = (rows[a as usize], rows[b as usize]);
+            ra.iter()
+                .zip(rb)
+                .map(|(&p, &q)| u64::from(p.abs_diff(q)))
+                .sum()
+        } else {
+            let (a, b) = (a as usize, b as usize);
+            rows.iter().map(|r| u64::from(r[a].abs_diff(r[b]))).sum()
+        };
+        Ok(sum as f64 / f64::from(if by_rows { w } else { h }))
     };
     let mut out = [false; 4];
-    for (k, (rows, edge, n1, n2)) in [
+    for (k, (by_rows, edge, n1, n2)) in [
         (true, 0, 1, 2),
         (true, h - 1, h - 2, h - 3),
         (false, 0, 1, 2),
@@ -124,7 +130,7 @@ pub fn edge_line_artefacts(gray: &impl MatTraitConst) -> Result<[bool; 4], Detec
     .into_iter()
     .enumerate()
     {
-        let (d01, d12) = (diff(rows, edge, n1)?, diff(rows, n1, n2)?);
+        let (d01, d12) = (diff(by_rows, edge, n1)?, diff(by_rows, n1, n2)?);
         out[k] = d01 >= EDGE_LINE_MIN_STEP_DN && d01 > EDGE_LINE_RATIO * d12 + EDGE_LINE_SLACK_DN;
     }
     Ok(out)
@@ -170,7 +176,7 @@ fn without_edge_artefacts(gray: &impl MatTraitConst) -> Result<Option<Mat>, Dete
 /// `quads` unless already there.
 fn quads_of_level(
     params: &DetectParams,
-    level: &Mat,
+    level: &(impl MatTraitConst + ToInputArray),
     scale: f64,
     offset: Px,
     quads: &mut Vec<Quad>,
@@ -224,7 +230,7 @@ const RANGE_TILE_PX: usize = 4;
 /// the relative one wherever it comes to the fixed value.
 fn binarize(
     params: &DetectParams,
-    level: &Mat,
+    level: &(impl MatTraitConst + ToInputArray),
     win: i32,
     bin: &mut Mat,
 ) -> Result<(), DetectError> {
@@ -255,14 +261,19 @@ fn binarize(
         true,
         opencv::core::BORDER_REPLICATE | opencv::core::BORDER_ISOLATED,
     )?;
-    let src = if level.is_continuous() {
-        level.clone()
+    // A continuous level is read in place; a strided one (a view) copied once.
+    let copy = if level.is_continuous() {
+        None
     } else {
-        level.try_clone()?
+        Some(level.try_clone()?)
     };
-    let (w, h) = (src.cols() as usize, src.rows() as usize);
+    let src_data = match &copy {
+        Some(c) => c.data_bytes()?,
+        None => level.data_bytes()?,
+    };
+    let (w, h) = (level.cols() as usize, level.rows() as usize);
     let tw = w.div_ceil(RANGE_TILE_PX);
-    let offsets = tile_offsets(params, rel, src.data_bytes()?, w, h, win as usize);
+    let offsets = tile_offsets(params, rel, src_data, w, h, win as usize);
     // Dark where src − mean ≤ −offset, as `adaptiveThreshold` decides it.
     let mut out = Mat::new_rows_cols_with_default(
         h as i32,
@@ -270,7 +281,7 @@ fn binarize(
         opencv::core::CV_8UC1,
         opencv::core::Scalar::all(0.0),
     )?;
-    let (sd, md) = (src.data_bytes()?, mean.data_bytes()?);
+    let (sd, md) = (src_data, mean.data_bytes()?);
     let od = out.data_bytes_mut()?;
     // Each tile row's offsets spread over its pixels once, then a
     // branch-free pass the compiler vectorises.
@@ -304,11 +315,17 @@ fn spread_tiles(
     r: usize,
     f: impl Fn(u8, u8) -> u8 + Copy,
 ) -> Vec<u8> {
-    let mut a = vec![0u8; v.len()];
+    // Along rows: each tile against its neighbours up to `r` away, as
+    // shifted copies of the row (passes the compiler vectorises).
+    let mut a = v.to_vec();
     for (ar, vr) in a.chunks_exact_mut(tw).zip(v.chunks_exact(tw)) {
-        for (tx, av) in ar.iter_mut().enumerate() {
-            let win = &vr[tx.saturating_sub(r)..=(tx + r).min(tw - 1)];
-            *av = win.iter().fold(win[0], |acc, &x| f(acc, x));
+        for shift in 1..=r.min(tw.saturating_sub(1)) {
+            for (av, &x) in ar[..tw - shift].iter_mut().zip(&vr[shift..]) {
+                *av = f(*av, x);
+            }
+            for (av, &x) in ar[shift..].iter_mut().zip(&vr[..tw - shift]) {
+                *av = f(*av, x);
+            }
         }
     }
     let mut b = vec![0u8; v.len()];
@@ -338,17 +355,22 @@ fn tile_offsets(
     let t = RANGE_TILE_PX;
     let (tw, th) = (w.div_ceil(t), h.div_ceil(t));
     let (mut lo, mut hi) = (vec![u8::MAX; tw * th], vec![0u8; tw * th]);
-    for (y, row) in data.chunks_exact(w).take(h).enumerate() {
-        let k0 = (y / t) * tw;
-        let (lr, hr) = (&mut lo[k0..k0 + tw], &mut hi[k0..k0 + tw]);
-        for ((c, l), u) in row.chunks(t).zip(lr.iter_mut()).zip(hr.iter_mut()) {
-            let (mut a, mut b) = (*l, *u);
-            for &v in c {
-                a = a.min(v);
-                b = b.max(v);
+    // Per tile row: the column-wise extremes over its rows first (a pass the
+    // compiler vectorises), then each tile's over its columns.
+    let (mut col_lo, mut col_hi) = (vec![u8::MAX; w], vec![0u8; w]);
+    for (ty, rows) in data.chunks(t * w).take(th).enumerate() {
+        col_lo.fill(u8::MAX);
+        col_hi.fill(0);
+        for row in rows.chunks_exact(w) {
+            for ((l, u), &v) in col_lo.iter_mut().zip(col_hi.iter_mut()).zip(row) {
+                *l = (*l).min(v);
+                *u = (*u).max(v);
             }
-            *l = a;
-            *u = b;
+        }
+        let k0 = ty * tw;
+        for (tx, (cl, ch)) in col_lo.chunks(t).zip(col_hi.chunks(t)).enumerate() {
+            lo[k0 + tx] = cl.iter().copied().min().unwrap_or(u8::MAX);
+            hi[k0 + tx] = ch.iter().copied().max().unwrap_or(0);
         }
     }
     // Tiles within `r` of a tile, separably: rows, then columns.
@@ -357,18 +379,20 @@ fn tile_offsets(
         spread_tiles(&lo, tw, th, r, u8::min),
         spread_tiles(&hi, tw, th, r, u8::max),
     );
+    // The offset of every possible range, looked up per tile.
     let fixed = params.threshold_offset;
+    let by_range: [u8; 256] = std::array::from_fn(|range| {
+        let range = range as f64;
+        let off = if range < rel.flat_below_dn {
+            fixed
+        } else {
+            (rel.fraction * range).clamp(rel.min_dn.min(fixed), fixed)
+        };
+        off.floor() as u8
+    });
     lo.iter()
         .zip(&hi)
-        .map(|(&l, &u)| {
-            let range = f64::from(u - l);
-            let off = if range < rel.flat_below_dn {
-                fixed
-            } else {
-                (rel.fraction * range).clamp(rel.min_dn.min(fixed), fixed)
-            };
-            off.floor() as u8
-        })
+        .map(|(&l, &u)| by_range[usize::from(u - l)])
         .collect()
 }
 
@@ -378,7 +402,7 @@ fn tile_offsets(
 /// is scratch space for the polygon.
 fn contour_quad(
     params: &DetectParams,
-    level: &Mat,
+    level: &impl MatTraitConst,
     scale: f64,
     c: &Vector<Point>,
     approx: &mut Vector<Point>,
