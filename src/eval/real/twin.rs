@@ -934,15 +934,21 @@ fn fit_conditions(
                 .looks(fit_frames, &probe, fit_seed)?
                 .map(|l| l.contrast))
         })?;
-        cond.psf_fwhm_px = bisect(PSF_FWHM_RANGE_PX, true, steps, real_fit_looks.sigma_px, |w| {
-            let probe = Conditions {
-                psf_fwhm_px: w,
-                ..cond.clone()
-            };
-            Ok(twin
-                .looks(fit_frames, &probe, fit_seed)?
-                .map(|l| l.sigma_px))
-        })?;
+        cond.psf_fwhm_px = bisect(
+            PSF_FWHM_RANGE_PX,
+            true,
+            steps,
+            real_fit_looks.sigma_px,
+            |w| {
+                let probe = Conditions {
+                    psf_fwhm_px: w,
+                    ..cond.clone()
+                };
+                Ok(twin
+                    .looks(fit_frames, &probe, fit_seed)?
+                    .map(|l| l.sigma_px))
+            },
+        )?;
     }
     fit_exposure(&mut cond)?;
     Ok(cond)
@@ -1588,4 +1594,3 @@ mod tests {
         assert!((x - 2.0).abs() < 1e-3, "{x}");
     }
 }
-
