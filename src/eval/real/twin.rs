@@ -699,13 +699,24 @@ impl<'a> Twin<'a> {
     }
 }
 
+/// Where `f` measures nothing at `x` (no tag read or no edge measured).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Unmeasured {
+    /// `x` is too small (e.g. an exposure too dim to see an edge).
+    BelowTarget,
+    /// `x` is too large (e.g. a blur or a veil no detector reads through).
+    AboveTarget,
+}
+
 /// `x` in `[lo, hi]` (geometric steps when `log`) where `f(x)` meets
-/// `target`, `f` increasing in `x`; `steps` bisections.
+/// `target`, `f` increasing in `x`; `steps` bisections; where `f` measures
+/// nothing, `unmeasured` says which side of the target that is.
 fn bisect(
     (mut lo, mut hi): (f64, f64),
     log: bool,
     steps: usize,
     target: f64,
+    unmeasured: Unmeasured,
     mut f: impl FnMut(f64) -> Result<Option<f64>, EvalError>,
 ) -> Result<f64, EvalError> {
     for _ in 0..steps {
@@ -714,11 +725,10 @@ fn bisect(
         } else {
             0.5 * (lo + hi)
         };
-        match f(mid)? {
-            Some(v) if v < target => lo = mid,
-            Some(_) => hi = mid,
-            // Nothing measurable (no tag edge): treat as past the target on the dim side.
-            None => lo = mid,
+        match (f(mid)?, unmeasured) {
+            (Some(v), _) if v < target => lo = mid,
+            (Some(_), _) | (None, Unmeasured::AboveTarget) => hi = mid,
+            (None, Unmeasured::BelowTarget) => lo = mid,
         }
     }
     Ok(if log {
@@ -908,37 +918,56 @@ fn fit_conditions(
         exposure_target: CameraProfile::realistic().params.exposure.target_mean,
         psf_fwhm_px: 1.75,
     };
-    // Contrast (the veil) and the edge (the PSF) first, twice round, as
-    // each moves the other a little; then the light level (the gain), which
-    // neither depends on (the gamma comes after the gain: dark/light in DN
-    // does not move with it) but the veil moves.
+    // Contrast (the veil) and the edge (the PSF), twice round, as each
+    // moves the other a little; the light level (the gain) refitted after
+    // each veil, which moves it: dark/light in DN does not depend on the gain
+    // (the gamma comes after it) until the light clips at 255, and a clipped
+    // edge measures sharp, which drove a second round's blur to 4.5 px (the
+    // synthetic twin of `tests/eval_twin.rs`, PSF 3.0 px after one round).
     let fit_exposure = |cond: &mut Conditions| -> Result<(), EvalError> {
-        cond.exposure_target = bisect((0.01, 0.9), true, steps, real_fit_looks.light, |t| {
-            let probe = Conditions {
-                exposure_target: t,
-                ..cond.clone()
-            };
-            Ok(twin.looks(fit_frames, &probe, fit_seed)?.map(|l| l.light))
-        })?;
+        cond.exposure_target = bisect(
+            (0.01, 0.9),
+            true,
+            steps,
+            real_fit_looks.light,
+            Unmeasured::BelowTarget,
+            |t| {
+                let probe = Conditions {
+                    exposure_target: t,
+                    ..cond.clone()
+                };
+                Ok(twin.looks(fit_frames, &probe, fit_seed)?.map(|l| l.light))
+            },
+        )?;
         Ok(())
     };
     // A first gain so the edges are measured at about the real level.
     fit_exposure(&mut cond)?;
     for _ in 0..2 {
-        cond.veil = bisect((0.0, 2.0), false, steps, real_fit_looks.contrast, |k| {
-            let probe = Conditions {
-                veil: k,
-                ..cond.clone()
-            };
-            Ok(twin
-                .looks(fit_frames, &probe, fit_seed)?
-                .map(|l| l.contrast))
-        })?;
+        // A veil or a blur no detector reads through is past the target.
+        cond.veil = bisect(
+            (0.0, 2.0),
+            false,
+            steps,
+            real_fit_looks.contrast,
+            Unmeasured::AboveTarget,
+            |k| {
+                let probe = Conditions {
+                    veil: k,
+                    ..cond.clone()
+                };
+                Ok(twin
+                    .looks(fit_frames, &probe, fit_seed)?
+                    .map(|l| l.contrast))
+            },
+        )?;
+        fit_exposure(&mut cond)?;
         cond.psf_fwhm_px = bisect(
             PSF_FWHM_RANGE_PX,
             true,
             steps,
             real_fit_looks.sigma_px,
+            Unmeasured::AboveTarget,
             |w| {
                 let probe = Conditions {
                     psf_fwhm_px: w,
@@ -1588,9 +1617,18 @@ mod tests {
 
     #[test]
     fn bisection_finds_where_an_increasing_function_meets_its_target() {
-        let x = bisect((0.01, 100.0), true, 30, 4.0, |x| Ok(Some(x * x))).unwrap();
+        let below = Unmeasured::BelowTarget;
+        let x = bisect((0.01, 100.0), true, 30, 4.0, below, |x| Ok(Some(x * x))).unwrap();
         assert!((x - 2.0).abs() < 1e-3, "{x}");
-        let x = bisect((0.0, 10.0), false, 30, 3.0, |x| Ok(Some(x + 1.0))).unwrap();
+        let x = bisect((0.0, 10.0), false, 30, 3.0, below, |x| Ok(Some(x + 1.0))).unwrap();
         assert!((x - 2.0).abs() < 1e-3, "{x}");
+        // Nothing measured past 5 (a blur no detector reads through): still 2
+        // when that side is said to be above the target; pushed to the top
+        // end when it is wrongly taken as below.
+        let blur = |x: f64| Ok((x < 5.0).then_some(x + 1.0));
+        let x = bisect((0.0, 10.0), false, 30, 3.0, Unmeasured::AboveTarget, blur).unwrap();
+        assert!((x - 2.0).abs() < 1e-3, "{x}");
+        let x = bisect((0.0, 8.0), false, 30, 3.0, below, blur).unwrap();
+        assert!(x > 7.9, "{x}");
     }
 }
