@@ -1626,9 +1626,9 @@ mod tests {
         // when that side is said to be above the target; pushed to the top
         // end when it is wrongly taken as below.
         let blur = |x: f64| Ok((x < 5.0).then_some(x + 1.0));
-        let x = bisect((0.0, 10.0), false, 30, 3.0, Unmeasured::AboveTarget, blur).unwrap();
+        let x = bisect((0.0, 20.0), false, 30, 3.0, Unmeasured::AboveTarget, blur).unwrap();
         assert!((x - 2.0).abs() < 1e-3, "{x}");
-        let x = bisect((0.0, 8.0), false, 30, 3.0, below, blur).unwrap();
-        assert!(x > 7.9, "{x}");
+        let x = bisect((0.0, 20.0), false, 30, 3.0, below, blur).unwrap();
+        assert!(x > 19.9, "{x}");
     }
 }
