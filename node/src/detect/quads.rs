@@ -50,17 +50,24 @@ pub fn find_quads(
     gray: &(impl MatTraitConst + ToInputArray),
 ) -> Result<Vec<Quad>, DetectError> {
     let mut quads: Vec<Quad> = Vec::new();
-    let cleaned = without_edge_artefacts(gray)?;
-    // The frame itself is searched in place (no copy) when it needs no halving.
-    match (cleaned, half_level(params, gray)?) {
-        (Some(cleaned), _) => match half_level(params, &cleaned)? {
-            Some(half) => quads_of_level(params, &half, 2.0, [0.0, 0.0], &mut quads)?,
-            None => quads_of_level(params, &cleaned, 1.0, [0.0, 0.0], &mut quads)?,
-        },
-        (None, Some(half)) => quads_of_level(params, &half, 2.0, [0.0, 0.0], &mut quads)?,
-        (None, None) => quads_of_level(params, gray, 1.0, [0.0, 0.0], &mut quads)?,
+    match without_edge_artefacts(gray)? {
+        Some(cleaned) => search_level(params, &cleaned, &mut quads)?,
+        None => search_level(params, gray, &mut quads)?,
     }
     Ok(quads)
+}
+
+/// The quads of `img` searched at half size when it is wider than
+/// [`DetectParams::full_res_max_width`], else in place (no copy).
+fn search_level(
+    params: &DetectParams,
+    img: &(impl MatTraitConst + ToInputArray),
+    quads: &mut Vec<Quad>,
+) -> Result<(), DetectError> {
+    match half_level(params, img)? {
+        Some(half) => quads_of_level(params, &half, 2.0, [0.0, 0.0], quads),
+        None => quads_of_level(params, img, 1.0, [0.0, 0.0], quads),
+    }
 }
 
 /// Half of `gray` when it is wider than [`DetectParams::full_res_max_width`]
