@@ -225,14 +225,14 @@ impl NavWindow {
         };
         let yaw_rate_rad_per_s = other.and_then(|(t, s)| {
             let (h_other, h_nearest) = (s.heading?, nearest.1.heading?);
-            let dt = (*nearest.0 as f64 - *t as f64) * 1e-9;
+            let dt = (i128::from(*nearest.0) - i128::from(*t)) as f64 * 1e-9;
             (dt != 0.0)
                 .then(|| proto::geometry::wrap_angle(h_nearest.yaw_rad - h_other.yaw_rad) / dt)
         });
         Some(NavAt {
             state: nearest.1,
             gap_s: gap(*nearest.0) as f64 * 1e-9,
-            offset_s: (stamp_ns as f64 - *nearest.0 as f64) * 1e-9,
+            offset_s: (i128::from(stamp_ns) - i128::from(*nearest.0)) as f64 * 1e-9,
             yaw_rate_rad_per_s,
         })
     }

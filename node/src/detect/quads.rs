@@ -113,7 +113,7 @@ pub fn edge_line_artefacts(gray: &impl MatTraitConst) -> Result<[bool; 4], Detec
     let rows: Vec<&[u8]> = (0..h)
         .map(|y| gray.at_row::<u8>(y))
         .collect::<Result<_, _>>()?;
-    // Mean |a − b| between lines `a` and `b` (rows when `rows`, else columns).
+    // Mean |a − b| between lines `a` and `b` (rows when `by_rows`, else columns).
     let diff = |by_rows: bool, a: i32, b: i32| -> Result<f64, DetectError> {
         let sum: u64 = if by_rows {
             let (ra, rb) = (rows[a as usize], rows[b as usize]);

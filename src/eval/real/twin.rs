@@ -478,10 +478,10 @@ const TWIN_MOFFAT_BETA: [f64; 2] = [2.5, 4.8];
 /// The realistic profile under `cond`, with H.264 instead of JPEG when
 /// `h264`. Its PSF is a Moffat only: the realistic mix's generalized
 /// Gaussians of shape 0.6–1 (turbid water's heavy tails) spread an edge
-/// by over 1 px σ at any FWHM (at 0.3 px FWHM, p = 0.6 puts half its light
-/// beyond 2 px), so the FWHM fit had a floor above the tank's sharp edges
-/// (σ 1.49 px simulated against 1.18 real). A Moffat's FWHM governs its
-/// edge down to the camera's own blur.
+/// far beyond their FWHM (p = 0.6 at 0.3 px FWHM: σ 1.3 px on a still tank
+/// tag, where the rest of the camera gives 0.9), so their FWHM has no hold
+/// on the narrow end of the fit. A Moffat's FWHM governs its edge down to
+/// the camera's own blur (the test below).
 fn twin_profile(cond: &Conditions, h264: bool, seed: u64) -> CameraProfile {
     let mut p = CameraProfile::realistic().with_seed(seed);
     if h264 {
