@@ -281,7 +281,7 @@ pub fn fit_pattern(
             if step.rms > best.rms {
                 fraction *= 0.5;
                 if fraction < 0.1 {
-                    return best.fit(&unit, at, it + 1, lens);
+                    return best.fit(&unit, at, &win, it + 1, lens);
                 }
                 for i in 0..4 {
                     corners[i][0] = at[i][0] + fraction * best.delta[2 * i];
@@ -304,7 +304,7 @@ pub fn fit_pattern(
             .as_ref()
             .is_some_and(|(_, best)| best.rms - step.rms < RMS_TOL * step.rms);
         if moved < STEP_TOL_PX || settled {
-            return step.fit(&unit, &corners, it + 1, lens);
+            return step.fit(&unit, &corners, &win, it + 1, lens);
         }
         coef = Some(step.coef_next.clone());
         let at = corners;
@@ -322,7 +322,7 @@ pub fn fit_pattern(
     }
     // Not converged to the tolerance: the best point reached.
     let (at, best) = accepted.ok_or(PatternFitError::Diverged)?;
-    best.fit(&unit, &at, MAX_ITERATIONS, lens)
+    best.fit(&unit, &at, &win, MAX_ITERATIONS, lens)
 }
 
 /// The rendering window for the pattern at `h` — its quiet zone's footprint
@@ -438,6 +438,19 @@ mod tests {
     /// corners) through the sharp part and each halo kernel, the white
     /// print 15 % brighter on the right, a veil, Gaussian noise σ 2 DN.
     fn synthetic(grid: &[bool], truth: &[Px; 4], seed: u64) -> (Vec<u8>, usize, usize) {
+        synthetic_with_noise(grid, truth, seed, 0.0)
+    }
+
+    /// [`synthetic`] with its noise correlated between neighbouring pixels:
+    /// independent draws blurred by a Gaussian of `correlation_px` (none
+    /// when 0) and scaled back to σ 2 DN per pixel, as demosaicing and
+    /// compression leave a camera's noise.
+    fn synthetic_with_noise(
+        grid: &[bool],
+        truth: &[Px; 4],
+        seed: u64,
+        correlation_px: f64,
+    ) -> (Vec<u8>, usize, usize) {
         use rand::SeedableRng;
         use rand_distr::{Distribution, Normal as Gauss};
         let (w, hgt) = (420usize, 380usize); // multiples of 4, as `window` makes them
@@ -457,7 +470,24 @@ mod tests {
         // Sharp 6 DN, then the halo 10, 14, 10, 6 DN: white print; black 10 %.
         let weights = [6.0, 10.0, 14.0, 10.0, 6.0];
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
-        let noise = Gauss::new(0.0, 2.0).unwrap();
+        let unit_normal = Gauss::new(0.0, 1.0).unwrap();
+        let mut noise: Vec<f64> = (0..w * hgt).map(|_| unit_normal.sample(&mut rng)).collect();
+        if correlation_px > 0.0 {
+            use opencv::prelude::*;
+            let src =
+                opencv::core::Mat::new_rows_cols_with_data(hgt as i32, w as i32, &noise).unwrap();
+            let mut blurred = opencv::core::Mat::default();
+            opencv::imgproc::gaussian_blur_def(
+                &src,
+                &mut blurred,
+                opencv::core::Size::new(0, 0),
+                correlation_px,
+            )
+            .unwrap();
+            noise = blurred.data_typed::<f64>().unwrap().to_vec();
+            let sd = (noise.iter().map(|v| v * v).sum::<f64>() / noise.len() as f64).sqrt();
+            noise.iter_mut().for_each(|v| *v /= sd);
+        }
         let (cx, _, scale) = win.frame();
         let mut img = vec![0u8; w * hgt];
         for (i, px) in img.iter_mut().enumerate() {
@@ -469,7 +499,7 @@ mod tests {
                 v += wk * (1.0 + 0.15 * xn) * white
                     + 0.1 * wk * b.bases[BLACK * kernels + k][i] as f64;
             }
-            *px = (v + noise.sample(&mut rng)).round().clamp(0.0, 255.0) as u8;
+            *px = (v + 2.0 * noise[i]).round().clamp(0.0, 255.0) as u8;
         }
         (img, w, hgt)
     }
@@ -501,6 +531,62 @@ mod tests {
         }
         eprintln!("worst outer corner error {worst:.3} px (start {worst_start:.3})");
         assert!(worst < 0.08, "worst corner {worst:.3} px");
+    }
+
+    /// The corners' stated covariance against their scatter over noise
+    /// draws: with independent pixel noise and with the same noise per pixel
+    /// correlated over neighbours (blurred by σ 1 px). `σ² (JᵀJ)⁻¹`, which
+    /// assumes independent pixels, states the same for both (the same
+    /// geometry and noise per pixel), yet the correlated noise moves the
+    /// corners several times more: the sandwich covariance must follow both.
+    #[test]
+    fn the_corner_covariance_follows_noise_correlated_between_pixels() {
+        let grid = shoal_proto::marker::CodeSet::Shoal.module_grid(17).unwrap();
+        let truth = [[112.3, 95.6], [318.9, 80.2], [324.4, 301.7], [106.1, 287.5]];
+        let start = [[112.9, 95.1], [318.2, 80.8], [325.0, 301.2], [105.6, 288.1]];
+        const DRAWS: u64 = 16;
+        // (scatter, stated): sums over the eight coordinates, px².
+        let run = |correlation_px: f64| {
+            let (mut scatter, mut stated) = (0.0, 0.0);
+            for seed in 0..DRAWS {
+                let (img, w, h) = synthetic_with_noise(&grid, &truth, 100 + seed, correlation_px);
+                let view = GrayView {
+                    data: &img,
+                    width: w,
+                    height: h,
+                    stride: w,
+                };
+                let fit = fit_pattern(&view, &grid, 10, &start, Lens(None)).expect("fit");
+                let at = unit_corners(10.0).map(|u| fit.project(u));
+                for (i, t) in truth.iter().enumerate() {
+                    scatter += (at[i][0] - t[0]).powi(2) + (at[i][1] - t[1]).powi(2);
+                }
+                stated += fit.covariance.trace();
+            }
+            (scatter / DRAWS as f64, stated / DRAWS as f64)
+        };
+        let (white_scatter, white_stated) = run(0.0);
+        let (corr_scatter, corr_stated) = run(1.0);
+        // The correlated noise really moves the corners more (what an
+        // independent-pixel covariance cannot see).
+        assert!(
+            corr_scatter > 3.0 * white_scatter,
+            "scatter {corr_scatter:.2e} vs {white_scatter:.2e} px²"
+        );
+        // 16 draws of 8 coordinates: the scatter's own spread is ~±30 %.
+        for (what, scatter, stated) in [
+            ("independent", white_scatter, white_stated),
+            ("correlated", corr_scatter, corr_stated),
+        ] {
+            let ratio = stated / scatter;
+            println!(
+                "{what} noise: stated {stated:.2e} px², scatter {scatter:.2e} (ratio {ratio:.2})"
+            );
+            assert!(
+                (0.5..2.0).contains(&ratio),
+                "{what} noise: stated {stated:.2e} px² against a scatter of {scatter:.2e} (ratio {ratio:.2})"
+            );
+        }
     }
 
     #[test]
