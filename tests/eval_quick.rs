@@ -230,6 +230,68 @@ fn accuracy_yaw_and_rmse_quick_write_their_figures() {
 /// restoration by 10.13 /m, HOIRM reads on there (3-frame rates: none
 /// 1, 1, 0, 0, 0, 0; CLAHE 1, 1, 0.67, 0, 0, 0; DCP 1, 1, 1, 0, 0, 0; UDCP as
 /// CLAHE; HOIRM 1, 1, 1, 0.67, 0.33, 0), and nothing reads at 14.20 /m.
+/// `--profile realistic` reaches the detection experiment's renderer (the
+/// summary names it, and its frames are not the ideal ones: the realistic
+/// camera's rates differ from the ideal run's at some water), rates still
+/// fall with turbidity; an experiment that renders only through the ideal
+/// camera refuses the option instead of ignoring it.
+#[test]
+fn detection_quick_renders_through_a_camera_profile_and_the_others_refuse_one() {
+    use shoal_sim_bridge::profile::CameraProfile;
+    let with_profile = |name: &str, profile: Option<CameraProfile>| {
+        let dir = out_dir(name);
+        EvalOptions {
+            quick: true,
+            progress: false,
+            profile,
+            ..EvalOptions::new(&dir)
+        }
+    };
+    let refused = eval::run(
+        Experiment::Accuracy,
+        &with_profile("accuracy-realistic", Some(CameraProfile::realistic())),
+    )
+    .expect_err("accuracy does not take a profile yet");
+    let msg = format!("{refused:#}");
+    assert!(
+        msg.contains("--profile realistic") && msg.contains("detection"),
+        "{msg}"
+    );
+    let realistic = eval::run(
+        Experiment::Detection,
+        &with_profile("detection-realistic", Some(CameraProfile::realistic())),
+    )
+    .expect("detection through the realistic profile");
+    let ideal = eval::run(
+        Experiment::Detection,
+        &with_profile("detection-ideal", None),
+    )
+    .expect("detection through the ideal camera");
+    assert_eq!(realistic["camera_profile"], "realistic");
+    assert_eq!(ideal["camera_profile"], "ideal");
+    const WATERS: [&str; 6] = ["5.16", "6.12", "8.22", "10.13", "12.20", "14.20"];
+    let rates = |s: &Value| -> Vec<f64> {
+        ["none", "clahe", "dcp", "udcp", "hoirm"]
+            .iter()
+            .flat_map(|m| WATERS.map(|w| num(&s["results"][*m][w]["success_rate"])))
+            .collect()
+    };
+    assert_ne!(
+        rates(&realistic),
+        rates(&ideal),
+        "the profile changed no frame"
+    );
+    let one_frame = 1.0 / num(&realistic["frames"]);
+    for method in ["none", "clahe", "dcp", "udcp", "hoirm"] {
+        let r = |w: &str| num(&realistic["results"][method][w]["success_rate"]);
+        assert!(
+            r("14.20") <= one_frame + 1e-9,
+            "{method}: {}",
+            realistic["results"]
+        );
+    }
+}
+
 #[test]
 fn detection_quick_falls_with_turbidity_and_hoirm_holds_longest() {
     let (dir, s) = run_quick(Experiment::Detection);

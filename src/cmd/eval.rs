@@ -43,6 +43,11 @@ pub struct EvalArgs {
     /// Set a restoration parameter (a `RestoreParams` field) for every restorer of the experiment, e.g. `psf_px_per_unit=8`, `order=physical`; repeatable.
     #[arg(long = "restore-param", value_name = "NAME=VALUE")]
     restore_param: Vec<String>,
+    /// Camera profile the frames are rendered through: `ideal` (the default: the renderer
+    /// every figure used so far) or `realistic` (every camera effect, issue #16). Taken by
+    /// `detection`; the other experiments refuse it.
+    #[arg(long)]
+    profile: Option<String>,
     /// `real`: the folder of real recordings, one sub-folder with an eval.json each (default: $SHOAL_REAL_DATA, ../shared/data/real, data/real).
     #[arg(long)]
     data: Option<PathBuf>,
@@ -92,6 +97,12 @@ pub fn run_eval(a: EvalArgs) -> anyhow::Result<()> {
         data: a.data.clone(),
         split: a.split.clone(),
         restore_params: eval::restore_params::from_assignments(&a.restore_param)?,
+        profile: a
+            .profile
+            .as_deref()
+            .map(shoal_sim_bridge::profile::CameraProfile::named)
+            .transpose()
+            .context("--profile")?,
     };
     let summary = eval::run(experiment, &opts).with_context(|| format!("eval {experiment}"))?;
     shoal::outln!("{}", serde_json::to_string_pretty(&summary)?);

@@ -7,6 +7,7 @@ use super::features::plot_or_warn;
 use super::plot::{self, Grouped};
 use super::scene::{
     frame_rng, jittered_pose, make_restorer, render_marker, restore, FRAME_INTERVAL_S, MARKER_ID,
+    MARKER_SIDE_M,
 };
 use super::table::Csv;
 use super::{water_key, EvalError, EvalOptions};
@@ -14,8 +15,10 @@ use rand::Rng;
 use serde_json::{json, Map, Value};
 use shoal_node::detect::{DetectParams, MarkerDetector, ShoalDetector};
 use shoal_node::restore::Method;
-use shoal_proto::{CameraModel, CodeSet};
-use shoal_sim_bridge::render::Renderer;
+use shoal_proto::{CameraModel, CodeSet, Pose};
+use shoal_sim_bridge::render::motion::{RigidMotion, Twist};
+use shoal_sim_bridge::render::realistic::render_profiled;
+use shoal_sim_bridge::render::{Renderer, Scene};
 use shoal_sim_bridge::water::WaterKnobs;
 
 /// Table 5's waters (1/m).
@@ -61,10 +64,18 @@ pub fn success_rates(
     let cam = CameraModel::vehicle_1440();
     let presets = opts.presets()?;
     let mut renderer = Renderer::new();
+    // Through `--profile`: the profile's effects seeded by the run's seed, and
+    // the calibration the node would hold (through the port, a lab's in-water
+    // calibration; moved by the calibration error) as the detector's lens.
+    let profile = opts.profile.clone().map(|p| p.with_seed(opts.seed));
+    let lens = match &profile {
+        Some(p) => super::profiles::node_camera(p, &cam, opts.seed)?,
+        None => cam,
+    };
     let mut detector = ShoalDetector::new(
         CodeSet::Shoal,
         DetectParams {
-            lens: Some(cam),
+            lens: Some(lens),
             ..DetectParams::default()
         },
     );
@@ -82,15 +93,42 @@ pub fn success_rates(
             let truth = jittered_pose(DISTANCE_M, [0.0; 3], JITTER_M, JITTER_RAD, &mut rng);
             let noise_seed: u64 = rng.gen();
             let time_s = k as f64 * FRAME_INTERVAL_S;
-            let frame = render_marker(
-                &mut renderer,
-                &cam,
-                CodeSet::Shoal,
-                &truth,
-                &water,
-                time_s,
-                noise_seed,
-            )?;
+            let frame = match &profile {
+                None => render_marker(
+                    &mut renderer,
+                    &cam,
+                    CodeSet::Shoal,
+                    &truth,
+                    &water,
+                    time_s,
+                    noise_seed,
+                )?,
+                // The marker held still: the profile's own effects only.
+                Some(p) => {
+                    let still = RigidMotion {
+                        world_from_camera: Pose::identity(),
+                        scene: Scene::single_marker(
+                            CodeSet::Shoal,
+                            MARKER_ID,
+                            MARKER_SIDE_M,
+                            truth,
+                        ),
+                        camera: Twist::default(),
+                        targets: Twist::default(),
+                    };
+                    render_profiled(
+                        &mut renderer,
+                        p,
+                        &cam,
+                        None,
+                        &still,
+                        &water,
+                        time_s,
+                        noise_seed,
+                    )?
+                    .output
+                }
+            };
             let raw = shoal_node::mat::gray_to_mat(&frame.image)
                 .map_err(shoal_node::detect::DetectError::from)?;
             for (mi, r) in restorers.iter_mut().enumerate() {
@@ -211,6 +249,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     Ok(json!({
         "frames": frames,
         "detector": "shoal",
+        "camera_profile": opts.profile.as_ref().map_or("ideal", |p| p.name.as_str()),
         "setup": "vehicle_1440 camera, enhanced marker #17 (100 mm) at 600 mm, ±5 mm / ±5° jitter; water presets from configs/water.toml with its knobs",
         "results": results,
         "paper": { "clahe": paper_row(&PAPER_CLAHE), "dcp": paper_row(&PAPER_DCP), "hoirm": paper_row(&PAPER_OURS) },

@@ -174,7 +174,15 @@ pub struct EvalOptions {
     /// Parameters of every restorer the experiment builds (tuning runs:
     /// `--restore-param`, [`restore_params`]); default [`RestoreParams::default`].
     pub restore_params: RestoreParams,
+    /// The camera profile frames are rendered through (`--profile`, issue
+    /// #16); `None`: the ideal renderer every figure used so far. Taken by
+    /// [`PROFILE_EXPERIMENTS`] only; the others refuse it.
+    pub profile: Option<shoal_sim_bridge::profile::CameraProfile>,
 }
+
+/// The experiments that render through `--profile` (the rest refuse it
+/// rather than ignore it).
+pub const PROFILE_EXPERIMENTS: [Experiment; 1] = [Experiment::Detection];
 
 impl EvalOptions {
     /// Defaults: full run, seed 1, HOIRM for every marker, progress bar on.
@@ -191,6 +199,7 @@ impl EvalOptions {
             data: None,
             split: None,
             restore_params: RestoreParams::default(),
+            profile: None,
         }
     }
 
@@ -268,6 +277,17 @@ pub fn run(experiment: Experiment, opts: &EvalOptions) -> Result<serde_json::Val
         path: opts.out.clone(),
         source,
     })?;
+    if let Some(profile) = &opts.profile {
+        if !PROFILE_EXPERIMENTS.contains(&experiment) {
+            return Err(EvalError::Setup(format!(
+                "--profile {}: `{}` renders only through the ideal camera so far; \
+                 the experiments that take a profile: {}",
+                profile.name,
+                experiment.name(),
+                PROFILE_EXPERIMENTS.map(|e| e.name()).join(", ")
+            )));
+        }
+    }
     let started = std::time::Instant::now();
     let mut summary = match experiment {
         Experiment::Features => features::run(opts)?,
