@@ -254,7 +254,7 @@ fn detection_quick_renders_through_a_camera_profile_and_the_others_refuse_one() 
     .expect_err("accuracy does not take a profile yet");
     let msg = format!("{refused:#}");
     assert!(
-        msg.contains("--profile realistic") && msg.contains("detection"),
+        msg.contains("camera profile `realistic`") && msg.contains("detection"),
         "{msg}"
     );
     let realistic = eval::run(

@@ -48,6 +48,15 @@ pub struct EvalArgs {
     /// `detection`; the other experiments refuse it.
     #[arg(long)]
     profile: Option<String>,
+    /// Only these camera effects, with typical parameters (repeatable; replaces --profile),
+    /// as `shoal sim render --effect`: motion-blur, rolling-shutter, port, lamps, snow, psf,
+    /// vignetting, colour, exposure, jpeg, h264, calibration.
+    #[arg(long = "effect", value_name = "NAME")]
+    effects: Vec<String>,
+    /// A camera profile file (TOML, as `shoal sim render --profile-file`; replaces --profile
+    /// and --effect).
+    #[arg(long)]
+    profile_file: Option<PathBuf>,
     /// `real`: the folder of real recordings, one sub-folder with an eval.json each (default: $SHOAL_REAL_DATA, ../shared/data/real, data/real).
     #[arg(long)]
     data: Option<PathBuf>,
@@ -97,12 +106,19 @@ pub fn run_eval(a: EvalArgs) -> anyhow::Result<()> {
         data: a.data.clone(),
         split: a.split.clone(),
         restore_params: eval::restore_params::from_assignments(&a.restore_param)?,
-        profile: a
-            .profile
-            .as_deref()
-            .map(shoal_sim_bridge::profile::CameraProfile::named)
-            .transpose()
-            .context("--profile")?,
+        profile: if a.profile.is_some() || !a.effects.is_empty() || a.profile_file.is_some() {
+            Some(
+                super::sim_render::profile_of(
+                    a.profile.as_deref().unwrap_or("ideal"),
+                    &a.effects,
+                    a.profile_file.as_deref(),
+                    None,
+                )
+                .context("the camera profile (--profile, --effect, --profile-file)")?,
+            )
+        } else {
+            None
+        },
     };
     let summary = eval::run(experiment, &opts).with_context(|| format!("eval {experiment}"))?;
     shoal::outln!("{}", serde_json::to_string_pretty(&summary)?);

@@ -280,8 +280,8 @@ pub fn run(experiment: Experiment, opts: &EvalOptions) -> Result<serde_json::Val
     if let Some(profile) = &opts.profile {
         if !PROFILE_EXPERIMENTS.contains(&experiment) {
             return Err(EvalError::Setup(format!(
-                "--profile {}: `{}` renders only through the ideal camera so far; \
-                 the experiments that take a profile: {}",
+                "camera profile `{}` (--profile, --effect, --profile-file): `{}` renders only \
+                 through the ideal camera so far; the experiments that take a profile: {}",
                 profile.name,
                 experiment.name(),
                 PROFILE_EXPERIMENTS.map(|e| e.name()).join(", ")
