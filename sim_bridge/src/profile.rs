@@ -503,6 +503,30 @@ impl CameraProfile {
         }
     }
 
+    /// The profile a command line names: a profile file, else the listed
+    /// effects alone (each entry may hold several, comma-separated), else
+    /// the named profile; validated.
+    pub fn selected(
+        name: &str,
+        effects: &[String],
+        file: Option<&Path>,
+    ) -> Result<CameraProfile, SimError> {
+        let p = if let Some(f) = file {
+            CameraProfile::load(f)?
+        } else if !effects.is_empty() {
+            let list = effects
+                .iter()
+                .flat_map(|e| e.split(','))
+                .map(str::parse::<Effect>)
+                .collect::<Result<Vec<_>, _>>()?;
+            CameraProfile::only(&list)
+        } else {
+            CameraProfile::named(name)?
+        };
+        p.validate()?;
+        Ok(p)
+    }
+
     /// The effect names, comma-separated (for messages and `--help`).
     pub fn names() -> String {
         Effect::ALL.map(|e| e.name()).join(", ")

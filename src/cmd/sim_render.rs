@@ -5,7 +5,7 @@
 use anyhow::{bail, Context};
 use clap::Args;
 use shoal_proto::config::Fleet;
-use shoal_sim_bridge::profile::{CameraProfile, Effect};
+use shoal_sim_bridge::profile::CameraProfile;
 use shoal_sim_bridge::render::motion::FleetTimeline;
 use shoal_sim_bridge::render::realistic::{render_profiled, ProfiledFrame};
 use shoal_sim_bridge::render::{write_frame_pair, write_png, Renderer};
@@ -62,22 +62,10 @@ pub fn profile_of(
     file: Option<&Path>,
     seed: Option<u64>,
 ) -> anyhow::Result<CameraProfile> {
-    let mut p = if let Some(f) = file {
-        CameraProfile::load(f)?
-    } else if !effects.is_empty() {
-        let list = effects
-            .iter()
-            .flat_map(|e| e.split(','))
-            .map(str::parse::<Effect>)
-            .collect::<Result<Vec<_>, _>>()?;
-        CameraProfile::only(&list)
-    } else {
-        CameraProfile::named(name)?
-    };
+    let mut p = CameraProfile::selected(name, effects, file)?;
     if let Some(s) = seed {
         p.seed = s;
     }
-    p.validate()?;
     Ok(p)
 }
 

@@ -6,8 +6,8 @@ use super::accuracy::save_frame_pair;
 use super::features::plot_or_warn;
 use super::plot::{self, Grouped};
 use super::scene::{
-    frame_rng, jittered_pose, make_restorer, render_marker, restore, FRAME_INTERVAL_S, MARKER_ID,
-    MARKER_SIDE_M,
+    frame_rng, jittered_pose, make_restorer, render_marker_through, restore, FRAME_INTERVAL_S,
+    MARKER_ID,
 };
 use super::table::Csv;
 use super::{water_key, EvalError, EvalOptions};
@@ -15,10 +15,8 @@ use rand::Rng;
 use serde_json::{json, Map, Value};
 use shoal_node::detect::{DetectParams, MarkerDetector, ShoalDetector};
 use shoal_node::restore::Method;
-use shoal_proto::{CameraModel, CodeSet, Pose};
-use shoal_sim_bridge::render::motion::{RigidMotion, Twist};
-use shoal_sim_bridge::render::realistic::render_profiled;
-use shoal_sim_bridge::render::{Renderer, Scene};
+use shoal_proto::{CameraModel, CodeSet};
+use shoal_sim_bridge::render::Renderer;
 use shoal_sim_bridge::water::WaterKnobs;
 
 /// Table 5's waters (1/m).
@@ -93,42 +91,16 @@ pub fn success_rates(
             let truth = jittered_pose(DISTANCE_M, [0.0; 3], JITTER_M, JITTER_RAD, &mut rng);
             let noise_seed: u64 = rng.gen();
             let time_s = k as f64 * FRAME_INTERVAL_S;
-            let frame = match &profile {
-                None => render_marker(
-                    &mut renderer,
-                    &cam,
-                    CodeSet::Shoal,
-                    &truth,
-                    &water,
-                    time_s,
-                    noise_seed,
-                )?,
-                // The marker held still: the profile's own effects only.
-                Some(p) => {
-                    let still = RigidMotion {
-                        world_from_camera: Pose::identity(),
-                        scene: Scene::single_marker(
-                            CodeSet::Shoal,
-                            MARKER_ID,
-                            MARKER_SIDE_M,
-                            truth,
-                        ),
-                        camera: Twist::default(),
-                        targets: Twist::default(),
-                    };
-                    render_profiled(
-                        &mut renderer,
-                        p,
-                        &cam,
-                        None,
-                        &still,
-                        &water,
-                        time_s,
-                        noise_seed,
-                    )?
-                    .output
-                }
-            };
+            let frame = render_marker_through(
+                &mut renderer,
+                profile.as_ref(),
+                &cam,
+                CodeSet::Shoal,
+                &truth,
+                &water,
+                time_s,
+                noise_seed,
+            )?;
             let raw = shoal_node::mat::gray_to_mat(&frame.image)
                 .map_err(shoal_node::detect::DetectError::from)?;
             for (mi, r) in restorers.iter_mut().enumerate() {

@@ -18,6 +18,9 @@ use shoal_node::pose::estimate_pose;
 use shoal_node::restore::{restorer, Method, RestoreParams, Restorer};
 use shoal_proto::geometry::Pose;
 use shoal_proto::{CameraModel, CodeSet, GrayImage, MarkerId};
+use shoal_sim_bridge::profile::CameraProfile;
+use shoal_sim_bridge::render::motion::{RigidMotion, Twist};
+use shoal_sim_bridge::render::realistic::render_profiled;
 use shoal_sim_bridge::render::{facing_camera, RenderOutput, Renderer, Scene};
 use shoal_sim_bridge::water::WaterParams;
 
@@ -134,6 +137,40 @@ pub fn render_marker(
 ) -> Result<RenderOutput, EvalError> {
     let scene = Scene::single_marker(codes, MARKER_ID, MARKER_SIDE_M, *camera_from_marker);
     Ok(renderer.render(cam, &Pose::identity(), &scene, water, time_s, noise_seed)?)
+}
+
+/// [`render_marker`] through a camera profile (`None`: the ideal renderer).
+/// The marker is held still, so only the profile's own effects apply (no
+/// motion blur or shutter shear).
+#[allow(clippy::too_many_arguments)]
+pub fn render_marker_through(
+    renderer: &mut Renderer,
+    profile: Option<&CameraProfile>,
+    cam: &CameraModel,
+    codes: CodeSet,
+    camera_from_marker: &Pose,
+    water: &WaterParams,
+    time_s: f64,
+    noise_seed: u64,
+) -> Result<RenderOutput, EvalError> {
+    let Some(p) = profile else {
+        return render_marker(
+            renderer,
+            cam,
+            codes,
+            camera_from_marker,
+            water,
+            time_s,
+            noise_seed,
+        );
+    };
+    let still = RigidMotion {
+        world_from_camera: Pose::identity(),
+        scene: Scene::single_marker(codes, MARKER_ID, MARKER_SIDE_M, *camera_from_marker),
+        camera: Twist::default(),
+        targets: Twist::default(),
+    };
+    Ok(render_profiled(renderer, p, cam, None, &still, water, time_s, noise_seed)?.output)
 }
 
 /// A restorer of `method` with `params` (by default HOIRM estimates the water itself).

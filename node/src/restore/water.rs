@@ -10,7 +10,11 @@
 //!   → 1 as backscatter swamps the signal;
 //! - **contrast** `(bright − B) / (bright + B)` (Michelson);
 //! - **noise** σ: Immerkær's Laplacian-difference estimator with a median
-//!   (robust to edges) on every 16th row of the full-resolution frame.
+//!   (robust to edges) on every 16th row of the full-resolution frame and of
+//!   its 2x2 and 4x4 area means, scaled to full resolution, over all pixels
+//!   and over the darkest 5 %; the largest ([`noise_sigma_across_scales`]:
+//!   demosaiced or compressed noise is low-passed and hides from the finest
+//!   level; a gamma-encoded frame's noise is largest in its dark levels).
 //!
 //! - **local contrast** `ΔI`: the 99.9th percentile of the 3x3 morphological
 //!   gradient of the coarse level (less 3 coarse noise σ): the black/white
@@ -74,7 +78,7 @@ impl WaterEstimate {
         let mean = hist_mean(&hist);
         let veil_fraction = (backscatter / bright).clamp(0.0, 1.0);
         let contrast = (bright - backscatter) / (bright + backscatter).max(1.0);
-        let noise_sigma = noise_sigma(full, 16)?;
+        let noise_sigma = noise_sigma_across_scales(full, 16, NOISE_LEVELS)?;
         // Strongest local contrast: 99.9th percentile of the 3x3
         // morphological gradient of the coarse level, less its noise floor.
         let kernel = imgproc::get_structuring_element(
@@ -241,6 +245,114 @@ pub fn noise_sigma(m: &impl MatTraitConst, row_step: usize) -> Result<f64, Resto
     Ok((median.max(0.0) / (0.6745 * 6.0)).max(QUANTIZATION_SIGMA))
 }
 
+/// Coarsest level of 2x2 area means [`noise_sigma_across_scales`] reads.
+pub const NOISE_LEVELS: u32 = 2;
+
+/// The darkest part of the frame whose noise [`noise_sigma_across_scales`]
+/// also reads on its own: pixels at or below this quantile of the grey levels.
+pub const DARK_QUANTILE: f64 = 0.05;
+
+/// Fewest dark mask outputs for their median to count.
+const MIN_DARK_SAMPLES: usize = 200;
+
+/// The noise at the scales and grey levels the detector needs: Immerkær's
+/// estimate ([`noise_sigma`]) on the frame and on its 2x2, 4x4, … area means
+/// up to level `levels` (f32, no rounding; [`NOISE_LEVELS`] for the frame's
+/// estimate), each times the side of its blocks, over all pixels and
+/// over the darkest ones ([`DARK_QUANTILE`], where a marker's black cells
+/// are); the largest. White noise reads alike on every level (the mean of n×n
+/// independent pixels has σ/n); noise that demosaicing or a codec has
+/// low-passed hides from the finest level's 3x3 mask (JPEG at quality 75
+/// takes a σ 2.7 sensor noise to the quantization floor there) but not from
+/// the coarser ones. A gamma-encoded frame stretches the noise of its dark
+/// levels and squeezes that of its bright veil, which most pixels show (its
+/// slope `(v/255)^(1/γ−1)/γ` for γ 2.2: 1.1 at a fifth of full scale, 0.6 at
+/// three fifths).
+/// Every `row_step`-th row of the frame (every `row_step/2^k`-th of level `k`).
+pub fn noise_sigma_across_scales(
+    m: &impl MatTraitConst,
+    row_step: usize,
+    levels: u32,
+) -> Result<f64, RestoreError> {
+    let mut sigma = noise_sigma(m, row_step)?;
+    let mut level = Mat::default();
+    m.convert_to(&mut level, core::CV_32F, 1.0, 0.0)?;
+    for k in 0..=levels {
+        if k > 0 {
+            let size = Size::new(level.cols() / 2, level.rows() / 2);
+            if size.width < 3 || size.height < 3 {
+                break;
+            }
+            let mut down = Mat::default();
+            imgproc::resize(&level, &mut down, size, 0.0, 0.0, imgproc::INTER_AREA)?;
+            level = down;
+        }
+        let (all, dark) = noise_sigma_f32(&level, (row_step >> k).max(1))?;
+        let scale = f64::from(1u32 << k);
+        if k > 0 {
+            sigma = sigma.max(scale * all);
+        }
+        if let Some(d) = dark {
+            sigma = sigma.max(scale * d);
+        }
+    }
+    Ok(sigma)
+}
+
+/// [`noise_sigma`] on an f32 image (no quantization floor): over all pixels,
+/// and over the darkest [`DARK_QUANTILE`] of them by their 7x7 mean (a
+/// pixel's own value would pick those the noise pulled down, whose mask
+/// output is large by selection), when there are enough.
+fn noise_sigma_f32(m: &Mat, row_step: usize) -> Result<(f64, Option<f64>), RestoreError> {
+    let (rows, cols) = (m.rows(), m.cols());
+    let mut mean = Mat::default();
+    imgproc::box_filter(
+        m,
+        &mut mean,
+        -1,
+        Size::new(7, 7),
+        Point::new(-1, -1),
+        true,
+        core::BORDER_REFLECT_101,
+    )?;
+    let mut samples: Vec<(f32, f32)> = Vec::new();
+    let mut y = 1;
+    while y < rows - 1 {
+        let r0 = m.at_row::<f32>(y - 1)?;
+        let r1 = m.at_row::<f32>(y)?;
+        let r2 = m.at_row::<f32>(y + 1)?;
+        let level = mean.at_row::<f32>(y)?;
+        for x in 1..cols as usize - 1 {
+            let v = (r0[x - 1] - 2.0 * r0[x] + r0[x + 1] - 2.0 * r1[x - 1] + 4.0 * r1[x]
+                - 2.0 * r1[x + 1]
+                + r2[x - 1]
+                - 2.0 * r2[x]
+                + r2[x + 1])
+                .abs();
+            samples.push((level[x], v));
+        }
+        y += row_step.max(1) as i32;
+    }
+    if samples.is_empty() {
+        return Ok((0.0, None));
+    }
+    let scale = |median: f32| f64::from(median) / (0.6745 * 6.0);
+    let mut all: Vec<f32> = samples.iter().map(|s| s.1).collect();
+    let all_sigma = scale(median_of(&mut all));
+    let n_dark = (DARK_QUANTILE * samples.len() as f64) as usize;
+    if n_dark < MIN_DARK_SAMPLES {
+        return Ok((all_sigma, None));
+    }
+    samples.select_nth_unstable_by(n_dark, |a, b| a.0.total_cmp(&b.0));
+    let mut dark: Vec<f32> = samples[..n_dark].iter().map(|s| s.1).collect();
+    Ok((all_sigma, Some(scale(median_of(&mut dark)))))
+}
+
+fn median_of(v: &mut [f32]) -> f32 {
+    let mid = v.len() / 2;
+    *v.select_nth_unstable_by(mid, f32::total_cmp).1
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -271,6 +383,64 @@ mod tests {
                 "σ {sigma}: estimated {est}"
             );
         }
+    }
+
+    #[test]
+    fn white_noise_reads_alike_across_scales_and_in_the_dark() {
+        // 200x300 px: the darkest 5 % by their 7x7 mean are picked by the
+        // noise itself here; the mean keeps that from inflating the estimate.
+        for sigma in [2.0, 5.0] {
+            let m = noisy_flat(120.0, sigma, 4);
+            let fine = noise_sigma(&m, 1).unwrap();
+            let across = noise_sigma_across_scales(&m, 1, NOISE_LEVELS).unwrap();
+            assert!(
+                across >= fine && across < 1.15 * sigma + 0.3,
+                "σ {sigma}: finest level {fine}, across scales {across}"
+            );
+        }
+    }
+
+    #[test]
+    fn low_passed_noise_hides_from_the_finest_level_but_not_from_the_coarser() {
+        // White noise σ 4 blurred by a Gaussian of σ 1 px (what demosaicing
+        // and a codec's quantized high frequencies do): the 3x3 mask at full
+        // resolution sees a fraction of it; the 4x4 means keep more.
+        let raw = noisy_flat(120.0, 4.0, 5);
+        let mut blurred = Mat::default();
+        imgproc::gaussian_blur(
+            &raw,
+            &mut blurred,
+            Size::new(0, 0),
+            1.0,
+            1.0,
+            core::BORDER_REFLECT_101,
+        )
+        .unwrap();
+        let fine = noise_sigma(&blurred, 1).unwrap();
+        let across = noise_sigma_across_scales(&blurred, 1, NOISE_LEVELS).unwrap();
+        assert!(fine < 1.2, "finest level {fine}");
+        // The 4x4 means' own finest frequencies are still damped by the
+        // blur (to ~0.7 at their Nyquist), so about half of σ comes back.
+        assert!(
+            across > 1.8 && across > 2.0 * fine && across < 4.6,
+            "across scales {across}, finest level {fine}"
+        );
+    }
+
+    #[test]
+    fn the_noise_of_the_dark_levels_counts_where_most_pixels_are_quiet() {
+        // A gamma-encoded frame: a dark tenth (a marker's black cells)
+        // carries σ 6, the bright veil σ 1.5.
+        let mut m = noisy_flat(180.0, 1.5, 6);
+        let dark = noisy_flat(40.0, 6.0, 7);
+        Mat::roi(&dark, core::Rect::new(0, 0, 300, 20))
+            .unwrap()
+            .copy_to(&mut Mat::roi_mut(&mut m, core::Rect::new(0, 0, 300, 20)).unwrap())
+            .unwrap();
+        let fine = noise_sigma(&m, 1).unwrap();
+        let across = noise_sigma_across_scales(&m, 1, NOISE_LEVELS).unwrap();
+        assert!(fine < 2.2, "finest level, all pixels {fine}");
+        assert!(across > 5.0 && across < 7.0, "across scales {across}");
     }
 
     #[test]

@@ -7,8 +7,10 @@
 //! prints shoal's median pose error.
 
 use super::median;
-use crate::eval::scene::{frame_rng, jittered_pose, MARKER_ID, MARKER_SIDE_M};
-use crate::eval::{detection, restore_params, EvalError};
+use crate::eval::scene::{
+    frame_rng, jittered_pose, render_marker_through, MARKER_ID, MARKER_SIDE_M,
+};
+use crate::eval::{detection, profiles, restore_params, EvalError};
 use opencv::core::{Mat, Vector};
 use opencv::imgcodecs;
 use opencv::prelude::*;
@@ -18,7 +20,8 @@ use shoal_node::pose::estimate_pose;
 use shoal_node::restore::Hoirm;
 use shoal_proto::geometry::Pose;
 use shoal_proto::{CameraModel, CodeSet};
-use shoal_sim_bridge::render::{Renderer, Scene};
+use shoal_sim_bridge::profile::CameraProfile;
+use shoal_sim_bridge::render::Renderer;
 use shoal_sim_bridge::water::{WaterParams, WaterPresets};
 use std::path::PathBuf;
 
@@ -57,6 +60,16 @@ pub struct HoirmArgs {
     /// Which frame `--save` writes.
     #[arg(long, default_value_t = 0)]
     pub save_frame: usize,
+    /// Camera profile the frames are rendered through, as `shoal eval detection --profile`
+    /// (`ideal` by default); the detector then holds the node's calibration.
+    #[arg(long)]
+    pub profile: Option<String>,
+    /// Only these camera effects (repeatable; replaces --profile), as `shoal sim render --effect`.
+    #[arg(long = "effect", value_name = "NAME")]
+    pub effects: Vec<String>,
+    /// A camera profile file (TOML; replaces --profile and --effect).
+    #[arg(long)]
+    pub profile_file: Option<PathBuf>,
     /// Cache the rendered raw frames as PNG in this folder (and read them back on the next run).
     #[arg(long)]
     pub frame_cache: Option<PathBuf>,
@@ -75,11 +88,13 @@ fn imwrite(path: &std::path::Path, m: &Mat) -> Result<(), EvalError> {
 
 /// The rendered raw frame, read from `cached` when it exists there, else
 /// rendered (and written to `cached` when given).
+#[allow(clippy::too_many_arguments)]
 fn raw_frame(
     cached: Option<&std::path::Path>,
     renderer: &mut Renderer,
+    profile: Option<&CameraProfile>,
     cam: &CameraModel,
-    scene: &Scene,
+    truth: &Pose,
     water: &WaterParams,
     time_s: f64,
     noise_seed: u64,
@@ -87,7 +102,16 @@ fn raw_frame(
     let raw = match cached.filter(|p| p.exists()) {
         Some(p) => imgcodecs::imread(&p.display().to_string(), imgcodecs::IMREAD_GRAYSCALE)?,
         None => {
-            let out = renderer.render(cam, &Pose::identity(), scene, water, time_s, noise_seed)?;
+            let out = render_marker_through(
+                renderer,
+                profile,
+                cam,
+                CodeSet::Shoal,
+                truth,
+                water,
+                time_s,
+                noise_seed,
+            )?;
             let m = shoal_node::mat::gray_to_mat(&out.image)?;
             if let Some(p) = cached {
                 imwrite(p, &m)?;
@@ -104,6 +128,37 @@ fn raw_frame(
     Ok(raw)
 }
 
+/// The camera profile the arguments name (none: the ideal renderer) and the
+/// lens the detector holds through it (the node's calibration, as in `eval detection`).
+fn profile_and_lens(
+    a: &HoirmArgs,
+    cam: &CameraModel,
+) -> Result<(Option<CameraProfile>, CameraModel), EvalError> {
+    if a.profile.is_none() && a.effects.is_empty() && a.profile_file.is_none() {
+        return Ok((None, *cam));
+    }
+    let name = a.profile.as_deref().unwrap_or("ideal");
+    let p = CameraProfile::selected(name, &a.effects, a.profile_file.as_deref())?;
+    let lens = profiles::node_camera(&p, cam, 1)?;
+    Ok((Some(p), lens))
+}
+
+/// The cached frames' name prefix: the water file, the scene, the profile.
+fn frame_tag(a: &HoirmArgs, profile: Option<&CameraProfile>) -> String {
+    let mut tag = a.water.as_ref().map_or("shipped".to_string(), |p| {
+        p.file_stem()
+            .map_or("x".into(), |s| s.to_string_lossy().into_owned())
+    });
+    if a.scene == ProbeScene::Accuracy {
+        tag.push_str("-acc");
+    }
+    if let Some(p) = profile {
+        tag.push('-');
+        tag.push_str(&p.name);
+    }
+    tag
+}
+
 pub fn run(a: &HoirmArgs) -> Result<(), EvalError> {
     let presets = match &a.water {
         Some(path) => WaterPresets::load(path)?,
@@ -114,24 +169,22 @@ pub fn run(a: &HoirmArgs) -> Result<(), EvalError> {
     } else {
         a.c.clone()
     };
-    let tag = a.water.as_ref().map_or("shipped".to_string(), |p| {
-        p.file_stem()
-            .map_or("x".into(), |s| s.to_string_lossy().into_owned())
-    });
-    let (distance_m, yaw_rad, jitter_m, jitter_rad, tag) = match a.scene {
-        ProbeScene::Accuracy => (
-            0.610,
-            30f64.to_radians(),
-            0.002,
-            0.3f64.to_radians(),
-            format!("{tag}-acc"),
-        ),
-        ProbeScene::Detection => (detection::DISTANCE_M, 0.0, 0.005, 5f64.to_radians(), tag),
+    let (distance_m, yaw_rad, jitter_m, jitter_rad) = match a.scene {
+        ProbeScene::Accuracy => (0.610, 30f64.to_radians(), 0.002, 0.3f64.to_radians()),
+        ProbeScene::Detection => (detection::DISTANCE_M, 0.0, 0.005, 5f64.to_radians()),
     };
     let params = restore_params::from_assignments(&a.restore_param)?;
     let cam = CameraModel::vehicle_1440();
+    let (profile, lens) = profile_and_lens(a, &cam)?;
+    let tag = frame_tag(a, profile.as_ref());
     let mut renderer = Renderer::new();
-    let mut detector = ShoalDetector::new(CodeSet::Shoal, DetectParams::default());
+    let mut detector = ShoalDetector::new(
+        CodeSet::Shoal,
+        DetectParams {
+            lens: Some(lens),
+            ..DetectParams::default()
+        },
+    );
     for &c in &waters {
         // The detection experiment's condition index of this water (its frame seeds).
         let wi = detection::WATERS
@@ -158,12 +211,12 @@ pub fn run(a: &HoirmArgs) -> Result<(), EvalError> {
                 .frame_cache
                 .as_ref()
                 .map(|d| d.join(format!("{tag}_c{c:.2}_{k:03}.png")));
-            let scene = Scene::single_marker(CodeSet::Shoal, MARKER_ID, MARKER_SIDE_M, truth);
             let raw = raw_frame(
                 cached.as_deref(),
                 &mut renderer,
+                profile.as_ref(),
                 &cam,
-                &scene,
+                &truth,
                 &water,
                 time_s,
                 noise_seed,
@@ -181,7 +234,7 @@ pub fn run(a: &HoirmArgs) -> Result<(), EvalError> {
                 .max_by_key(|d| d.corners_px.len())
             {
                 if let Ok(sol) =
-                    estimate_pose(&cam, &d.object_points(MARKER_SIDE_M), &d.corners_px, None)
+                    estimate_pose(&lens, &d.object_points(MARKER_SIDE_M), &d.corners_px, None)
                 {
                     let est = sol.best.camera_from_marker;
                     dist_err.push((est.translation.vector - truth.translation.vector).norm() * 1e3);
