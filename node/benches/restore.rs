@@ -9,6 +9,7 @@ use opencv::core::{Mat, Size};
 use opencv::imgproc;
 use opencv::prelude::*;
 use shoal_node::restore::psf::Wiener;
+use shoal_node::restore::water;
 use shoal_node::restore::{restorer, Hoirm, Method, RestoreParams};
 use shoal_test_support::synthetic::{marker_frame, Degradation};
 use std::hint::black_box;
@@ -87,6 +88,14 @@ fn bench(c: &mut Criterion) {
     let mut wiener = Wiener::new();
     g.bench_function("stage_wiener_400x400", |b| {
         b.iter(|| black_box(wiener.deconvolve(&roi, &psf, 0.01).unwrap()))
+    });
+    // The frame's noise estimate: the 3x3 mask at full resolution alone, and
+    // across scales and in the dark levels (what `WaterEstimate` reads).
+    g.bench_function("stage_noise_full_frame_single_scale", |b| {
+        b.iter(|| black_box(water::noise_sigma(f, 16).unwrap()))
+    });
+    g.bench_function("stage_noise_full_frame_across_scales", |b| {
+        b.iter(|| black_box(water::noise_sigma_across_scales(f, 16, water::NOISE_LEVELS).unwrap()))
     });
     g.bench_function("stage_pyr_down_full_frame", |b| {
         b.iter(|| {
