@@ -275,23 +275,32 @@ pub fn noise_sigma_across_scales(
     levels: u32,
 ) -> Result<f64, RestoreError> {
     let mut sigma = noise_sigma(m, row_step)?;
-    let mut level = Mat::default();
-    m.convert_to(&mut level, core::CV_32F, 1.0, 0.0)?;
-    for k in 0..=levels {
-        if k > 0 {
-            let size = Size::new(level.cols() / 2, level.rows() / 2);
-            if size.width < 3 || size.height < 3 {
-                break;
-            }
-            let mut down = Mat::default();
-            imgproc::resize(&level, &mut down, size, 0.0, 0.0, imgproc::INTER_AREA)?;
-            level = down;
+    let (rows, cols) = (m.rows().max(0) as usize, m.cols().max(0) as usize);
+    if rows < 3 || cols < 3 {
+        return Ok(sigma);
+    }
+    // Level 0 is read in place (its mask outputs over all pixels are
+    // `noise_sigma`'s); only its dark pixels are read here.
+    let frame: Vec<&[u8]> = (0..rows as i32)
+        .map(|y| m.at_row::<u8>(y).map(|r| &r[..cols]))
+        .collect::<Result<_, _>>()?;
+    if let (_, Some(d)) = sample_level(&frame, cols, row_step.max(1), false) {
+        sigma = sigma.max(d);
+    }
+    // Coarser levels: 2x2 block means (a trailing odd row or column is
+    // dropped), kept only as long as the next one needs them.
+    let mut level = Plane::block_means_u8(&frame, cols);
+    for k in 1..=levels {
+        if k > 1 {
+            level = level.block_means();
         }
-        let (all, dark) = noise_sigma_f32(&level, (row_step >> k).max(1))?;
+        if level.rows < 3 || level.cols < 3 {
+            break;
+        }
+        let rows: Vec<&[f32]> = level.data.chunks_exact(level.cols).collect();
+        let (all, dark) = sample_level(&rows, level.cols, (row_step >> k).max(1), true);
         let scale = f64::from(1u32 << k);
-        if k > 0 {
-            sigma = sigma.max(scale * all);
-        }
+        sigma = sigma.max(scale * all);
         if let Some(d) = dark {
             sigma = sigma.max(scale * d);
         }
@@ -299,53 +308,147 @@ pub fn noise_sigma_across_scales(
     Ok(sigma)
 }
 
-/// [`noise_sigma`] on an f32 image (no quantization floor): over all pixels,
-/// and over the darkest [`DARK_QUANTILE`] of them by their 7x7 mean (a
-/// pixel's own value would pick those the noise pulled down, whose mask
-/// output is large by selection), when there are enough.
-fn noise_sigma_f32(m: &Mat, row_step: usize) -> Result<(f64, Option<f64>), RestoreError> {
-    let (rows, cols) = (m.rows(), m.cols());
-    let mut mean = Mat::default();
-    imgproc::box_filter(
-        m,
-        &mut mean,
-        -1,
-        Size::new(7, 7),
-        Point::new(-1, -1),
-        true,
-        core::BORDER_REFLECT_101,
-    )?;
-    let mut samples: Vec<(f32, f32)> = Vec::new();
-    let mut y = 1;
-    while y < rows - 1 {
-        let r0 = m.at_row::<f32>(y - 1)?;
-        let r1 = m.at_row::<f32>(y)?;
-        let r2 = m.at_row::<f32>(y + 1)?;
-        let level = mean.at_row::<f32>(y)?;
-        for x in 1..cols as usize - 1 {
-            let v = (r0[x - 1] - 2.0 * r0[x] + r0[x + 1] - 2.0 * r1[x - 1] + 4.0 * r1[x]
-                - 2.0 * r1[x + 1]
-                + r2[x - 1]
-                - 2.0 * r2[x]
-                + r2[x + 1])
-                .abs();
-            samples.push((level[x], v));
+/// One level of 2x2 block means, row-major f32.
+struct Plane {
+    rows: usize,
+    cols: usize,
+    data: Vec<f32>,
+}
+
+impl Plane {
+    fn block_means_u8(src: &[&[u8]], cols: usize) -> Plane {
+        let (h, w) = (src.len() / 2, cols / 2);
+        let mut data = Vec::with_capacity(h * w);
+        for y in 0..h {
+            let (a, b) = (src[2 * y], src[2 * y + 1]);
+            data.extend((0..w).map(|x| {
+                let s = u16::from(a[2 * x])
+                    + u16::from(a[2 * x + 1])
+                    + u16::from(b[2 * x])
+                    + u16::from(b[2 * x + 1]);
+                f32::from(s) * 0.25
+            }));
         }
-        y += row_step.max(1) as i32;
+        Plane {
+            rows: h,
+            cols: w,
+            data,
+        }
     }
-    if samples.is_empty() {
-        return Ok((0.0, None));
+
+    fn block_means(&self) -> Plane {
+        let (h, w) = (self.rows / 2, self.cols / 2);
+        let mut data = Vec::with_capacity(h * w);
+        for y in 0..h {
+            let a = &self.data[2 * y * self.cols..][..self.cols];
+            let b = &self.data[(2 * y + 1) * self.cols..][..self.cols];
+            data.extend(
+                (0..w).map(|x| ((a[2 * x] + a[2 * x + 1]) + (b[2 * x] + b[2 * x + 1])) * 0.25),
+            );
+        }
+        Plane {
+            rows: h,
+            cols: w,
+            data,
+        }
+    }
+}
+
+/// Index `i` reflected into `0..n` without repeating the edge (OpenCV's
+/// `BORDER_REFLECT_101`), `n ≥ 2`.
+fn reflect_101(mut i: isize, n: usize) -> usize {
+    let n = n as isize;
+    while i < 0 || i >= n {
+        i = if i < 0 { -i } else { 2 * (n - 1) - i };
+    }
+    i as usize
+}
+
+/// [`noise_sigma`] on one level (no quantization floor) of at least 3x3,
+/// every `row_step`-th row: the median mask output over all pixels (when
+/// `want_all`; 0 otherwise), and over the darkest [`DARK_QUANTILE`] of them by their 7x7 mean (a pixel's
+/// own value would pick those the noise pulled down, whose mask output is
+/// large by selection) when there are enough. Only the sampled rows' means
+/// are computed.
+fn sample_level<T: Copy + Into<f32>>(
+    rows: &[&[T]],
+    cols: usize,
+    row_step: usize,
+    want_all: bool,
+) -> (f64, Option<f64>) {
+    const R: usize = 3;
+    let n_rows = rows.len();
+    let capacity = (n_rows / row_step + 1) * cols.saturating_sub(2);
+    let (mut levels, mut values) = (Vec::with_capacity(capacity), Vec::with_capacity(capacity));
+    // The 7-row sums of the sampled row, reflected 3 columns past each edge,
+    // and its vertical second difference (the 3x3 mask is separable).
+    let mut padded = vec![0f32; cols + 2 * R];
+    let mut second = vec![0f32; cols];
+    let mut y = 1;
+    while y + 1 < n_rows {
+        let column_sums = &mut padded[R..][..cols];
+        column_sums.fill(0.0);
+        for dy in 0..=2 * R {
+            let r = rows[reflect_101(y as isize + dy as isize - R as isize, n_rows)];
+            for (s, &v) in column_sums.iter_mut().zip(r.iter()) {
+                *s += v.into();
+            }
+        }
+        for d in 1..=R {
+            padded[R - d] = padded[R + reflect_101(-(d as isize), cols)];
+            padded[R + cols - 1 + d] = padded[R + reflect_101((cols - 1 + d) as isize, cols)];
+        }
+        for (((s, &a), &b), &c) in second
+            .iter_mut()
+            .zip(rows[y - 1])
+            .zip(rows[y])
+            .zip(rows[y + 1])
+        {
+            *s = a.into() - 2.0 * b.into() + c.into();
+        }
+        values.extend(second.windows(3).map(|w| (w[0] - 2.0 * w[1] + w[2]).abs()));
+        levels.extend(
+            padded[1..]
+                .windows(2 * R + 1)
+                .take(cols - 2)
+                .map(|w| w.iter().sum::<f32>() / 49.0),
+        );
+        y += row_step;
+    }
+    if values.is_empty() {
+        return (0.0, None);
     }
     let scale = |median: f32| f64::from(median) / (0.6745 * 6.0);
-    let mut all: Vec<f32> = samples.iter().map(|s| s.1).collect();
-    let all_sigma = scale(median_of(&mut all));
-    let n_dark = (DARK_QUANTILE * samples.len() as f64) as usize;
-    if n_dark < MIN_DARK_SAMPLES {
-        return Ok((all_sigma, None));
-    }
-    samples.select_nth_unstable_by(n_dark, |a, b| a.0.total_cmp(&b.0));
-    let mut dark: Vec<f32> = samples[..n_dark].iter().map(|s| s.1).collect();
-    Ok((all_sigma, Some(scale(median_of(&mut dark)))))
+    let n_dark = (DARK_QUANTILE * values.len() as f64) as usize;
+    let dark = (n_dark >= MIN_DARK_SAMPLES).then(|| {
+        // The darkest `n_dark` by level, ties at the threshold in row order.
+        let threshold = {
+            let mut l = levels.clone();
+            *l.select_nth_unstable_by(n_dark, f32::total_cmp).1
+        };
+        let mut dark: Vec<f32> = Vec::with_capacity(n_dark + 1);
+        dark.extend(
+            levels
+                .iter()
+                .zip(&values)
+                .filter(|(l, _)| **l < threshold)
+                .map(|(_, v)| *v),
+        );
+        let ties = levels
+            .iter()
+            .zip(&values)
+            .filter(|(l, _)| **l == threshold)
+            .map(|(_, v)| *v);
+        let missing = n_dark.saturating_sub(dark.len());
+        dark.extend(ties.take(missing));
+        scale(median_of(&mut dark))
+    });
+    let all = if want_all {
+        scale(median_of(&mut values))
+    } else {
+        0.0
+    };
+    (all, dark)
 }
 
 fn median_of(v: &mut [f32]) -> f32 {
@@ -382,6 +485,118 @@ mod tests {
                 (est - sigma).abs() < 0.12 * sigma + 0.3,
                 "σ {sigma}: estimated {est}"
             );
+        }
+    }
+
+    /// The first implementation (OpenCV's f32 conversion, INTER_AREA and
+    /// 7x7 box filter over whole levels): the one in use must read the same
+    /// on levels of even sides, where INTER_AREA's weights are 2x2 means.
+    fn reference_across_scales(
+        m: &impl MatTraitConst,
+        row_step: usize,
+        levels: u32,
+    ) -> Result<f64, RestoreError> {
+        let mut sigma = noise_sigma(m, row_step)?;
+        let mut level = Mat::default();
+        m.convert_to(&mut level, core::CV_32F, 1.0, 0.0)?;
+        for k in 0..=levels {
+            if k > 0 {
+                let size = Size::new(level.cols() / 2, level.rows() / 2);
+                if size.width < 3 || size.height < 3 {
+                    break;
+                }
+                let mut down = Mat::default();
+                imgproc::resize(&level, &mut down, size, 0.0, 0.0, imgproc::INTER_AREA)?;
+                level = down;
+            }
+            let (all, dark) = reference_level(&level, (row_step >> k).max(1))?;
+            let scale = f64::from(1u32 << k);
+            if k > 0 {
+                sigma = sigma.max(scale * all);
+            }
+            if let Some(d) = dark {
+                sigma = sigma.max(scale * d);
+            }
+        }
+        Ok(sigma)
+    }
+
+    fn reference_level(m: &Mat, row_step: usize) -> Result<(f64, Option<f64>), RestoreError> {
+        let (rows, cols) = (m.rows(), m.cols());
+        let mut mean = Mat::default();
+        imgproc::box_filter(
+            m,
+            &mut mean,
+            -1,
+            Size::new(7, 7),
+            Point::new(-1, -1),
+            true,
+            core::BORDER_REFLECT_101,
+        )?;
+        let mut samples: Vec<(f32, f32)> = Vec::new();
+        let mut y = 1;
+        while y < rows - 1 {
+            let r0 = m.at_row::<f32>(y - 1)?;
+            let r1 = m.at_row::<f32>(y)?;
+            let r2 = m.at_row::<f32>(y + 1)?;
+            let level = mean.at_row::<f32>(y)?;
+            for x in 1..cols as usize - 1 {
+                let v = (r0[x - 1] - 2.0 * r0[x] + r0[x + 1] - 2.0 * r1[x - 1] + 4.0 * r1[x]
+                    - 2.0 * r1[x + 1]
+                    + r2[x - 1]
+                    - 2.0 * r2[x]
+                    + r2[x + 1])
+                    .abs();
+                samples.push((level[x], v));
+            }
+            y += row_step.max(1) as i32;
+        }
+        if samples.is_empty() {
+            return Ok((0.0, None));
+        }
+        let scale = |median: f32| f64::from(median) / (0.6745 * 6.0);
+        let mut all: Vec<f32> = samples.iter().map(|s| s.1).collect();
+        let all_sigma = scale(median_of(&mut all));
+        let n_dark = (DARK_QUANTILE * samples.len() as f64) as usize;
+        if n_dark < MIN_DARK_SAMPLES {
+            return Ok((all_sigma, None));
+        }
+        samples.select_nth_unstable_by(n_dark, |a, b| a.0.total_cmp(&b.0));
+        let mut dark: Vec<f32> = samples[..n_dark].iter().map(|s| s.1).collect();
+        Ok((all_sigma, Some(scale(median_of(&mut dark)))))
+    }
+
+    #[test]
+    fn sampled_levels_read_what_whole_level_filters_read() {
+        let raw = noisy_flat(90.0, 3.0, 8);
+        let mut blurred = Mat::default();
+        imgproc::gaussian_blur(
+            &raw,
+            &mut blurred,
+            Size::new(0, 0),
+            0.8,
+            0.8,
+            core::BORDER_REFLECT_101,
+        )
+        .unwrap();
+        // A dark band, and a view into a larger frame (row stride ≠ width).
+        Mat::roi(&noisy_flat(30.0, 5.0, 9), core::Rect::new(0, 0, 300, 24))
+            .unwrap()
+            .copy_to(&mut Mat::roi_mut(&mut blurred, core::Rect::new(0, 100, 300, 24)).unwrap())
+            .unwrap();
+        let view = Mat::roi(&blurred, core::Rect::new(4, 8, 256, 184)).unwrap();
+        for (name, m) in [
+            ("whole", blurred.clone()),
+            ("view", view.try_clone().unwrap()),
+        ] {
+            for (row_step, levels) in [(1, 2), (2, 1), (4, 2)] {
+                let now = noise_sigma_across_scales(&m, row_step, levels).unwrap();
+                let reference = reference_across_scales(&m, row_step, levels).unwrap();
+                assert!(
+                    (now - reference).abs() <= 1e-4 * reference,
+                    "{name}, row step {row_step}, {levels} levels: {now} vs {reference}"
+                );
+            }
         }
     }
 
