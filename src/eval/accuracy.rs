@@ -9,8 +9,8 @@
 use super::features::plot_or_warn;
 use super::plot::{self, Grouped};
 use super::scene::{
-    frame_rng, jittered_pose, locate, make_restorer, platform_yaw_deg, pose_errors, render_marker,
-    restore, Located, MarkerMethod, FRAME_INTERVAL_S,
+    frame_rng, jittered_pose, locate, make_restorer, platform_yaw_deg, pose_errors,
+    render_marker_through, restore, Located, MarkerMethod, FRAME_INTERVAL_S,
 };
 use super::table::{cell, median, quantile, rmse, Csv};
 use super::{water_key, EvalError, EvalOptions};
@@ -69,9 +69,17 @@ pub fn run_conditions(
     let cam = CameraModel::vehicle_1440();
     let presets = opts.presets()?;
     let mut renderer = Renderer::new();
+    // Through `--profile` (as `detection`): the profile's effects seeded by
+    // the run's seed, and every method's detector and PnP given the
+    // calibration the node would hold, not the renderer's camera.
+    let profile = opts.profile.clone().map(|p| p.with_seed(opts.seed));
+    let lens = match &profile {
+        Some(p) => super::profiles::node_camera(p, &cam, opts.seed)?,
+        None => cam,
+    };
     let mut detectors = methods
         .iter()
-        .map(|m| Ok((*m, m.detector(&cam)?)))
+        .map(|m| Ok((*m, m.detector(&lens)?)))
         .collect::<Result<Vec<_>, EvalError>>()?;
     let mut code_sets: Vec<CodeSet> = Vec::new();
     for m in methods {
@@ -102,8 +110,9 @@ pub fn run_conditions(
             let stamp_ns = (time_s * 1e9) as u64;
             let mut restored = BTreeMap::new();
             for &codes in &code_sets {
-                let frame = render_marker(
+                let frame = render_marker_through(
                     &mut renderer,
+                    profile.as_ref(),
                     &cam,
                     codes,
                     &truth,
@@ -139,7 +148,7 @@ pub fn run_conditions(
                 let Some((raw, img)) = restored.get(method.codes().name()) else {
                     continue;
                 };
-                let located = locate(det.as_mut(), img, raw, &cam)?;
+                let located = locate(det.as_mut(), img, raw, &lens)?;
                 let errors = located.camera_from_marker.map(|est| {
                     let (d, a) = pose_errors(&est, &truth);
                     (
@@ -162,6 +171,12 @@ pub fn run_conditions(
     }
     bar.finish_and_clear();
     Ok(records)
+}
+
+/// The camera profile's name for the summaries and plot titles (`ideal`
+/// without `--profile`).
+fn profile_name(opts: &EvalOptions) -> &str {
+    opts.profile.as_ref().map_or("ideal", |p| p.name.as_str())
 }
 
 /// Write a raw frame and its restoration under `out/frames/`.
@@ -338,7 +353,8 @@ pub fn run_main(opts: &EvalOptions) -> Result<Value, EvalError> {
         &opts.out.join("eval-accuracy-distance"),
         &Grouped {
             title: format!(
-                "Distance error at 610 mm, yaw 30° ({restore} for all; paper Figs. 11–14)"
+                "Distance error at 610 mm, yaw 30° ({restore} for all, {} camera; paper Figs. 11–14)",
+                profile_name(opts)
             ),
             x_label: "attenuation coefficient c".into(),
             y_label: "position error (mm)".into(),
@@ -350,7 +366,10 @@ pub fn run_main(opts: &EvalOptions) -> Result<Value, EvalError> {
     let plots_a = plot_or_warn(plot::boxes(
         &opts.out.join("eval-accuracy-angle"),
         &Grouped {
-            title: format!("Angle error at 610 mm, yaw 30° ({restore} for all; paper Figs. 11–14)"),
+            title: format!(
+                "Angle error at 610 mm, yaw 30° ({restore} for all, {} camera; paper Figs. 11–14)",
+                profile_name(opts)
+            ),
             x_label: "attenuation coefficient c".into(),
             y_label: "rotation error (deg)".into(),
             categories,
@@ -361,6 +380,7 @@ pub fn run_main(opts: &EvalOptions) -> Result<Value, EvalError> {
     Ok(json!({
         "frames": frames,
         "restoration": restore,
+        "camera_profile": profile_name(opts),
         "setup": "vehicle_1440 camera, 100 mm footprint, marker #17 at 610 mm and yaw 30° (±2 mm, ±0.3° jitter), same frames for every marker type",
         "results": results,
         "issue4_target": target,
@@ -423,8 +443,9 @@ pub fn run_yaw(opts: &EvalOptions) -> Result<Value, EvalError> {
         &opts.out.join("eval-accuracy-yaw"),
         &Grouped {
             title: format!(
-                "|Yaw error| at 3.92 /m, 600 mm ({} for all; paper Fig. 15)",
-                opts.restore.name()
+                "|Yaw error| at 3.92 /m, 600 mm ({} for all, {} camera; paper Fig. 15)",
+                opts.restore.name(),
+                profile_name(opts)
             ),
             x_label: "platform yaw (deg)".into(),
             y_label: "|yaw error| (deg)".into(),
@@ -436,6 +457,7 @@ pub fn run_yaw(opts: &EvalOptions) -> Result<Value, EvalError> {
     Ok(json!({
         "frames": frames,
         "restoration": opts.restore.name(),
+        "camera_profile": profile_name(opts),
         "water_c_per_m": 3.92,
         "results": results,
         "plots": plots,
@@ -489,7 +511,10 @@ pub fn run_rmse(opts: &EvalOptions) -> Result<Value, EvalError> {
     let p1 = plot_or_warn(plot::bars(
         &opts.out.join("eval-accuracy-rmse-distance"),
         &Grouped {
-            title: "RMSE of position at 600 mm, yaw 20° (paper Fig. 16)".into(),
+            title: format!(
+                "RMSE of position at 600 mm, yaw 20° ({} camera; paper Fig. 16)",
+                profile_name(opts)
+            ),
             x_label: "attenuation coefficient c (1/m)".into(),
             y_label: "RMSE (mm)".into(),
             categories: categories.clone(),
@@ -500,7 +525,10 @@ pub fn run_rmse(opts: &EvalOptions) -> Result<Value, EvalError> {
     let p2 = plot_or_warn(plot::bars(
         &opts.out.join("eval-accuracy-rmse-angle"),
         &Grouped {
-            title: "RMSE of rotation at 600 mm, yaw 20° (paper Fig. 17)".into(),
+            title: format!(
+                "RMSE of rotation at 600 mm, yaw 20° ({} camera; paper Fig. 17)",
+                profile_name(opts)
+            ),
             x_label: "attenuation coefficient c (1/m)".into(),
             y_label: "RMSE (deg)".into(),
             categories,
@@ -511,6 +539,7 @@ pub fn run_rmse(opts: &EvalOptions) -> Result<Value, EvalError> {
     Ok(json!({
         "frames": frames,
         "restoration": opts.restore.name(),
+        "camera_profile": profile_name(opts),
         "results": results,
         "paper": { "rmse_reduction_vs_baselines_0_to_5.16": 0.4, "rmse_reduction_vs_baselines_6.12_to_12.2": 0.5 },
         "plots": [p1, p2],

@@ -182,7 +182,13 @@ pub struct EvalOptions {
 
 /// The experiments that render through `--profile` (the rest refuse it
 /// rather than ignore it).
-pub const PROFILE_EXPERIMENTS: [Experiment; 1] = [Experiment::Detection];
+pub const PROFILE_EXPERIMENTS: [Experiment; 5] = [
+    Experiment::Detection,
+    Experiment::Accuracy,
+    Experiment::AccuracyYaw,
+    Experiment::AccuracyRmse,
+    Experiment::FitNoise,
+];
 
 impl EvalOptions {
     /// Defaults: full run, seed 1, HOIRM for every marker, progress bar on.

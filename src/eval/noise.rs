@@ -12,7 +12,11 @@
 //! least squares: `σ_lat = floor + a·r`, `σ_depth = floor + b·r + c·r²` (the
 //! lateral floor), `σ_tilt = t₀ + k·r`, `σ_roll` constant. The result is printed next
 //! to the shipped defaults, and written as `noise-model.json` for
-//! `NoiseModel::default` to adopt.
+//! `NoiseModel::default` to adopt. Through `--profile` the frames come from
+//! that camera and the node holds the calibration it would (as in
+//! `accuracy`); the port's and the calibration's bias, the same on every
+//! frame of a seed, then counts as noise here (it is an error fusion cannot
+//! average away either).
 
 use super::accuracy::{run_conditions, Condition, Record};
 use super::scene::MarkerMethod;
@@ -269,6 +273,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
         "water_per_m": WATER_PER_M,
         "yaws_deg": YAWS_DEG,
         "frames_per_condition": frames,
+        "camera_profile": opts.profile.as_ref().map_or("ideal", |p| p.name.as_str()),
         "results": { "ranges": rows },
         "fitted": model_json(&fitted),
         "shipped": model_json(&shipped),

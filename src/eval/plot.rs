@@ -322,6 +322,8 @@ fn draw_bars<DB: DrawingBackend>(
 
 /// Tukey's box: quartiles, whiskers to the last datum within 1.5 IQR, outliers.
 struct TukeyBox {
+    /// Finite samples in the box.
+    n: usize,
     q1: f64,
     q2: f64,
     q3: f64,
@@ -329,6 +331,30 @@ struct TukeyBox {
     hi: f64,
     outliers: Vec<f64>,
 }
+
+/// The largest whisker the y axis is scaled to: that of the boxes drawn
+/// from a fair sample (at least [`FAIR_BOX_MIN`] values and a quarter of the
+/// largest box's), not of a box of a few wild values (a detector that reads
+/// 4 frames of 20 in murky water, one of them metres off), which would
+/// flatten every other box to the axis; such a box is cut at the top.
+fn scale_max<'a>(boxes: impl Iterator<Item = &'a TukeyBox> + Clone) -> f64 {
+    let most = boxes.clone().map(|b| b.n).max().unwrap_or(0);
+    let fair = FAIR_BOX_MIN.max(most / 4);
+    let over = |min_n: usize| {
+        boxes
+            .clone()
+            .filter(|b| b.n >= min_n)
+            .map(|b| b.hi)
+            .fold(0.0, f64::max)
+    };
+    match over(fair) {
+        m if m > 0.0 => m,
+        _ => over(0),
+    }
+}
+
+/// Fewest values for a box to set the y axis' scale ([`scale_max`]).
+const FAIR_BOX_MIN: usize = 5;
 
 fn tukey(v: &[f64]) -> Option<TukeyBox> {
     let (q1, q2, q3) = (quantile(v, 0.25)?, quantile(v, 0.5)?, quantile(v, 0.75)?);
@@ -347,6 +373,7 @@ fn tukey(v: &[f64]) -> Option<TukeyBox> {
         .filter(|x| x.is_finite() && (*x < fence_lo || *x > fence_hi))
         .collect();
     Some(TukeyBox {
+        n: v.iter().filter(|x| x.is_finite()).count(),
         q1,
         q2,
         q3,
@@ -367,14 +394,7 @@ fn draw_boxes<DB: DrawingBackend>(
         .iter()
         .map(|row| row.iter().map(|v| tukey(v)).collect())
         .collect();
-    // Scale to the whiskers (and moderate outliers), not to a few wild ones.
-    let whisker_max = boxes
-        .iter()
-        .flatten()
-        .flatten()
-        .map(|b| b.hi)
-        .fold(0.0, f64::max);
-    let top = y_top(whisker_max * 1.6);
+    let top = y_top(scale_max(boxes.iter().flatten().flatten()) * 1.6);
     let mut chart = ChartBuilder::on(&root)
         .caption(&spec.title, ("sans-serif", 24))
         .margin(14)
@@ -448,4 +468,24 @@ fn draw_boxes<DB: DrawingBackend>(
         .draw()
         .map_err(s)?;
     root.present().map_err(s)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_box_of_a_few_wild_values_does_not_set_the_scale() {
+        let good: Vec<f64> = (0..20).map(|i| 5.0 + 0.1 * f64::from(i)).collect();
+        let wild = [4.0, 5000.0, 5500.0, 5900.0];
+        let boxes: Vec<TukeyBox> = [&good[..], &good[..], &wild[..]]
+            .iter()
+            .filter_map(|v| tukey(v))
+            .collect();
+        let m = scale_max(boxes.iter());
+        assert!((m - 6.9).abs() < 1e-9, "{m}");
+        // With only small boxes, they set it.
+        let only_wild: Vec<TukeyBox> = tukey(&wild).into_iter().collect();
+        assert!(scale_max(only_wild.iter()) > 5000.0);
+    }
 }
