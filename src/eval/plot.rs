@@ -334,27 +334,39 @@ struct TukeyBox {
 
 /// The largest whisker the y axis is scaled to: that of the boxes drawn
 /// from a fair sample (at least [`FAIR_BOX_MIN`] values and a quarter of the
-/// largest box's), not of a box of a few wild values (a detector that reads
-/// 4 frames of 20 in murky water, one of them metres off), which would
-/// flatten every other box to the axis; such a box is cut at the top.
+/// largest box's) whose whisker is within [`WILD_FACTOR`] of the median
+/// box's (the lower median of an even count), not of a box of a few wild values (a detector that reads a
+/// quarter of the frames in murky water, some of them metres off), which
+/// would flatten every other box to the axis; such a box is cut at the top.
 fn scale_max<'a>(boxes: impl Iterator<Item = &'a TukeyBox> + Clone) -> f64 {
     let most = boxes.clone().map(|b| b.n).max().unwrap_or(0);
     let fair = FAIR_BOX_MIN.max(most / 4);
+    let mut tops: Vec<f64> = boxes.clone().map(|b| b.hi).collect();
+    tops.sort_by(f64::total_cmp);
+    let typical = tops
+        .get(tops.len().saturating_sub(1) / 2)
+        .copied()
+        .unwrap_or(0.0);
+    let within = |b: &&TukeyBox| typical <= 0.0 || b.hi <= WILD_FACTOR * typical;
     let over = |min_n: usize| {
         boxes
             .clone()
             .filter(|b| b.n >= min_n)
+            .filter(within)
             .map(|b| b.hi)
             .fold(0.0, f64::max)
     };
     match over(fair) {
         m if m > 0.0 => m,
-        _ => over(0),
+        _ => tops.last().copied().unwrap_or(0.0),
     }
 }
 
 /// Fewest values for a box to set the y axis' scale ([`scale_max`]).
 const FAIR_BOX_MIN: usize = 5;
+/// A whisker more than this many times the median box's does not set the
+/// y axis' scale ([`scale_max`]).
+const WILD_FACTOR: f64 = 30.0;
 
 fn tukey(v: &[f64]) -> Option<TukeyBox> {
     let (q1, q2, q3) = (quantile(v, 0.25)?, quantile(v, 0.5)?, quantile(v, 0.75)?);
@@ -478,12 +490,21 @@ mod tests {
     fn a_box_of_a_few_wild_values_does_not_set_the_scale() {
         let good: Vec<f64> = (0..20).map(|i| 5.0 + 0.1 * f64::from(i)).collect();
         let wild = [4.0, 5000.0, 5500.0, 5900.0];
-        let boxes: Vec<TukeyBox> = [&good[..], &good[..], &wild[..]]
+        // Five values (a fair count), but a whisker 800x the others'.
+        let wild5 = [3.0, 4.0, 5000.0, 5500.0, 5900.0];
+        let boxes: Vec<TukeyBox> = [&good[..], &good[..], &wild[..], &wild5[..]]
             .iter()
             .filter_map(|v| tukey(v))
             .collect();
         let m = scale_max(boxes.iter());
         assert!((m - 6.9).abs() < 1e-9, "{m}");
+        // A box 20x the others (an unrestored baseline in murky water) sets it.
+        let far: Vec<f64> = good.iter().map(|v| 20.0 * v).collect();
+        let boxes: Vec<TukeyBox> = [&good[..], &good[..], &far[..]]
+            .iter()
+            .filter_map(|v| tukey(v))
+            .collect();
+        assert!((scale_max(boxes.iter()) - 138.0).abs() < 1e-9);
         // With only small boxes, they set it.
         let only_wild: Vec<TukeyBox> = tukey(&wild).into_iter().collect();
         assert!(scale_max(only_wild.iter()) > 5000.0);
