@@ -335,9 +335,10 @@ struct TukeyBox {
 /// The largest whisker the y axis is scaled to: that of the boxes drawn
 /// from a fair sample (at least [`FAIR_BOX_MIN`] values and a quarter of the
 /// largest box's) whose whisker is within [`WILD_FACTOR`] of the median
-/// box's (the lower median of an even count), not of a box of a few wild values (a detector that reads a
-/// quarter of the frames in murky water, some of them metres off), which
-/// would flatten every other box to the axis; such a box is cut at the top.
+/// box's (the lower median of an even count). Not that of a box of a few
+/// wild values (a detector that reads a quarter of the frames in murky
+/// water, some of them metres off), which would flatten every other box to
+/// the axis; such a box is cut at the top.
 fn scale_max<'a>(boxes: impl Iterator<Item = &'a TukeyBox> + Clone) -> f64 {
     let most = boxes.clone().map(|b| b.n).max().unwrap_or(0);
     let fair = FAIR_BOX_MIN.max(most / 4);

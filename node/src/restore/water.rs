@@ -355,8 +355,11 @@ impl Plane {
 }
 
 /// Index `i` reflected into `0..n` without repeating the edge (OpenCV's
-/// `BORDER_REFLECT_101`), `n ≥ 2`.
+/// `BORDER_REFLECT_101`); 0 when `n < 2`.
 fn reflect_101(mut i: isize, n: usize) -> usize {
+    if n < 2 {
+        return 0;
+    }
     let n = n as isize;
     while i < 0 || i >= n {
         i = if i < 0 { -i } else { 2 * (n - 1) - i };
@@ -366,10 +369,10 @@ fn reflect_101(mut i: isize, n: usize) -> usize {
 
 /// [`noise_sigma`] on one level (no quantization floor) of at least 3x3,
 /// every `row_step`-th row: the median mask output over all pixels (when
-/// `want_all`; 0 otherwise), and over the darkest [`DARK_QUANTILE`] of them by their 7x7 mean (a pixel's
-/// own value would pick those the noise pulled down, whose mask output is
-/// large by selection) when there are enough. Only the sampled rows' means
-/// are computed.
+/// `want_all`; 0 otherwise), and over the darkest [`DARK_QUANTILE`] of them
+/// by their 7x7 mean (a pixel's own value would pick those the noise pulled
+/// down, whose mask output is large by selection) when there are enough.
+/// Only the sampled rows' means are computed.
 fn sample_level<T: Copy + Into<f32>>(
     rows: &[&[T]],
     cols: usize,
