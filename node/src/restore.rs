@@ -250,7 +250,7 @@ impl Default for RestoreParams {
             min_roi_side_at_level_px: 48,
             denoise_edge_snr: 35.0,
             // 1 px, not 2 (session 21): through the realistic camera the
-            // frames at 3.92-5.16 /m asked for 1.6-1.9 px, went unsmoothed,
+            // frames at 3.92-5.16 /m asked for 1.5-2 px, went unsmoothed,
             // and the stretch's speckle cost AprilTag 3 its reads there
             // (docs/results.md, "accuracy", the restoration check).
             denoise_min_sigma_px: 1.0,
