@@ -69,14 +69,9 @@ pub fn run_conditions(
     let cam = CameraModel::vehicle_1440();
     let presets = opts.presets()?;
     let mut renderer = Renderer::new();
-    // Through `--profile` (as `detection`): the profile's effects seeded by
-    // the run's seed, and every method's detector and PnP given the
-    // calibration the node would hold, not the renderer's camera.
-    let profile = opts.profile.clone().map(|p| p.with_seed(opts.seed));
-    let lens = match &profile {
-        Some(p) => super::profiles::node_camera(p, &cam, opts.seed)?,
-        None => cam,
-    };
+    // Every method's detector and PnP hold the node's calibration, not the
+    // renderer's camera.
+    let (profile, lens) = opts.seeded_profile_and_lens(&cam)?;
     let mut detectors = methods
         .iter()
         .map(|m| Ok((*m, m.detector(&lens)?)))
@@ -171,12 +166,6 @@ pub fn run_conditions(
     }
     bar.finish_and_clear();
     Ok(records)
-}
-
-/// The camera profile's name for the summaries and plot titles (`ideal`
-/// without `--profile`).
-fn profile_name(opts: &EvalOptions) -> &str {
-    opts.profile.as_ref().map_or("ideal", |p| p.name.as_str())
 }
 
 /// Write a raw frame and its restoration under `out/frames/`.
@@ -354,7 +343,7 @@ pub fn run_main(opts: &EvalOptions) -> Result<Value, EvalError> {
         &Grouped {
             title: format!(
                 "Distance error at 610 mm, yaw 30° ({restore} for all, {} camera; paper Figs. 11–14)",
-                profile_name(opts)
+                opts.profile_name()
             ),
             x_label: "attenuation coefficient c".into(),
             y_label: "position error (mm)".into(),
@@ -368,7 +357,7 @@ pub fn run_main(opts: &EvalOptions) -> Result<Value, EvalError> {
         &Grouped {
             title: format!(
                 "Angle error at 610 mm, yaw 30° ({restore} for all, {} camera; paper Figs. 11–14)",
-                profile_name(opts)
+                opts.profile_name()
             ),
             x_label: "attenuation coefficient c".into(),
             y_label: "rotation error (deg)".into(),
@@ -380,7 +369,7 @@ pub fn run_main(opts: &EvalOptions) -> Result<Value, EvalError> {
     Ok(json!({
         "frames": frames,
         "restoration": restore,
-        "camera_profile": profile_name(opts),
+        "camera_profile": opts.profile_name(),
         "setup": "vehicle_1440 camera, 100 mm footprint, marker #17 at 610 mm and yaw 30° (±2 mm, ±0.3° jitter), same frames for every marker type",
         "results": results,
         "issue4_target": target,
@@ -445,7 +434,7 @@ pub fn run_yaw(opts: &EvalOptions) -> Result<Value, EvalError> {
             title: format!(
                 "|Yaw error| at 3.92 /m, 600 mm ({} for all, {} camera; paper Fig. 15)",
                 opts.restore.name(),
-                profile_name(opts)
+                opts.profile_name()
             ),
             x_label: "platform yaw (deg)".into(),
             y_label: "|yaw error| (deg)".into(),
@@ -457,7 +446,7 @@ pub fn run_yaw(opts: &EvalOptions) -> Result<Value, EvalError> {
     Ok(json!({
         "frames": frames,
         "restoration": opts.restore.name(),
-        "camera_profile": profile_name(opts),
+        "camera_profile": opts.profile_name(),
         "water_c_per_m": 3.92,
         "results": results,
         "plots": plots,
@@ -513,7 +502,7 @@ pub fn run_rmse(opts: &EvalOptions) -> Result<Value, EvalError> {
         &Grouped {
             title: format!(
                 "RMSE of position at 600 mm, yaw 20° ({} camera; paper Fig. 16)",
-                profile_name(opts)
+                opts.profile_name()
             ),
             x_label: "attenuation coefficient c (1/m)".into(),
             y_label: "RMSE (mm)".into(),
@@ -527,7 +516,7 @@ pub fn run_rmse(opts: &EvalOptions) -> Result<Value, EvalError> {
         &Grouped {
             title: format!(
                 "RMSE of rotation at 600 mm, yaw 20° ({} camera; paper Fig. 17)",
-                profile_name(opts)
+                opts.profile_name()
             ),
             x_label: "attenuation coefficient c (1/m)".into(),
             y_label: "RMSE (deg)".into(),
@@ -539,7 +528,7 @@ pub fn run_rmse(opts: &EvalOptions) -> Result<Value, EvalError> {
     Ok(json!({
         "frames": frames,
         "restoration": opts.restore.name(),
-        "camera_profile": profile_name(opts),
+        "camera_profile": opts.profile_name(),
         "results": results,
         "paper": { "rmse_reduction_vs_baselines_0_to_5.16": 0.4, "rmse_reduction_vs_baselines_6.12_to_12.2": 0.5 },
         "plots": [p1, p2],

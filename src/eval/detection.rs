@@ -62,14 +62,7 @@ pub fn success_rates(
     let cam = CameraModel::vehicle_1440();
     let presets = opts.presets()?;
     let mut renderer = Renderer::new();
-    // Through `--profile`: the profile's effects seeded by the run's seed, and
-    // the calibration the node would hold (through the port, a lab's in-water
-    // calibration; moved by the calibration error) as the detector's lens.
-    let profile = opts.profile.clone().map(|p| p.with_seed(opts.seed));
-    let lens = match &profile {
-        Some(p) => super::profiles::node_camera(p, &cam, opts.seed)?,
-        None => cam,
-    };
+    let (profile, lens) = opts.seeded_profile_and_lens(&cam)?;
     let mut detector = ShoalDetector::new(
         CodeSet::Shoal,
         DetectParams {
@@ -221,7 +214,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     Ok(json!({
         "frames": frames,
         "detector": "shoal",
-        "camera_profile": opts.profile.as_ref().map_or("ideal", |p| p.name.as_str()),
+        "camera_profile": opts.profile_name(),
         "setup": "vehicle_1440 camera, enhanced marker #17 (100 mm) at 600 mm, ±5 mm / ±5° jitter; water presets from configs/water.toml with its knobs",
         "results": results,
         "paper": { "clahe": paper_row(&PAPER_CLAHE), "dcp": paper_row(&PAPER_DCP), "hoirm": paper_row(&PAPER_OURS) },

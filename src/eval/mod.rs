@@ -191,6 +191,34 @@ pub const PROFILE_EXPERIMENTS: [Experiment; 5] = [
 ];
 
 impl EvalOptions {
+    /// The camera profile's name for summaries and plot titles (`ideal`
+    /// without `--profile`).
+    pub fn profile_name(&self) -> &str {
+        self.profile.as_ref().map_or("ideal", |p| p.name.as_str())
+    }
+
+    /// Through `--profile`: the profile with its effects seeded by the run's
+    /// seed, and the calibration the node would hold (through the port, a
+    /// lab's in-water calibration; moved by the calibration error) as the
+    /// detectors' and PnP's lens. Without it: no profile, `cam` itself.
+    pub fn seeded_profile_and_lens(
+        &self,
+        cam: &shoal_proto::CameraModel,
+    ) -> Result<
+        (
+            Option<shoal_sim_bridge::profile::CameraProfile>,
+            shoal_proto::CameraModel,
+        ),
+        EvalError,
+    > {
+        let profile = self.profile.clone().map(|p| p.with_seed(self.seed));
+        let lens = match &profile {
+            Some(p) => profiles::node_camera(p, cam, self.seed)?,
+            None => *cam,
+        };
+        Ok((profile, lens))
+    }
+
     /// Defaults: full run, seed 1, HOIRM for every marker, progress bar on.
     pub fn new(out: impl Into<PathBuf>) -> EvalOptions {
         EvalOptions {

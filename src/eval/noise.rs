@@ -273,7 +273,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
         "water_per_m": WATER_PER_M,
         "yaws_deg": YAWS_DEG,
         "frames_per_condition": frames,
-        "camera_profile": opts.profile.as_ref().map_or("ideal", |p| p.name.as_str()),
+        "camera_profile": opts.profile_name(),
         "results": { "ranges": rows },
         "fitted": model_json(&fitted),
         "shipped": model_json(&shipped),

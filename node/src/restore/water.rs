@@ -479,6 +479,21 @@ mod tests {
         m
     }
 
+    /// `m` blurred by a Gaussian of `sigma` px.
+    fn gaussian(m: &Mat, sigma: f64) -> Mat {
+        let mut out = Mat::default();
+        imgproc::gaussian_blur(
+            m,
+            &mut out,
+            Size::new(0, 0),
+            sigma,
+            sigma,
+            core::BORDER_REFLECT_101,
+        )
+        .unwrap();
+        out
+    }
+
     #[test]
     fn noise_estimate_recovers_gaussian_noise_sigma() {
         for sigma in [2.0, 5.0, 12.0] {
@@ -572,16 +587,7 @@ mod tests {
     #[test]
     fn sampled_levels_read_what_whole_level_filters_read() {
         let raw = noisy_flat(90.0, 3.0, 8);
-        let mut blurred = Mat::default();
-        imgproc::gaussian_blur(
-            &raw,
-            &mut blurred,
-            Size::new(0, 0),
-            0.8,
-            0.8,
-            core::BORDER_REFLECT_101,
-        )
-        .unwrap();
+        let mut blurred = gaussian(&raw, 0.8);
         // A dark band, and a view into a larger frame (row stride ≠ width).
         Mat::roi(&noisy_flat(30.0, 5.0, 9), core::Rect::new(0, 0, 300, 24))
             .unwrap()
@@ -624,16 +630,7 @@ mod tests {
         // and a codec's quantized high frequencies do): the 3x3 mask at full
         // resolution sees a fraction of it; the 4x4 means keep more.
         let raw = noisy_flat(120.0, 4.0, 5);
-        let mut blurred = Mat::default();
-        imgproc::gaussian_blur(
-            &raw,
-            &mut blurred,
-            Size::new(0, 0),
-            1.0,
-            1.0,
-            core::BORDER_REFLECT_101,
-        )
-        .unwrap();
+        let blurred = gaussian(&raw, 1.0);
         let fine = noise_sigma(&blurred, 1).unwrap();
         let across = noise_sigma_across_scales(&blurred, 1, NOISE_LEVELS).unwrap();
         assert!(fine < 1.2, "finest level {fine}");
