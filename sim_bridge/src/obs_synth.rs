@@ -81,6 +81,12 @@ pub struct NoiseModel {
     pub tilt_std_per_m: f64,
     /// σ of the rotation about the optical axis, radians.
     pub roll_std_rad: f64,
+    /// When given, the depth σ (beyond the floor) at a range is read from
+    /// this table of (range m, σ m) instead of the lines above: linear
+    /// between its rows, its end values beyond them. For a pipeline whose
+    /// depth error steps up where the marker's inner corners are lost,
+    /// which no line or parabola follows.
+    pub depth_std_table: Option<&'static [(f64, f64)]>,
 }
 
 impl Default for NoiseModel {
@@ -94,7 +100,28 @@ impl Default for NoiseModel {
             tilt_std_rad: 0.05f64.to_radians(),
             tilt_std_per_m: 0.23f64.to_radians(),
             roll_std_rad: 0.13f64.to_radians(),
+            depth_std_table: None,
         }
+    }
+}
+
+/// `table`'s value at `x`: linear between rows (sorted by x), the end
+/// values beyond them.
+fn interpolate(table: &[(f64, f64)], x: f64) -> f64 {
+    match table {
+        [] => 0.0,
+        [(_, y)] => *y,
+        [first, .., last] if x <= first.0 || x >= last.0 => {
+            if x <= first.0 {
+                first.1
+            } else {
+                last.1
+            }
+        }
+        _ => table.windows(2).find(|w| x <= w[1].0).map_or(0.0, |w| {
+            let t = (x - w[0].0) / (w[1].0 - w[0].0).max(1e-12);
+            w[0].1 + t * (w[1].1 - w[0].1)
+        }),
     }
 }
 
@@ -103,8 +130,10 @@ impl NoiseModel {
     pub fn camera_covariance(&self, range_m: f64) -> Cov6 {
         let lat = self.translation_std_floor_m + self.lateral_std_per_m * range_m;
         let depth = self.translation_std_floor_m
-            + self.depth_std_per_m * range_m
-            + self.depth_std_per_m2 * range_m * range_m;
+            + match self.depth_std_table {
+                Some(t) => interpolate(t, range_m),
+                None => self.depth_std_per_m * range_m + self.depth_std_per_m2 * range_m * range_m,
+            };
         let tilt = self.tilt_std_rad + self.tilt_std_per_m * range_m;
         Cov6::from_diagonal(&Vector6::new(
             lat * lat,
@@ -114,6 +143,62 @@ impl NoiseModel {
             tilt * tilt,
             self.roll_std_rad * self.roll_std_rad,
         ))
+    }
+}
+
+/// A camera's systematic error: the same on every frame it takes, drawn once
+/// per camera. A node holds an in-water calibration a little off from its
+/// lens and port (`realistic` camera profile: fx ±0.3 %, principal point
+/// ±2 px, the flat port's residual); what that does to a marker pose is a
+/// position error growing with range (a focal length off scales the depth,
+/// a principal point off turns the line of sight) and a constant rotation.
+/// Frames of one camera do not average it away, nor do several frames
+/// fused: only other cameras' views do. Each σ is across cameras; zero
+/// (the default, the ideal camera) draws nothing.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct BiasModel {
+    /// σ of the position bias across the line of sight (x and y each), metres per metre of range.
+    pub lateral_std_per_m: f64,
+    /// σ of the position bias along the line of sight, metres per metre of range.
+    pub depth_std_per_m: f64,
+    /// A depth bias common to every camera (the same lens, port and
+    /// calibration procedure): this many metres, plus `depth_mean_per_m`
+    /// per metre of range. No node knows it (it would correct it), so it is
+    /// not in the reported covariance.
+    pub depth_mean_m: f64,
+    pub depth_mean_per_m: f64,
+    /// σ of the rotation bias about the camera x and y axes, radians.
+    pub tilt_std_rad: f64,
+    /// σ of the rotation bias about the optical axis, radians.
+    pub roll_std_rad: f64,
+}
+
+impl BiasModel {
+    /// No bias drawn at all (the ideal camera).
+    pub fn is_zero(&self) -> bool {
+        *self == BiasModel::default()
+    }
+
+    /// The σ of each component of a camera's bias at `range_m` (camera
+    /// frame, translation then rotation, as [`NoiseModel::camera_covariance`]).
+    pub fn std_at(&self, range_m: f64) -> Vector6<f64> {
+        let lat = self.lateral_std_per_m * range_m;
+        let depth = self.depth_std_per_m * range_m;
+        Vector6::new(
+            lat,
+            lat,
+            depth,
+            self.tilt_std_rad,
+            self.tilt_std_rad,
+            self.roll_std_rad,
+        )
+    }
+
+    /// Covariance of the bias over cameras at `range_m`: what an honest
+    /// node adds to its per-frame covariance for a calibration of this
+    /// uncertainty.
+    pub fn camera_covariance(&self, range_m: f64) -> Cov6 {
+        Cov6::from_diagonal(&self.std_at(range_m).map(|s| s * s))
     }
 }
 
@@ -173,6 +258,10 @@ pub struct OutlierModel {
     pub min_flip_deg: f64,
     /// Probability a correct observation still reports its twin as `alternative`.
     pub alternative_rate: f64,
+    /// When given, the flip probability at a range is at least this
+    /// table's (range m, probability), read as [`NoiseModel::depth_std_table`]:
+    /// a pipeline that flips more often as the marker shrinks.
+    pub flip_rate_table: Option<&'static [(f64, f64)]>,
 }
 
 impl Default for OutlierModel {
@@ -183,6 +272,7 @@ impl Default for OutlierModel {
             flip_rate: 0.0,
             min_flip_deg: 15.0,
             alternative_rate: 0.5,
+            flip_rate_table: None,
         }
     }
 }
@@ -191,8 +281,58 @@ impl Default for OutlierModel {
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct ObsSynthParams {
     pub noise: NoiseModel,
+    /// Per-camera systematic error (default none).
+    pub bias: BiasModel,
     pub visibility: VisibilityModel,
     pub outliers: OutlierModel,
+}
+
+impl ObsSynthParams {
+    /// Observations as the `realistic` camera profile's pipeline makes them
+    /// (render at 0.5 /m through every camera effect → HOIRM → shoal's
+    /// detector → PnP with the node's in-water calibration): fitted to
+    /// `shoal eval fit-noise --profile realistic --frames 20 --seed S`,
+    /// seeds 1–5 (one calibration each; docs/results.md, *fit-noise*).
+    /// Per camera a bias (the calibration's and port's error: 0.8 mm/m
+    /// across and 0.7 mm/m along the line of sight, 0.15° of tilt between
+    /// cameras, and a depth bias all five calibrations shared, 3.5 mm +
+    /// 2.4 mm/m); around it, frame-to-frame noise (0.03 mm/m across, depth
+    /// 0.8 mm at 0.75 m and 1.2 mm at 1.25 m stepping to 32 mm at 1.75 m,
+    /// tilt 0.25°/m, roll 0.03°); reads to 2.1 m (95 % to 1.25 m, 66 % at
+    /// 1.75 m) with flips rising to half the reads at 1.75 m.
+    pub fn realistic() -> ObsSynthParams {
+        ObsSynthParams {
+            noise: NoiseModel {
+                lateral_std_per_m: 0.00003,
+                depth_std_per_m: 0.0,
+                depth_std_per_m2: 0.0,
+                translation_std_floor_m: 0.00001,
+                tilt_std_rad: 0.0,
+                tilt_std_per_m: 0.25f64.to_radians(),
+                roll_std_rad: 0.03f64.to_radians(),
+                depth_std_table: Some(&[(0.75, 0.00078), (1.25, 0.00124), (1.75, 0.0316)]),
+            },
+            bias: BiasModel {
+                lateral_std_per_m: 0.0008,
+                depth_std_per_m: 0.0007,
+                depth_mean_m: 0.0035,
+                depth_mean_per_m: 0.0024,
+                tilt_std_rad: 0.15f64.to_radians(),
+                roll_std_rad: 0.003f64.to_radians(),
+            },
+            visibility: VisibilityModel {
+                max_range_m: 2.1,
+                max_incidence_deg: 70.0,
+                detection_prob_near: 0.95,
+                full_detection_range_m: 1.25,
+                detection_prob_at_max: 0.45,
+            },
+            outliers: OutlierModel {
+                flip_rate_table: Some(&[(0.75, 0.0), (1.25, 0.09), (1.75, 0.53)]),
+                ..OutlierModel::default()
+            },
+        }
+    }
 }
 
 /// Ground-truth label of a synthetic observation.
@@ -237,6 +377,10 @@ pub struct ObsSynth {
     fleet: Fleet,
     params: ObsSynthParams,
     rng: ChaCha8Rng,
+    seed: u64,
+    /// Each camera's bias in σ units, drawn at its first observation from a
+    /// stream of its own (so the other draws do not depend on it).
+    biases: BTreeMap<(VehicleId, u8), Vector6<f64>>,
     frame_seq: BTreeMap<(VehicleId, u8), u64>,
     /// Every (code set, ID) carried, for wrong-ID draws.
     markers: Vec<(CodeSet, MarkerId, VehicleId)>,
@@ -272,6 +416,8 @@ impl ObsSynth {
             fleet: fleet.clone(),
             params,
             rng: ChaCha8Rng::seed_from_u64(seed),
+            seed,
+            biases: BTreeMap::new(),
             frame_seq: BTreeMap::new(),
             markers,
         }
@@ -279,6 +425,22 @@ impl ObsSynth {
 
     pub fn params(&self) -> &ObsSynthParams {
         &self.params
+    }
+
+    /// Camera `camera` of `observer`'s bias at `range_m`, camera frame
+    /// (translation then rotation, as [`perturb`] takes it).
+    pub fn camera_bias(&mut self, observer: VehicleId, camera: u8, range_m: f64) -> Vector6<f64> {
+        let seed = self.seed;
+        let unit = *self.biases.entry((observer, camera)).or_insert_with(|| {
+            let mut rng = ChaCha8Rng::seed_from_u64(
+                seed ^ 0xB1A5_0000_0000_0000 ^ (u64::from(observer) << 8) ^ u64::from(camera),
+            );
+            Vector6::from_fn(|_, _| StandardNormal.sample(&mut rng))
+        });
+        let b = &self.params.bias;
+        let mut bias = unit.component_mul(&b.std_at(range_m));
+        bias[2] += b.depth_mean_m + b.depth_mean_per_m * range_m;
+        bias
     }
 
     fn gaussian6(&mut self, cov: &Cov6) -> Vector6<f64> {
@@ -396,8 +558,16 @@ impl ObsSynth {
     ) -> SyntheticObservation {
         let o = self.params.outliers;
         let range = cam_from_marker.translation.vector.norm();
-        let cam_cov = self.params.noise.camera_covariance(range);
-        let measured = perturb(cam_from_marker, &self.gaussian6(&cam_cov));
+        let mut cam_cov = self.params.noise.camera_covariance(range);
+        let measured = if self.params.bias.is_zero() {
+            perturb(cam_from_marker, &self.gaussian6(&cam_cov))
+        } else {
+            let biased = perturb(cam_from_marker, &self.camera_bias(observer, camera, range));
+            let m = perturb(&biased, &self.gaussian6(&cam_cov));
+            // The node's covariance covers its calibration's uncertainty too.
+            cam_cov += self.params.bias.camera_covariance(range);
+            m
+        };
         // The ID read, and the mount the node would use for it.
         let mut outlier = OutlierKind::Inlier;
         let (mut read_id, mut claimed_mount, mut claimed_vehicle) =
@@ -447,7 +617,10 @@ impl ObsSynth {
             }
         }
         let (twin, twin_angle) = planar_flip_twin(&measured);
-        let flip = self.rng.gen_bool(o.flip_rate.clamp(0.0, 1.0))
+        let flip_rate = o
+            .flip_rate_table
+            .map_or(o.flip_rate, |t| o.flip_rate.max(interpolate(t, range)));
+        let flip = self.rng.gen_bool(flip_rate.clamp(0.0, 1.0))
             && twin_angle >= o.min_flip_deg.to_radians();
         let with_alt = flip || self.rng.gen_bool(o.alternative_rate.clamp(0.0, 1.0));
         if flip && outlier == OutlierKind::Inlier {
@@ -703,5 +876,147 @@ mod tests {
         let b = ObsSynth::new(&fleet, params, 11).observe(&truth, 5);
         assert!(!a.is_empty());
         assert_eq!(a, b);
+    }
+
+    #[test]
+    fn tables_interpolate_between_rows_and_hold_their_ends() {
+        let t: &[(f64, f64)] = &[(1.0, 2.0), (2.0, 4.0), (4.0, 0.0)];
+        assert_eq!(interpolate(t, 0.5), 2.0);
+        assert_eq!(interpolate(t, 1.0), 2.0);
+        assert!((interpolate(t, 1.5) - 3.0).abs() < 1e-12);
+        assert_eq!(interpolate(t, 2.0), 4.0);
+        assert!((interpolate(t, 3.0) - 2.0).abs() < 1e-12);
+        assert_eq!(interpolate(t, 9.0), 0.0);
+        assert_eq!(interpolate(&[(1.0, 7.0)], 3.0), 7.0);
+        let m = NoiseModel {
+            translation_std_floor_m: 0.0,
+            depth_std_table: Some(&[(1.0, 0.001), (2.0, 0.003)]),
+            ..NoiseModel::default()
+        };
+        assert!((m.camera_covariance(1.5)[(2, 2)].sqrt() - 0.002).abs() < 1e-12);
+    }
+
+    /// Every (observer, camera, marker) track's errors over `frames` frames
+    /// of a 3-vehicle line 1.2 m apart, in the observer's body frame.
+    fn track_errors(
+        params: ObsSynthParams,
+        frames: u64,
+    ) -> BTreeMap<(u32, u8, u32), Vec<Vector6<f64>>> {
+        let fleet = synthetic_fleet(3, CodeSet::Aruco4x4_1000).unwrap();
+        let truth = line_abreast(&[1, 2, 3], 1.2);
+        let mut synth = ObsSynth::new(&fleet, params, 5);
+        let mut tracks: BTreeMap<_, Vec<Vector6<f64>>> = BTreeMap::new();
+        for k in 0..frames {
+            for s in synth.observe(&truth, 1 + k) {
+                assert_eq!(s.outlier, OutlierKind::Inlier);
+                let key = (s.obs.observer, s.obs.camera, s.obs.target_marker);
+                tracks.entry(key).or_default().push(difference(
+                    &s.truth_observer_from_target,
+                    &s.obs.observer_from_target,
+                ));
+            }
+        }
+        tracks
+    }
+
+    #[test]
+    fn a_camera_bias_is_the_same_on_every_frame_and_differs_between_cameras() {
+        // The realistic model with its frame-to-frame noise and flips off:
+        // what is left is each camera's bias.
+        let still = NoiseModel {
+            lateral_std_per_m: 0.0,
+            depth_std_per_m: 0.0,
+            depth_std_per_m2: 0.0,
+            translation_std_floor_m: 1e-12,
+            tilt_std_rad: 1e-12,
+            tilt_std_per_m: 0.0,
+            roll_std_rad: 1e-12,
+            depth_std_table: None,
+        };
+        let mut params = ObsSynthParams::realistic();
+        params.noise = still;
+        params.outliers.flip_rate_table = None;
+        let tracks = track_errors(params, 5);
+        assert!(tracks.len() >= 4, "{} tracks", tracks.len());
+        let mut firsts = Vec::new();
+        for (key, errs) in &tracks {
+            // The same error on every frame of a track…
+            for e in errs {
+                assert!((e - errs[0]).norm() < 1e-9, "{key:?}: {e} vs {}", errs[0]);
+            }
+            // …millimetres, not zero: 1.2 m with 3.5 mm + 2.4 mm/m of common depth bias.
+            let t = errs[0].fixed_rows::<3>(0).norm();
+            assert!(t > 2e-3 && t < 2e-2, "{key:?}: {t} m");
+            firsts.push(errs[0]);
+        }
+        // …and another on another camera's.
+        for (i, a) in firsts.iter().enumerate() {
+            for b in &firsts[i + 1..] {
+                assert!((a - b).norm() > 1e-5, "{a} vs {b}");
+            }
+        }
+        // The same seed draws the same bias; the ideal camera has none.
+        assert_eq!(tracks, track_errors(params, 5));
+        let ideal = ObsSynthParams {
+            noise: still,
+            ..ObsSynthParams::default()
+        };
+        for errs in track_errors(ideal, 3).values() {
+            assert!(errs.iter().all(|e| e.norm() < 1e-9), "{errs:?}");
+        }
+    }
+
+    #[test]
+    fn the_realistic_bias_does_not_average_away_and_the_covariance_covers_the_camera_part() {
+        let mut params = ObsSynthParams::realistic();
+        params.outliers.flip_rate_table = None;
+        let frames = 400;
+        let tracks = track_errors(params, frames);
+        let mut biased = 0;
+        for (key, errs) in &tracks {
+            let n = errs.len() as f64;
+            assert!(n > 0.8 * frames as f64, "{key:?}: {n} reads at 1.2 m");
+            let mean: Vector6<f64> = errs.iter().sum::<Vector6<f64>>() / n;
+            let var: Vector6<f64> = errs
+                .iter()
+                .map(|e| (e - mean).map(|x| x * x))
+                .sum::<Vector6<f64>>()
+                / (n - 1.0);
+            // The position error's mean stands far outside what the frames'
+            // scatter leaves of it (its standard error).
+            let t = mean.fixed_rows::<3>(0).norm();
+            let se = (var.fixed_rows::<3>(0).sum() / n).sqrt();
+            if t > 10.0 * se {
+                biased += 1;
+            }
+        }
+        assert_eq!(biased, tracks.len(), "every track keeps its camera's bias");
+        // The reported covariance holds the per-camera bias's σ on top of the noise.
+        let fleet = synthetic_fleet(3, CodeSet::Aruco4x4_1000).unwrap();
+        let truth = line_abreast(&[1, 2, 3], 1.2);
+        let obs = ObsSynth::new(&fleet, params, 5).observe(&truth, 1);
+        let o = obs.first().expect("a read at 1.2 m");
+        let alone = ObsSynth::new(
+            &fleet,
+            ObsSynthParams {
+                bias: BiasModel::default(),
+                ..params
+            },
+            5,
+        )
+        .observe(&truth, 1);
+        let trace = |c: &Cov6| c.fixed_view::<3, 3>(0, 0).trace();
+        let with_bias = trace(&o.obs.covariance);
+        let without = trace(&alone[0].obs.covariance);
+        let bias_part = params
+            .bias
+            .std_at(1.2)
+            .fixed_rows::<3>(0)
+            .map(|s| s * s)
+            .sum();
+        assert!(
+            with_bias > without + 0.5 * bias_part,
+            "{with_bias} vs {without} + {bias_part}"
+        );
     }
 }

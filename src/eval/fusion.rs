@@ -23,6 +23,7 @@ use shoal_sim_bridge::obs_synth::{
     grid_formation, synthetic_fleet, FormationJitter, ObsSynth, ObsSynthParams, OutlierKind,
     OutlierModel,
 };
+use shoal_sim_bridge::profile::CameraProfile;
 use std::collections::BTreeMap;
 
 /// Fleet sizes and outlier rates of the full run.
@@ -55,6 +56,10 @@ struct Cell {
     /// Of the solve: the consistency checks and the LM solves (with gate rounds).
     consistency_ms: f64,
     lm_ms: f64,
+    /// Mean NEES of the localized vehicles' poses against their map
+    /// covariance (6 = honest), and how many vehicles it is over.
+    mean_nees: Option<f64>,
+    nees_vehicles: usize,
     /// Why inliers were rejected (reason → count).
     inlier_rejections: BTreeMap<String, usize>,
 }
@@ -105,7 +110,13 @@ fn fleet_of(n: usize) -> Result<shoal_proto::config::Fleet, EvalError> {
     Ok(fleet)
 }
 
-fn run_cell(n: usize, rate: f64, frames: usize, seed: u64) -> Result<Cell, EvalError> {
+fn run_cell(
+    n: usize,
+    rate: f64,
+    frames: usize,
+    seed: u64,
+    base: &ObsSynthParams,
+) -> Result<Cell, EvalError> {
     let fleet = fleet_of(n)?;
     let ids: Vec<VehicleId> = fleet.vehicles.iter().map(|v| v.id).collect();
     let columns = (n as f64).sqrt().ceil() as usize;
@@ -115,9 +126,9 @@ fn run_cell(n: usize, rate: f64, frames: usize, seed: u64) -> Result<Cell, EvalE
             wrong_id_rate: rate / 3.0,
             unknown_id_rate: rate / 3.0,
             flip_rate: rate / 3.0,
-            ..OutlierModel::default()
+            ..base.outliers
         },
-        ..ObsSynthParams::default()
+        ..*base
     };
     let mut synth = ObsSynth::new(&fleet, params, seed);
     let mut fusion = Fusion::new(&fleet, FusionParams::default(), "eval");
@@ -146,33 +157,12 @@ fn run_cell(n: usize, rate: f64, frames: usize, seed: u64) -> Result<Cell, EvalE
     let (map, solve_ms, solve_1thread_ms) = solve_both(&mut serial, &mut fusion, last_stamp, n)?;
     let stats = fusion.stats().last_solve;
 
-    // Map error against the truth, in the reference vehicle's frame.
-    let world_from: BTreeMap<VehicleId, _> = truth
-        .iter()
-        .map(|t| (t.vehicle, t.world_from_body))
-        .collect();
-    let reference = world_from.get(&map.reference).copied();
-    let (mut errs, mut angs) = (Vec::new(), Vec::new());
-    let mut localized = 0;
-    for v in &map.vehicles {
-        if v.state != VehicleState::Live {
-            continue;
-        }
-        let (Some(r), Some(w)) = (reference, world_from.get(&v.vehicle)) else {
-            continue;
-        };
-        localized += 1;
-        if v.vehicle == map.reference {
-            continue;
-        }
-        let t = r.inverse() * w;
-        errs.push((v.reference_from_vehicle.translation.vector - t.translation.vector).norm());
-        angs.push(
-            (v.reference_from_vehicle.rotation * t.rotation.inverse())
-                .angle()
-                .to_degrees(),
-        );
-    }
+    let MapErrors {
+        localized,
+        position_m: errs,
+        angle_deg: angs,
+        nees,
+    } = map_errors(&map, &truth);
     // Outlier classification from the edge reports: there is one report per
     // hypothesis, so an observation is *flagged* when none of its hypotheses
     // was accepted (an inlier whose flipped twin is rejected is not flagged).
@@ -229,8 +219,58 @@ fn run_cell(n: usize, rate: f64, frames: usize, seed: u64) -> Result<Cell, EvalE
         solve_1thread_ms,
         consistency_ms: stats.consistency_us as f64 * 1e-3,
         lm_ms: stats.lm_us as f64 * 1e-3,
+        mean_nees: (!nees.is_empty()).then(|| nees.iter().sum::<f64>() / nees.len() as f64),
+        nees_vehicles: nees.len(),
         inlier_rejections,
     })
+}
+
+/// A map's Live vehicles against the truth, in the reference vehicle's frame.
+struct MapErrors {
+    localized: usize,
+    /// Per Live vehicle but the reference: position error (m), rotation error (°),
+    /// NEES of its pose against its map covariance.
+    position_m: Vec<f64>,
+    angle_deg: Vec<f64>,
+    nees: Vec<f64>,
+}
+
+fn map_errors(map: &shoal_proto::FleetMap, truth: &[shoal_proto::VehicleTruth]) -> MapErrors {
+    let world_from: BTreeMap<VehicleId, _> = truth
+        .iter()
+        .map(|t| (t.vehicle, t.world_from_body))
+        .collect();
+    let reference = world_from.get(&map.reference).copied();
+    let mut out = MapErrors {
+        localized: 0,
+        position_m: Vec::new(),
+        angle_deg: Vec::new(),
+        nees: Vec::new(),
+    };
+    for v in &map.vehicles {
+        if v.state != VehicleState::Live {
+            continue;
+        }
+        let (Some(r), Some(w)) = (reference, world_from.get(&v.vehicle)) else {
+            continue;
+        };
+        out.localized += 1;
+        if v.vehicle == map.reference {
+            continue;
+        }
+        let t = r.inverse() * w;
+        if let Some((full, _)) = super::nees::nees(&t, &v.reference_from_vehicle, &v.covariance) {
+            out.nees.push(full);
+        }
+        out.position_m
+            .push((v.reference_from_vehicle.translation.vector - t.translation.vector).norm());
+        out.angle_deg.push(
+            (v.reference_from_vehicle.rotation * t.rotation.inverse())
+                .angle()
+                .to_degrees(),
+        );
+    }
+    out
 }
 
 /// The window solved on one thread (`serial`) and on all cores (`fusion`,
@@ -281,6 +321,7 @@ fn record(csv: &mut Csv, n: usize, r: f64, frames: usize, c: &Cell) -> Value {
         format!("{:.3}", c.solve_1thread_ms),
         format!("{:.3}", c.consistency_ms),
         format!("{:.3}", c.lm_ms),
+        f(c.mean_nees),
     ]);
     json!({
         "localized": c.localized,
@@ -295,8 +336,52 @@ fn record(csv: &mut Csv, n: usize, r: f64, frames: usize, c: &Cell) -> Value {
         "consistency_ms": c.consistency_ms,
         "lm_ms": c.lm_ms,
         "observations": c.observations,
+        "mean_nees": c.mean_nees,
+        "nees_band_95": super::nees::chi2_band(6, c.nees_vehicles).map(|(a, b)| [a, b]),
         "inlier_rejections": c.inlier_rejections,
     })
+}
+
+/// The columns of `fusion.csv`, one row per cell.
+const CSV_COLUMNS: [&str; 16] = [
+    "vehicles",
+    "outlier_rate",
+    "frames",
+    "observations",
+    "localized",
+    "median_position_error_m",
+    "max_position_error_m",
+    "median_angle_error_deg",
+    "id_outlier_precision",
+    "id_outlier_recall",
+    "flips_rejected",
+    "solve_ms",
+    "solve_1thread_ms",
+    "consistency_ms",
+    "lm_ms",
+    "mean_nees",
+];
+
+/// The observation model of `opts`' camera profile: the ideal camera's (the
+/// default), or the one fitted to the realistic camera profile (per-camera
+/// bias, its noise and reach: `ObsSynthParams::realistic`); any other
+/// profile has none and is refused.
+fn observation_model(opts: &EvalOptions) -> Result<ObsSynthParams, EvalError> {
+    let realistic = CameraProfile::realistic();
+    match &opts.profile {
+        None => Ok(ObsSynthParams::default()),
+        Some(p) if p.enabled.is_empty() => Ok(ObsSynthParams::default()),
+        Some(p) if p.enabled == realistic.enabled && p.params == realistic.params => {
+            Ok(ObsSynthParams::realistic())
+        }
+        Some(p) => Err(EvalError::Setup(format!(
+            "fusion: camera profile `{}`: fusion synthesizes observations, not images, and \
+             has an observation model fitted to the `realistic` profile only \
+             (--profile realistic); other effects or parameters (--effect, --profile-file) \
+             have none",
+            p.name
+        ))),
+    }
 }
 
 pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
@@ -316,23 +401,8 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
         sizes.len() * rates.len() + usize::from(large.is_some()),
         "fusion: fleets",
     );
-    let mut csv = Csv::new(&[
-        "vehicles",
-        "outlier_rate",
-        "frames",
-        "observations",
-        "localized",
-        "median_position_error_m",
-        "max_position_error_m",
-        "median_angle_error_deg",
-        "id_outlier_precision",
-        "id_outlier_recall",
-        "flips_rejected",
-        "solve_ms",
-        "solve_1thread_ms",
-        "consistency_ms",
-        "lm_ms",
-    ]);
+    let mut csv = Csv::new(&CSV_COLUMNS);
+    let base = observation_model(opts)?;
     let mut results = Map::new();
     let mut err_vals: Vec<Vec<Option<f64>>> = vec![Vec::new(); rates.len()];
     let mut time_vals: Vec<Vec<Option<f64>>> = vec![Vec::new(); rates.len()];
@@ -342,7 +412,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     for &n in &sizes {
         let mut per = Map::new();
         for (ri, &r) in rates.iter().enumerate() {
-            let c = run_cell(n, r, frames, seed(n, ri))?;
+            let c = run_cell(n, r, frames, seed(n, ri), &base)?;
             per.insert(format!("{r}"), record(&mut csv, n, r, frames, &c));
             err_vals[ri].push(c.median_error_m.map(|m| m * 1e3));
             time_vals[ri].push(Some(c.solve_ms));
@@ -353,7 +423,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     }
     if let Some((n, r)) = large {
         let ri = rates.iter().position(|&x| x == r).unwrap_or(0);
-        let c = run_cell(n, r, frames, seed(n, ri))?;
+        let c = run_cell(n, r, frames, seed(n, ri), &base)?;
         let mut per = Map::new();
         per.insert(format!("{r}"), record(&mut csv, n, r, frames, &c));
         results.insert(n.to_string(), Value::Object(per));
@@ -370,7 +440,10 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     let p1 = plot_or_warn(plot::bars(
         &opts.out.join("eval-fusion-error"),
         &Grouped {
-            title: format!("Fused map: median position error ({frames} frames)"),
+            title: format!(
+                "Fused map: median position error ({frames} frames, {} camera's observations)",
+                opts.profile_name()
+            ),
             x_label: "vehicles".into(),
             y_label: "median position error (mm)".into(),
             categories: categories.clone(),
@@ -416,6 +489,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     ));
     Ok(json!({
         "frames": frames,
+        "observation_model": opts.profile_name(),
         "setup": "synthetic fleets (obs_synth::synthetic_fleet, ArUco 4x4_1000 IDs), grid formation 1.75 m apart, default noise/visibility models; outlier rate split evenly between wrong IDs, unknown IDs and planar flips; one solve after the window fills; the full run adds 1000 vehicles at 20 %",
         "results": results,
         "plots": [p1, p2, p3, p4],

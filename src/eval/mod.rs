@@ -182,12 +182,14 @@ pub struct EvalOptions {
 
 /// The experiments that render through `--profile` (the rest refuse it
 /// rather than ignore it).
-pub const PROFILE_EXPERIMENTS: [Experiment; 5] = [
+pub const PROFILE_EXPERIMENTS: [Experiment; 6] = [
     Experiment::Detection,
     Experiment::Accuracy,
     Experiment::AccuracyYaw,
     Experiment::AccuracyRmse,
     Experiment::FitNoise,
+    // No images: its observation model fitted to `realistic` (`ObsSynthParams::realistic`).
+    Experiment::Fusion,
 ];
 
 impl EvalOptions {

@@ -51,6 +51,67 @@ pub struct RangeStats {
     pub depth_m: f64,
     pub tilt_rad: f64,
     pub roll_rad: f64,
+    /// Median of each signed error component (x, y, z in m; rotation about
+    /// x, y, z in rad): the part the same on every frame, the camera's bias
+    /// (NaN without a good frame).
+    pub bias: [f64; 6],
+    /// Robust σ of the components around their median (lateral, depth,
+    /// tilt, roll): the frame-to-frame noise with the bias taken out.
+    pub spread: [f64; 4],
+}
+
+impl RangeStats {
+    /// These statistics with the spread around the bias as the σ (what
+    /// varies from frame to frame), for [`fit`].
+    pub fn around_bias(&self) -> RangeStats {
+        RangeStats {
+            lateral_m: self.spread[0],
+            depth_m: self.spread[1],
+            tilt_rad: self.spread[2],
+            roll_rad: self.spread[3],
+            ..*self
+        }
+    }
+}
+
+/// One camera's bias as lines in the range (what a calibration error does:
+/// a focal length off scales the depth, a principal point off tilts the
+/// line of sight): position per metre of range, rotation constant.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BiasFit {
+    /// x, y, z bias per metre of range (m/m).
+    pub per_m: [f64; 3],
+    /// Rotation bias about x, y, z (rad).
+    pub rotation_rad: [f64; 3],
+}
+
+/// The bias lines of one camera from its per-range medians: each slope the
+/// median over the ranges of bias / range, each rotation the median bias
+/// (ranges with fewer than [`MIN_INLIERS`] good frames left out). `None`
+/// with fewer than two such ranges.
+pub fn fit_bias(stats: &[RangeStats]) -> Option<BiasFit> {
+    let ok: Vec<&RangeStats> = stats
+        .iter()
+        .filter(|s| s.located >= s.gross + MIN_INLIERS && s.bias.iter().all(|b| b.is_finite()))
+        .collect();
+    if ok.len() < 2 {
+        return None;
+    }
+    let med = |f: &dyn Fn(&RangeStats) -> f64| -> Option<f64> {
+        median(&ok.iter().map(|s| f(s)).collect::<Vec<_>>())
+    };
+    Some(BiasFit {
+        per_m: [
+            med(&|s| s.bias[0] / s.range_m)?,
+            med(&|s| s.bias[1] / s.range_m)?,
+            med(&|s| s.bias[2] / s.range_m)?,
+        ],
+        rotation_rad: [
+            med(&|s| s.bias[3])?,
+            med(&|s| s.bias[4])?,
+            med(&|s| s.bias[5])?,
+        ],
+    })
 }
 
 /// 1.4826 × the median of |x|: σ of a zero-mean normal sample, robust to a few gross errors.
@@ -65,7 +126,7 @@ pub fn range_stats(records: &[Record], conditions: &[Condition]) -> Vec<RangeSta
     RANGES_M
         .iter()
         .map(|&r| {
-            let (mut lat, mut depth, mut tilt, mut roll) = (vec![], vec![], vec![], vec![]);
+            let mut comp: [Vec<f64>; 6] = Default::default();
             let (mut frames, mut located, mut gross) = (0, 0usize, 0usize);
             for rec in records
                 .iter()
@@ -81,20 +142,36 @@ pub fn range_stats(records: &[Record], conditions: &[Condition]) -> Vec<RangeSta
                     gross += 1;
                     continue;
                 }
-                lat.extend([e[0], e[1]]);
-                depth.push(e[2]);
-                tilt.extend([e[3], e[4]]);
-                roll.push(e[5]);
+                for (c, v) in comp.iter_mut().zip(e.iter()) {
+                    c.push(*v);
+                }
             }
+            let bias = [0, 1, 2, 3, 4, 5].map(|i| median(&comp[i]).unwrap_or(f64::NAN));
+            // Each component around its own median, the pairs pooled as the σ are.
+            let around = |ix: &[usize]| -> Vec<f64> {
+                ix.iter()
+                    .flat_map(|&i| comp[i].iter().map(move |v| v - bias[i]))
+                    .collect()
+            };
+            let pooled = |ix: &[usize]| -> Vec<f64> {
+                ix.iter().flat_map(|&i| comp[i].iter().copied()).collect()
+            };
             RangeStats {
                 range_m: r,
                 frames,
                 located,
                 gross,
-                lateral_m: robust_std(&lat),
-                depth_m: robust_std(&depth),
-                tilt_rad: robust_std(&tilt),
-                roll_rad: robust_std(&roll),
+                lateral_m: robust_std(&pooled(&[0, 1])),
+                depth_m: robust_std(&comp[2]),
+                tilt_rad: robust_std(&pooled(&[3, 4])),
+                roll_rad: robust_std(&comp[5]),
+                bias,
+                spread: [
+                    robust_std(&around(&[0, 1])),
+                    robust_std(&around(&[2])),
+                    robust_std(&around(&[3, 4])),
+                    robust_std(&around(&[5])),
+                ],
             }
         })
         .collect()
@@ -142,6 +219,7 @@ pub fn fit(stats: &[RangeStats]) -> Option<NoiseModel> {
         tilt_std_rad: r[0].max(0.0),
         tilt_std_per_m: r[1].max(0.0),
         roll_std_rad: roll,
+        depth_std_table: None,
     })
 }
 
@@ -168,6 +246,78 @@ fn predicted(m: &NoiseModel, r: f64) -> [f64; 4] {
     ]
 }
 
+/// The columns of `noise.csv`, one row per range.
+const CSV_COLUMNS: [&str; 26] = [
+    "range_m",
+    "frames",
+    "located",
+    "gross",
+    "lateral_mm",
+    "depth_mm",
+    "tilt_deg",
+    "roll_deg",
+    "fit_lateral_mm",
+    "fit_depth_mm",
+    "fit_tilt_deg",
+    "fit_roll_deg",
+    "shipped_lateral_mm",
+    "shipped_depth_mm",
+    "shipped_tilt_deg",
+    "shipped_roll_deg",
+    "bias_x_mm",
+    "bias_y_mm",
+    "bias_z_mm",
+    "bias_rx_deg",
+    "bias_ry_deg",
+    "bias_rz_deg",
+    "spread_lateral_mm",
+    "spread_depth_mm",
+    "spread_tilt_deg",
+    "spread_roll_deg",
+];
+
+/// The bias lines of this seed's camera and the frame-to-frame noise around them, printed.
+fn print_bias_and_noise(b: &BiasFit, n: &NoiseModel) {
+    crate::outln!(
+        "bias of this seed's camera: position {:.2} / {:.2} / {:.2} mm per m of range (x / y / z), \
+         rotation {:.3} / {:.3} / {:.3}° (x / y / z); frame-to-frame noise around it: \
+         lateral {:.3} mm/m, depth {:.3} mm/m + {:.3} mm/m², tilt {:.3}° + {:.3}°/m, roll {:.3}°",
+        b.per_m[0] * 1e3,
+        b.per_m[1] * 1e3,
+        b.per_m[2] * 1e3,
+        b.rotation_rad[0].to_degrees(),
+        b.rotation_rad[1].to_degrees(),
+        b.rotation_rad[2].to_degrees(),
+        n.lateral_std_per_m * 1e3,
+        n.depth_std_per_m * 1e3,
+        n.depth_std_per_m2 * 1e3,
+        n.tilt_std_rad.to_degrees(),
+        n.tilt_std_per_m.to_degrees(),
+        n.roll_std_rad.to_degrees(),
+    );
+}
+
+/// One range's figures in `summary.json`.
+fn range_json(s: &RangeStats) -> Value {
+    json!({
+        "range_m": s.range_m,
+        "frames": s.frames,
+        "located": s.located,
+        "detection_rate": s.located as f64 / s.frames.max(1) as f64,
+        "gross_errors": s.gross,
+        "lateral_mm": s.lateral_m * 1e3,
+        "depth_mm": s.depth_m * 1e3,
+        "tilt_deg": s.tilt_rad.to_degrees(),
+        "roll_deg": s.roll_rad.to_degrees(),
+        "bias_mm": [s.bias[0] * 1e3, s.bias[1] * 1e3, s.bias[2] * 1e3],
+        "bias_deg": [s.bias[3].to_degrees(), s.bias[4].to_degrees(), s.bias[5].to_degrees()],
+        "spread_lateral_mm": s.spread[0] * 1e3,
+        "spread_depth_mm": s.spread[1] * 1e3,
+        "spread_tilt_deg": s.spread[2].to_degrees(),
+        "spread_roll_deg": s.spread[3].to_degrees(),
+    })
+}
+
 pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     let frames = opts.count(4, 30);
     let conditions: Vec<Condition> = RANGES_M
@@ -192,24 +342,13 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
         EvalError::Setup("fit-noise: fewer than two ranges with a located marker".into())
     })?;
     let shipped = NoiseModel::default();
-    let mut csv = Csv::new(&[
-        "range_m",
-        "frames",
-        "located",
-        "gross",
-        "lateral_mm",
-        "depth_mm",
-        "tilt_deg",
-        "roll_deg",
-        "fit_lateral_mm",
-        "fit_depth_mm",
-        "fit_tilt_deg",
-        "fit_roll_deg",
-        "shipped_lateral_mm",
-        "shipped_depth_mm",
-        "shipped_tilt_deg",
-        "shipped_roll_deg",
-    ]);
+    // The bias (the same on every frame of this seed's camera) apart from
+    // the frame-to-frame noise around it: the synthesizer draws the one per
+    // camera and the other per frame (`obs_synth::BiasModel`).
+    let around: Vec<RangeStats> = stats.iter().map(RangeStats::around_bias).collect();
+    let frame_noise = fit(&around);
+    let bias = fit_bias(&stats);
+    let mut csv = Csv::new(&CSV_COLUMNS);
     crate::outln!(
         "range   located  flips  lateral mm (fit / shipped)   depth mm (fit / shipped)   tilt ° (fit / shipped)   roll ° (fit / shipped)"
     );
@@ -234,6 +373,16 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
             cell(Some(d[1] * 1e3)),
             cell(Some(d[2].to_degrees())),
             cell(Some(d[3].to_degrees())),
+            cell(Some(s.bias[0] * 1e3)),
+            cell(Some(s.bias[1] * 1e3)),
+            cell(Some(s.bias[2] * 1e3)),
+            cell(Some(s.bias[3].to_degrees())),
+            cell(Some(s.bias[4].to_degrees())),
+            cell(Some(s.bias[5].to_degrees())),
+            cell(Some(s.spread[0] * 1e3)),
+            cell(Some(s.spread[1] * 1e3)),
+            cell(Some(s.spread[2].to_degrees())),
+            cell(Some(s.spread[3].to_degrees())),
         ]);
         crate::outln!(
             "{:>4.2} m  {:>3}/{:<3}  {:>4}  {:>6.2} ({:.2} / {:.2})     {:>6.2} ({:.2} / {:.2})     {:>5.3} ({:.3} / {:.3})    {:>5.3} ({:.3} / {:.3})",
@@ -254,20 +403,25 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
             f[3].to_degrees(),
             d[3].to_degrees(),
         );
-        rows.push(json!({
-            "range_m": s.range_m,
-            "frames": s.frames,
-            "located": s.located,
-            "detection_rate": s.located as f64 / s.frames.max(1) as f64,
-            "gross_errors": s.gross,
-            "lateral_mm": s.lateral_m * 1e3,
-            "depth_mm": s.depth_m * 1e3,
-            "tilt_deg": s.tilt_rad.to_degrees(),
-            "roll_deg": s.roll_rad.to_degrees(),
-        }));
+        rows.push(range_json(s));
+    }
+    let frame_noise_json = frame_noise.as_ref().map(model_json);
+    let bias_json = bias.map(|b| {
+        json!({
+            "per_m_mm": b.per_m.map(|v| v * 1e3),
+            "rotation_deg": b.rotation_rad.map(f64::to_degrees),
+        })
+    });
+    if let (Some(n), Some(b)) = (&frame_noise, &bias) {
+        print_bias_and_noise(b, n);
     }
     csv.write(&opts.out.join("noise.csv"))?;
-    let model = json!({ "fitted": model_json(&fitted), "shipped": model_json(&shipped) });
+    let model = json!({
+        "fitted": model_json(&fitted),
+        "shipped": model_json(&shipped),
+        "frame_noise": frame_noise_json,
+        "bias": bias_json,
+    });
     super::write_json(&opts.out.join("noise-model.json"), &model)?;
     Ok(json!({
         "water_per_m": WATER_PER_M,
@@ -277,6 +431,8 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
         "results": { "ranges": rows },
         "fitted": model_json(&fitted),
         "shipped": model_json(&shipped),
+        "frame_noise": frame_noise_json,
+        "bias": bias_json,
     }))
 }
 
@@ -294,6 +450,8 @@ mod tests {
             depth_m: depth,
             tilt_rad: tilt,
             roll_rad: 0.002,
+            bias: [0.0; 6],
+            spread: [lat, depth, tilt, 0.002],
         }
     }
 
@@ -307,6 +465,7 @@ mod tests {
             tilt_std_rad: 0.001,
             tilt_std_per_m: 0.004,
             roll_std_rad: 0.002,
+            depth_std_table: None,
         };
         let s: Vec<RangeStats> = RANGES_M
             .iter()
@@ -322,6 +481,59 @@ mod tests {
         assert!((f.depth_std_per_m2 - 0.001).abs() < 1e-9, "{f:?}");
         assert!((f.tilt_std_per_m - 0.004).abs() < 1e-9, "{f:?}");
         assert!((f.roll_std_rad - 0.002).abs() < 1e-9, "{f:?}");
+    }
+
+    #[test]
+    fn the_bias_lines_come_from_the_medians_and_the_noise_from_the_spread_around_them() {
+        // A camera 1 mm/m off across, 5 mm/m in depth, 0.1° tilted; its
+        // frames scattered around that by a model of their own.
+        let noise = NoiseModel {
+            translation_std_floor_m: 0.0,
+            lateral_std_per_m: 0.0002,
+            depth_std_per_m: 0.001,
+            depth_std_per_m2: 0.0,
+            tilt_std_rad: 0.0,
+            tilt_std_per_m: 0.002,
+            roll_std_rad: 0.001,
+            depth_std_table: None,
+        };
+        let s: Vec<RangeStats> = RANGES_M
+            .iter()
+            .map(|&r| {
+                let p = predicted(&noise, r);
+                RangeStats {
+                    bias: [
+                        0.001 * r,
+                        -0.0005 * r,
+                        0.005 * r,
+                        0.1f64.to_radians(),
+                        0.0,
+                        0.0,
+                    ],
+                    spread: p,
+                    // The σ around zero holds the bias too: much larger.
+                    ..stats(r, 10.0 * p[0], 10.0 * p[1], 10.0 * p[2])
+                }
+            })
+            .collect();
+        let b = fit_bias(&s).unwrap();
+        assert!((b.per_m[0] - 0.001).abs() < 1e-12, "{b:?}");
+        assert!((b.per_m[1] + 0.0005).abs() < 1e-12, "{b:?}");
+        assert!((b.per_m[2] - 0.005).abs() < 1e-12, "{b:?}");
+        assert!(
+            (b.rotation_rad[0] - 0.1f64.to_radians()).abs() < 1e-12,
+            "{b:?}"
+        );
+        let around: Vec<RangeStats> = s.iter().map(RangeStats::around_bias).collect();
+        let f = fit(&around).unwrap();
+        assert!((f.depth_std_per_m - 0.001).abs() < 1e-9, "{f:?}");
+        assert!((f.tilt_std_per_m - 0.002).abs() < 1e-9, "{f:?}");
+        // One range left is too few for a line.
+        let mut lone = s.clone();
+        for r in &mut lone[1..] {
+            r.located = 0;
+        }
+        assert!(fit_bias(&lone).is_none());
     }
 
     #[test]
