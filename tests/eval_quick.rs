@@ -541,8 +541,8 @@ fn fusion_quick_rejects_wrong_ids_and_keeps_the_map_within_centimetres() {
 /// calibration bias, a depth bias all share, shorter reach): every vehicle is
 /// still localized, but the map carries millimetres of bias the ideal
 /// observations do not (quick run: 8 / 17 mm median at 3 / 10 vehicles,
-/// ideal 2.0 / 0.5 mm). An image-level profile it has no model for is
-/// refused, not ignored.
+/// ideal 2.0 / 0.5 mm). `links` takes the same model. An image-level
+/// profile they have no model for is refused, not ignored.
 #[test]
 fn fusion_quick_takes_the_realistic_observation_model_and_refuses_other_profiles() {
     use shoal_sim_bridge::profile::{CameraProfile, Effect};
@@ -579,6 +579,22 @@ fn fusion_quick_takes_the_realistic_observation_model_and_refuses_other_profiles
     .expect_err("no observation model for a port alone");
     assert!(
         format!("{refused:#}").contains("fitted to the `realistic` profile only"),
+        "{refused:#}"
+    );
+    // The links experiment draws its observations from the same model.
+    let links = eval::run(
+        Experiment::Links,
+        &opts("links-realistic", Some(CameraProfile::realistic())),
+    )
+    .expect("links on the realistic observation model");
+    assert_eq!(links["observation_model"], "realistic");
+    let refused = eval::run(
+        Experiment::Links,
+        &opts("links-port", Some(CameraProfile::only(&[Effect::Port]))),
+    )
+    .expect_err("no observation model for a port alone");
+    assert!(
+        format!("{refused:#}").contains("links: camera profile `port`"),
         "{refused:#}"
     );
 }

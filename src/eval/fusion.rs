@@ -366,7 +366,10 @@ const CSV_COLUMNS: [&str; 16] = [
 /// default), or the one fitted to the realistic camera profile (per-camera
 /// bias, its noise and reach: `ObsSynthParams::realistic`); any other
 /// profile has none and is refused.
-fn observation_model(opts: &EvalOptions) -> Result<ObsSynthParams, EvalError> {
+pub(crate) fn observation_model(
+    opts: &EvalOptions,
+    experiment: &str,
+) -> Result<ObsSynthParams, EvalError> {
     let realistic = CameraProfile::realistic();
     match &opts.profile {
         None => Ok(ObsSynthParams::default()),
@@ -375,8 +378,8 @@ fn observation_model(opts: &EvalOptions) -> Result<ObsSynthParams, EvalError> {
             Ok(ObsSynthParams::realistic())
         }
         Some(p) => Err(EvalError::Setup(format!(
-            "fusion: camera profile `{}`: fusion synthesizes observations, not images, and \
-             has an observation model fitted to the `realistic` profile only \
+            "{experiment}: camera profile `{}`: {experiment} synthesizes observations, not \
+             images, and has an observation model fitted to the `realistic` profile only \
              (--profile realistic); other effects or parameters (--effect, --profile-file) \
              have none",
             p.name
@@ -402,7 +405,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
         "fusion: fleets",
     );
     let mut csv = Csv::new(&CSV_COLUMNS);
-    let base = observation_model(opts)?;
+    let base = observation_model(opts, "fusion")?;
     let mut results = Map::new();
     let mut err_vals: Vec<Vec<Option<f64>>> = vec![Vec::new(); rates.len()];
     let mut time_vals: Vec<Vec<Option<f64>>> = vec![Vec::new(); rates.len()];

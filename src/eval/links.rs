@@ -224,9 +224,10 @@ fn run_trial(
     rate_bps: f64,
     duration_s: u64,
     seed: u64,
+    observations: &ObsSynthParams,
 ) -> Result<Trial, EvalError> {
     let ids: Vec<VehicleId> = fleet.vehicles.iter().map(|v| v.id).collect();
-    let mut synth = ObsSynth::new(fleet, ObsSynthParams::default(), seed);
+    let mut synth = ObsSynth::new(fleet, *observations, seed);
     let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_11ce);
     let exact = FusionParams {
         record_solve_time: false,
@@ -391,6 +392,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     )
     .map_err(|e| EvalError::Setup(e.to_string()))?;
     let duration_s = opts.count(60, 300) as u64;
+    let observations = super::fusion::observation_model(opts, "links")?;
     let seeds: Vec<u64> = (0..if opts.quick { 2 } else { 5 })
         .map(|k| opts.seed.wrapping_add(k))
         .collect();
@@ -420,7 +422,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
             for &rate in &rates {
                 let mut cell = Cell::default();
                 for &seed in &seeds {
-                    let t = run_trial(&fleet, drift_m, enc, rate, duration_s, seed)?;
+                    let t = run_trial(&fleet, drift_m, enc, rate, duration_s, seed, &observations)?;
                     let q = |p: f64| quantile(&t.diffs_m, p).map_or(f64::NAN, |v| v * 100.0);
                     let missing = t.missing as f64 / t.slots.max(1) as f64;
                     let age = quantile(&t.ages_s, 0.5).unwrap_or(f64::NAN);
@@ -494,6 +496,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
             duration_s
         ),
         "seeds": seeds,
+        "observation_model": opts.profile_name(),
         "results": results,
     }))
 }

@@ -182,14 +182,15 @@ pub struct EvalOptions {
 
 /// The experiments that render through `--profile` (the rest refuse it
 /// rather than ignore it).
-pub const PROFILE_EXPERIMENTS: [Experiment; 6] = [
+pub const PROFILE_EXPERIMENTS: [Experiment; 7] = [
     Experiment::Detection,
     Experiment::Accuracy,
     Experiment::AccuracyYaw,
     Experiment::AccuracyRmse,
     Experiment::FitNoise,
-    // No images: its observation model fitted to `realistic` (`ObsSynthParams::realistic`).
+    // No images: their observation model fitted to `realistic` (`ObsSynthParams::realistic`).
     Experiment::Fusion,
+    Experiment::Links,
 ];
 
 impl EvalOptions {
