@@ -541,8 +541,8 @@ fn fusion_quick_rejects_wrong_ids_and_keeps_the_map_within_centimetres() {
 /// calibration bias, a depth bias all share, shorter reach): every vehicle is
 /// still localized, but the map carries millimetres of bias the ideal
 /// observations do not (quick run: 8 / 17 mm median at 3 / 10 vehicles,
-/// ideal 2.0 / 0.5 mm). `links` takes the same model. An image-level
-/// profile they have no model for is refused, not ignored.
+/// ideal 2.0 / 0.5 mm). `links` and `nav` take the same model. An
+/// image-level profile they have no model for is refused, not ignored.
 #[test]
 fn fusion_quick_takes_the_realistic_observation_model_and_refuses_other_profiles() {
     use shoal_sim_bridge::profile::{CameraProfile, Effect};
@@ -597,6 +597,33 @@ fn fusion_quick_takes_the_realistic_observation_model_and_refuses_other_profiles
         format!("{refused:#}").contains("links: camera profile `port`"),
         "{refused:#}"
     );
+    // So does nav: the vehicles' own IMU, depth and compass still settle the
+    // realistic pipeline's flips and refuse no true hypothesis (quick: the
+    // lone track 22 of 24 maps flipped without nav, 0 with all three).
+    let nav = eval::run(
+        Experiment::Nav,
+        &opts("nav-realistic", Some(CameraProfile::realistic())),
+    )
+    .expect("nav on the realistic observation model");
+    assert_eq!(nav["observation_model"], "realistic");
+    let r = &nav["results"];
+    assert!(
+        num(&r["one-track"]["no_nav"]["maps_flipped_fraction"]) >= 0.5,
+        "premise: {}",
+        r["one-track"]
+    );
+    for scenario in ["one-track", "grid-3", "grid-10"] {
+        let full = &r[scenario]["tilt_depth_heading"];
+        assert_eq!(num(&full["maps_flipped"]), 0.0, "{scenario}: {full}");
+        for setting in ["tilt_depth", "tilt_depth_heading"] {
+            let v = &r[scenario][setting];
+            assert_eq!(
+                num(&v["true_rejected_by_nav"]),
+                0.0,
+                "{scenario} {setting}: {v}"
+            );
+        }
+    }
 }
 
 #[test]

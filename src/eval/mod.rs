@@ -182,7 +182,7 @@ pub struct EvalOptions {
 
 /// The experiments that render through `--profile` (the rest refuse it
 /// rather than ignore it).
-pub const PROFILE_EXPERIMENTS: [Experiment; 7] = [
+pub const PROFILE_EXPERIMENTS: [Experiment; 8] = [
     Experiment::Detection,
     Experiment::Accuracy,
     Experiment::AccuracyYaw,
@@ -191,6 +191,7 @@ pub const PROFILE_EXPERIMENTS: [Experiment; 7] = [
     // No images: their observation model fitted to `realistic` (`ObsSynthParams::realistic`).
     Experiment::Fusion,
     Experiment::Links,
+    Experiment::Nav,
 ];
 
 impl EvalOptions {

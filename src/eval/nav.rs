@@ -157,7 +157,13 @@ fn sensors(setting: usize) -> Option<NavSensorParams> {
     }
 }
 
-fn run_one(s: &Scenario, setting: usize, frames: usize, seed: u64) -> Result<Run, EvalError> {
+fn run_one(
+    s: &Scenario,
+    setting: usize,
+    frames: usize,
+    seed: u64,
+    base: &ObsSynthParams,
+) -> Result<Run, EvalError> {
     let setup = |e: String| EvalError::Setup(e);
     let fleet =
         synthetic_fleet(s.vehicles, CodeSet::Aruco4x4_1000).map_err(|e| setup(e.to_string()))?;
@@ -173,9 +179,9 @@ fn run_one(s: &Scenario, setting: usize, frames: usize, seed: u64) -> Result<Run
         outliers: OutlierModel {
             flip_rate: s.flip_rate,
             alternative_rate: 1.0,
-            ..OutlierModel::default()
+            ..base.outliers
         },
-        ..ObsSynthParams::default()
+        ..*base
     };
     let mut synth = ObsSynth::new(&fleet, params, seed);
     let mut sensors = match sensors(setting) {
@@ -228,6 +234,7 @@ fn mean(v: &[f64]) -> Option<f64> {
 
 pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     let frames = opts.count(12, 50);
+    let base = super::fusion::observation_model(opts, "nav")?;
     let seeds: Vec<u64> = (0..if opts.quick { 2 } else { 5 })
         .map(|k| opts.seed.wrapping_add(k))
         .collect();
@@ -252,7 +259,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
             let mut all = Run::default();
             let mut flipped_per_seed = Vec::new();
             for &seed in &seeds {
-                let r = run_one(s, ni, frames, seed)?;
+                let r = run_one(s, ni, frames, seed, &base)?;
                 let f = |v: Option<f64>| v.map(|x| format!("{x:.4}")).unwrap_or_default();
                 csv.row(vec![
                     s.name.into(),
@@ -319,6 +326,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     Ok(json!({
         "frames": frames,
         "seeds": seeds,
+        "observation_model": opts.profile_name(),
         "setup": "synthetic fleets (obs_synth, ArUco 4x4_1000 IDs), grid formations 1.5 m apart jittered ±0.15 m / ±8°, default noise and visibility; simulated nav sensors (NavSensorParams::default); a solve after every 10 Hz frame; same seeds with and without nav",
         "results": results,
         "plots": [p],
