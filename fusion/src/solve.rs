@@ -69,7 +69,7 @@ impl Fusion {
         // Once pairs are seen to move, older frames describe the past to within
         // how far a pair moves in that time: grouped again with that known.
         let mut fits = motion::fit_groups(&frames, &groups, &self.params.motion, threads);
-        let moving = motion::pair_motion(&frames, &groups, &fits);
+        let moving = motion::pair_motion(&frames, &groups, &fits, &self.params.motion);
         if !moving.is_empty() {
             frames::inflate_moving(&mut frames, &moving, now_ns, threads);
             groups = group(&frames);

@@ -99,20 +99,22 @@ const PER_THREAD: usize = 256;
 /// to move ([`super::motion::PairMotion`] not empty): a frame `age` seconds
 /// old of a pair moving at `v` m/s and `ω` rad/s says where it was, not
 /// where it is, to within `v·age` and `ω·age` in every direction (added to
-/// each axis' variance). A pair with no motion of its own in the window (its
-/// frames too few or too old to show it) gets the fastest seen: vehicles of
-/// one formation manoeuvre together. Nothing changes while nothing moves.
+/// each axis' variance). A pair with no motion of its own in the window gets
+/// the fastest seen (vehicles of one formation manoeuvre together) where its
+/// frames are too few or too spread to show a motion that fast; where they
+/// would have shown it, it holds still ([`super::motion::PairMotion::bound`]):
+/// in a large still swarm some fit passes the significance test by chance, and
+/// its rate given to every pair would merge a marker's planar flips (tens of
+/// degrees apart) into one track. Nothing changes while nothing moves.
 pub(crate) fn inflate_moving(
     frames: &mut [Frame],
     moving: &super::motion::PairMotion,
     now_ns: u64,
     threads: usize,
 ) {
-    let fastest = moving
-        .values()
-        .fold((0.0f64, 0.0f64), |a, b| (a.0.max(b.0), a.1.max(b.1)));
+    let fastest = moving.fastest();
     crate::par::for_each_mut(frames, threads, PER_THREAD, |_, f| {
-        let (speed, turn) = moving.get(&f.pair()).copied().unwrap_or(fastest);
+        let (speed, turn) = moving.bound(f.pair(), fastest);
         let age_s = now_ns.saturating_sub(f.stamp_ns) as f64 * 1e-9;
         let (dt2, dr2) = ((speed * age_s).powi(2), (turn * age_s).powi(2));
         for h in f.hyps.iter_mut() {

@@ -44,10 +44,34 @@ impl Default for MotionModel {
     }
 }
 
-/// A group's significant relative velocity per hypothesis (tangent space
-/// at its newest frame) and its covariance; `None` where the group has too
-/// few frames, is superseded, or the velocity is not significant.
-pub(crate) type GroupFits = Vec<[Option<(SVector<f64, 6>, Cov6)>; 2]>;
+/// One group's velocity fit of one hypothesis (tangent space at its newest
+/// frame): the velocity, its covariance, and whether it is significant.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct Fit {
+    pub v: SVector<f64, 6>,
+    pub cov_v: Cov6,
+    /// `vᵀ·Σ_v⁻¹·v`.
+    pub significance: f64,
+    pub significant: bool,
+}
+
+impl Fit {
+    /// The fit's resolution: the standard deviation of its speed and of its
+    /// turn rate along their least certain axis (m/s, rad/s).
+    fn resolution(&self) -> (f64, f64) {
+        let largest = |o: usize| {
+            (o..o + 3)
+                .map(|i| self.cov_v[(i, i)])
+                .fold(0.0, f64::max)
+                .sqrt()
+        };
+        (largest(0), largest(3))
+    }
+}
+
+/// Every group's velocity fit per hypothesis; `None` where the group has too
+/// few frames or is superseded, or the model is off.
+pub(crate) type GroupFits = Vec<[Option<Fit>; 2]>;
 
 /// [`GroupFits`] of every group (all `None` when the model is off): the one
 /// velocity fit per group and hypothesis that both [`pair_motion`] and
@@ -75,9 +99,12 @@ pub(crate) fn fit_groups(
             else {
                 continue;
             };
-            if !significance.is_nan() && significance > model.significance_chi2 {
-                *fit = Some((v, cov_v));
-            }
+            *fit = Some(Fit {
+                v,
+                cov_v,
+                significance,
+                significant: !significance.is_nan() && significance > model.significance_chi2,
+            });
         }
         fits
     })
@@ -112,35 +139,162 @@ pub(crate) fn compensate(
     count
 }
 
-/// Per vehicle pair (lower ID first), the fastest relative motion fitted on
-/// any of its groups where the motion is significant: translation speed
-/// (m/s) and turn rate (rad/s) of the relative pose. Pairs that hold still
-/// are absent.
-pub(crate) type PairMotion = BTreeMap<(VehicleId, VehicleId), (f64, f64)>;
+/// What the window's tracks show of each vehicle pair's relative motion
+/// (pairs lower ID first).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub(crate) struct PairMotion {
+    /// The fastest relative motion fitted on any of the pair's groups where
+    /// the motion is significant: translation speed (m/s) and turn rate
+    /// (rad/s) of the relative pose. Pairs that hold still are absent.
+    pub moving: BTreeMap<(VehicleId, VehicleId), (f64, f64)>,
+    /// Pairs not moving, with the finest resolution (σ of speed, σ of turn
+    /// rate) of a velocity fit of theirs that found no motion: a pair whose
+    /// fit would have shown a motion of that size is known not to have it.
+    pub still: BTreeMap<(VehicleId, VehicleId), (f64, f64)>,
+    /// How many of its σ a fit's velocity must be to be significant
+    /// (`√significance_chi2`): a still pair's fit would have shown a rate this
+    /// many of its σ.
+    pub detectable_sigmas: f64,
+    /// Groups whose primary hypothesis was fitted, and how many of them
+    /// showed a motion (significant and above the rates worth inflating).
+    pub fitted: usize,
+    pub moved: usize,
+    /// The chance that a still swarm shows this many moving groups or more
+    /// ([`MotionModel::significance_chi2`] lets 1 % of still groups pass).
+    pub false_alarm_chance: f64,
+    /// The largest significance (`vᵀ·Σ_v⁻¹·v`) among the moving groups.
+    pub strongest: f64,
+}
+
+impl PairMotion {
+    pub fn is_empty(&self) -> bool {
+        self.moving.is_empty()
+    }
+
+    /// Whether the swarm as a whole is seen to move: more groups moving than
+    /// a still swarm shows by chance, or one group moving too clearly for
+    /// chance among all those fitted (Bonferroni), either at most
+    /// [`SWARM_FALSE_ALARM`]. A few vehicles seen to manoeuvre pass the second
+    /// test (their fits are far beyond the gate); a still swarm of a thousand
+    /// passes neither (measured: `shoal eval fusion --profile realistic`).
+    pub fn swarm_moves(&self) -> bool {
+        self.moved > 0
+            && (self.false_alarm_chance < SWARM_FALSE_ALARM
+                || chi2_6_tail(self.strongest) * (self.fitted as f64) < SWARM_FALSE_ALARM)
+    }
+
+    /// The fastest speed and turn rate of any moving pair once the swarm is
+    /// seen to move; zero while only chance detections stand out (in a
+    /// still swarm of hundreds of pairs a few fits pass by chance, and the
+    /// fastest of them is the extreme of noise, not a manoeuvre).
+    pub fn fastest(&self) -> (f64, f64) {
+        if !self.swarm_moves() {
+            return (0.0, 0.0);
+        }
+        self.moving
+            .values()
+            .fold((0.0f64, 0.0f64), |a, b| (a.0.max(b.0), a.1.max(b.1)))
+    }
+
+    /// The motion a pair may have had in the window: its own when it was
+    /// seen to move; otherwise, per component, the fastest of the swarm's
+    /// (`fastest`) unless the pair's own fits would have shown a motion that
+    /// fast (its resolution times [`Self::detectable_sigmas`] at most) and showed none.
+    pub fn bound(&self, pair: (VehicleId, VehicleId), fastest: (f64, f64)) -> (f64, f64) {
+        if let Some(&own) = self.moving.get(&pair) {
+            return own;
+        }
+        let Some(&(s_speed, s_turn)) = self.still.get(&pair) else {
+            return fastest;
+        };
+        let k = self.detectable_sigmas;
+        let unseen = |rate: f64, sigma: f64| if k * sigma <= rate { 0.0 } else { rate };
+        (unseen(fastest.0, s_speed), unseen(fastest.1, s_turn))
+    }
+}
+
+/// Chance below which the number of moving groups is taken for a motion of
+/// the swarm rather than the still groups' false alarms.
+const SWARM_FALSE_ALARM: f64 = 1e-3;
+
+/// `P(χ²₆ > x)`: for six degrees of freedom, `e^(−x/2)·(1 + x/2 + (x/2)²/2)`.
+fn chi2_6_tail(x: f64) -> f64 {
+    let h = 0.5 * x.max(0.0);
+    (-h).exp() * (1.0 + h + 0.5 * h * h)
+}
+
+/// `P(X ≥ m)` for `X ~ Binomial(n, p)`, summed in log space.
+fn binomial_tail(n: usize, m: usize, p: f64) -> f64 {
+    if m == 0 {
+        return 1.0;
+    }
+    if m > n || p <= 0.0 {
+        return 0.0;
+    }
+    if p >= 1.0 {
+        return 1.0;
+    }
+    let (lp, lq) = (p.ln(), (1.0 - p).ln());
+    // ln C(n, m) by the sum of logs (n is a window's groups: thousands at most).
+    let mut ln_c: f64 = (0..m)
+        .map(|i| ((n - i) as f64).ln() - ((i + 1) as f64).ln())
+        .sum();
+    let mut total = 0.0;
+    for k in m..=n {
+        let term = (ln_c + k as f64 * lp + (n - k) as f64 * lq).exp();
+        total += term;
+        if term < total * 1e-16 {
+            break;
+        }
+        ln_c += ((n - k) as f64).ln() - ((k + 1) as f64).ln();
+    }
+    total.min(1.0)
+}
 
 /// Relative motion slower than this (and [`MIN_TURN_RAD_S`]) is left out
-/// of [`PairMotion`]: 2 cm of drift over a 2 s window.
+/// of [`PairMotion::moving`]: 2 cm of drift over a 2 s window.
 const MIN_SPEED_M_S: f64 = 0.01;
 /// 0.3° a second.
 const MIN_TURN_RAD_S: f64 = 0.005;
 
 /// [`PairMotion`] of the window's groups, from their fits' primary hypotheses.
-pub(crate) fn pair_motion(frames: &[Frame], groups: &TrackGroups, fits: &GroupFits) -> PairMotion {
-    let mut out = PairMotion::new();
+pub(crate) fn pair_motion(
+    frames: &[Frame],
+    groups: &TrackGroups,
+    fits: &GroupFits,
+    model: &MotionModel,
+) -> PairMotion {
+    let mut out = PairMotion {
+        detectable_sigmas: model.significance_chi2.sqrt(),
+        ..PairMotion::default()
+    };
     for (members, fit) in groups.members.iter().zip(fits) {
-        let (Some(&newest), Some((v, _))) = (members.last(), &fit[0]) else {
+        let (Some(&newest), Some(fit)) = (members.last(), &fit[0]) else {
             continue;
         };
-        let speed = v.fixed_rows::<3>(0).norm();
-        let turn = v.fixed_rows::<3>(3).norm();
+        let pair = frames[newest].pair();
+        out.fitted += 1;
+        let speed = fit.v.fixed_rows::<3>(0).norm();
+        let turn = fit.v.fixed_rows::<3>(3).norm();
         // Among hundreds of groups of a still swarm, some pass the test by
         // chance: below these rates old frames are not worth inflating.
-        if speed < MIN_SPEED_M_S && turn < MIN_TURN_RAD_S {
+        if !fit.significant || (speed < MIN_SPEED_M_S && turn < MIN_TURN_RAD_S) {
+            let (rs, rt) = fit.resolution();
+            let e = out
+                .still
+                .entry(pair)
+                .or_insert((f64::INFINITY, f64::INFINITY));
+            *e = (e.0.min(rs), e.1.min(rt));
             continue;
         }
-        let e = out.entry(frames[newest].pair()).or_insert((0.0, 0.0));
+        out.moved += 1;
+        out.strongest = out.strongest.max(fit.significance);
+        let e = out.moving.entry(pair).or_insert((0.0, 0.0));
         *e = (e.0.max(speed), e.1.max(turn));
     }
+    out.still.retain(|pair, _| !out.moving.contains_key(pair));
+    out.false_alarm_chance =
+        binomial_tail(out.fitted, out.moved, chi2_6_tail(model.significance_chi2));
     out
 }
 
@@ -150,14 +304,16 @@ pub(crate) fn pair_motion(frames: &[Frame], groups: &TrackGroups, fits: &GroupFi
 fn compensate_group(
     frames: &[Frame],
     members: &[usize],
-    fit: &[Option<(SVector<f64, 6>, Cov6)>; 2],
+    fit: &[Option<Fit>; 2],
 ) -> Option<Vec<[Option<Candidate>; 2]>> {
     let &newest = members.last()?;
     let t_n = frames[newest].stamp_ns;
     let mut moved: Option<Vec<[Option<Candidate>; 2]>> = None;
     for h in 0..2 {
-        let (Some(anchor), Some((v, cov_v))) = (frames[newest].hyps[h].map(|c| c.a_from_b), fit[h])
-        else {
+        let (Some(anchor), Some(Fit { v, cov_v, .. })) = (
+            frames[newest].hyps[h].map(|c| c.a_from_b),
+            fit[h].filter(|f| f.significant),
+        ) else {
             continue;
         };
         let out = moved.get_or_insert_with(|| members.iter().map(|&i| frames[i].hyps).collect());
@@ -303,30 +459,48 @@ mod tests {
     }
 
     #[test]
-    fn only_pairs_seen_to_move_get_a_motion_and_every_old_frame_the_fastest_uncertainty() {
-        // Pair 1–2 drifts 2 cm/s (significant); pair 1–3 holds still.
+    fn only_pairs_seen_to_move_get_a_motion_and_only_pairs_that_cannot_show_it_the_fastest() {
+        // Pair 1–2 drifts 2 cm/s (significant); pair 1–3 holds still, seen
+        // in 20 frames; pair 1–4 is seen in one frame only.
         let mut frames = drifting(20, 0.02);
         for k in 0..20 {
             let p = pose_from_xyz_rpy([2.0, -1.0, 0.0], [0.0; 3]);
             frames.push(frame(20 + k, 1, 3, k as u64 * FRAME_NS, p, None));
         }
+        let glimpse = pose_from_xyz_rpy([1.0, 1.0, 0.0], [0.0; 3]);
+        frames.push(frame(40, 1, 4, 10 * FRAME_NS, glimpse, None));
         frames.sort_by_key(|f| f.stamp_ns);
         let groups = group_tracks(&frames, 27.86, true, 2);
+        let model = MotionModel::default();
         let moving = pair_motion(
             &frames,
             &groups,
-            &fit_groups(&frames, &groups, &MotionModel::default(), 2),
+            &fit_groups(&frames, &groups, &model, 2),
+            &model,
         );
-        assert_eq!(moving.keys().copied().collect::<Vec<_>>(), vec![(1, 2)]);
-        let (speed, turn) = moving[&(1, 2)];
+        assert_eq!(
+            moving.moving.keys().copied().collect::<Vec<_>>(),
+            vec![(1, 2)]
+        );
+        let (speed, turn) = moving.moving[&(1, 2)];
         // The fit, pulled slightly towards rest by its prior.
         assert!((speed - 0.02).abs() < 1e-3, "{speed}");
         assert!(turn < 1e-3, "{turn}");
+        // 1–3's fit resolves a few mm/s: 2 cm/s would have shown.
+        let (still_speed, _) = moving.still[&(1, 3)];
+        assert!(4.1 * still_speed < speed, "{still_speed}");
+        assert!(!moving.still.contains_key(&(1, 4)));
         let off = MotionModel {
             enabled: false,
             ..MotionModel::default()
         };
-        assert!(pair_motion(&frames, &groups, &fit_groups(&frames, &groups, &off, 2)).is_empty());
+        assert!(pair_motion(
+            &frames,
+            &groups,
+            &fit_groups(&frames, &groups, &off, 2),
+            &off
+        )
+        .is_empty());
 
         let before = frames.clone();
         let now = 19 * FRAME_NS;
@@ -334,9 +508,119 @@ mod tests {
         for (a, b) in frames.iter().zip(&before) {
             let (ca, cb) = (a.hyps[0].unwrap().covariance, b.hyps[0].unwrap().covariance);
             let age = (now - a.stamp_ns) as f64 * 1e-9;
-            // Pair 1–3 shows no motion of its own: it gets the fastest seen.
-            assert!((ca[(1, 1)] - cb[(1, 1)] - (speed * age).powi(2)).abs() < 1e-12);
-            assert!((ca[(4, 4)] - cb[(4, 4)] - (turn * age).powi(2)).abs() < 1e-12);
+            // 1–2 by its own motion, 1–4 (nothing to show its own) by the
+            // fastest seen, which is 1–2's; 1–3 not at all.
+            let grown = if a.target == 3 {
+                0.0
+            } else {
+                (speed * age).powi(2)
+            };
+            assert!(
+                (ca[(1, 1)] - cb[(1, 1)] - grown).abs() < 1e-12,
+                "{}",
+                a.target
+            );
+            let turned = if a.target == 3 {
+                0.0
+            } else {
+                (turn * age).powi(2)
+            };
+            assert!((ca[(4, 4)] - cb[(4, 4)] - turned).abs() < 1e-12);
         }
+        assert!(frames.iter().any(|f| f.target == 4 && f.stamp_ns < now));
+    }
+
+    #[test]
+    fn a_turning_pair_does_not_merge_a_still_pairs_planar_flips() {
+        // Pair 1–2 turns at 0.3 rad/s; pair 1–3 holds still, its primary
+        // every other frame the planar flip (17° off, the truth its
+        // alternative). Given 1–2's turn rate over 2 s (~33°), the flips
+        // of 1–3 would fall in one group with the truth and be fused with it.
+        let truth = pose_from_xyz_rpy([1.75, 0.0, 0.0], [0.0; 3]);
+        let twin = pose_from_xyz_rpy([1.75, 0.0, 0.0], [0.0, 0.3, 0.0]);
+        let mut frames = Vec::new();
+        for k in 0..20 {
+            let t = k as u64 * FRAME_NS;
+            let turning = pose_from_xyz_rpy([2.0, 0.0, 0.0], [0.0, 0.0, 0.03 * k as f64]);
+            frames.push(frame(2 * k, 1, 2, t, turning, None));
+            let (primary, alt) = if k % 2 == 0 {
+                (truth, twin)
+            } else {
+                (twin, truth)
+            };
+            frames.push(frame(2 * k + 1, 1, 3, t, primary, Some(alt)));
+        }
+        let model = MotionModel::default();
+        let groups = group_tracks(&frames, 27.86, true, 2);
+        let fits = fit_groups(&frames, &groups, &model, 2);
+        let moving = pair_motion(&frames, &groups, &fits, &model);
+        assert!(moving.moving[&(1, 2)].1 > 0.25, "{:?}", moving.moving);
+        assert!(!moving.moving.contains_key(&(1, 3)));
+        crate::solve::frames::inflate_moving(&mut frames, &moving, 19 * FRAME_NS, 2);
+        let regrouped = group_tracks(&frames, 27.86, true, 2);
+        let angle = |i: usize| {
+            let p = frames[i].hyps[0].expect("a primary").a_from_b;
+            (p.rotation.inverse() * truth.rotation).angle()
+        };
+        for members in &regrouped.members {
+            if frames[members[0]].target != 3 {
+                continue;
+            }
+            let flipped: Vec<bool> = members.iter().map(|&i| angle(i) > 0.15).collect();
+            assert!(
+                flipped.iter().all(|&f| f == flipped[0]),
+                "a group of 1–3 mixes flipped and true primaries: {members:?}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_few_chance_detections_in_a_large_swarm_are_not_a_manoeuvre() {
+        // χ²₆ above 16.81 by chance: 1 %.
+        assert!((chi2_6_tail(16.81) - 0.01).abs() < 1e-4);
+        assert!((chi2_6_tail(0.0) - 1.0).abs() < 1e-15);
+        // Binomial tails against sums of the exact terms.
+        let exact = |n: u64, m: u64, p: f64| -> f64 {
+            let c = |k: u64| (0..k).fold(1.0, |acc, i| acc * (n - i) as f64 / (i + 1) as f64);
+            (m..=n)
+                .map(|k| c(k) * p.powi(k as i32) * (1.0 - p).powi((n - k) as i32))
+                .sum()
+        };
+        for (n, m) in [(2, 1), (10, 3), (50, 0), (50, 4), (60, 60)] {
+            let (a, b) = (binomial_tail(n, m, 0.01), exact(n as u64, m as u64, 0.01));
+            assert!(
+                (a - b).abs() <= 1e-12 * b.max(1e-300) + 1e-15,
+                "{n} {m}: {a} vs {b}"
+            );
+        }
+        assert_eq!(binomial_tail(3, 4, 0.5), 0.0);
+        // 42 of 5 311 groups at χ² 37 at most (the 1 000-vehicle realistic fleet,
+        // still): as many as 1 % lets through, and the strongest within chance.
+        let still = PairMotion {
+            moving: BTreeMap::from([((1, 2), (0.16, 0.1))]),
+            fitted: 5311,
+            moved: 42,
+            false_alarm_chance: binomial_tail(5311, 42, 0.01),
+            strongest: 37.0,
+            ..PairMotion::default()
+        };
+        assert!(!still.swarm_moves());
+        assert_eq!(still.fastest(), (0.0, 0.0));
+        // A third of the groups moving is a manoeuvre; so is one group of two at χ² 60.
+        let count = PairMotion {
+            moved: 1770,
+            false_alarm_chance: binomial_tail(5311, 1770, 0.01),
+            ..still.clone()
+        };
+        assert!(count.swarm_moves());
+        assert_eq!(count.fastest(), (0.16, 0.1));
+        let clear = PairMotion {
+            fitted: 2,
+            moved: 1,
+            false_alarm_chance: binomial_tail(2, 1, 0.01),
+            strongest: 60.0,
+            ..still
+        };
+        assert!(clear.swarm_moves());
     }
 }
