@@ -20,7 +20,9 @@
 //!    two one-member clusters). Every triangle of pairs `(a,b),(b,k),(a,k)` is
 //!    checked: each combination of clusters whose cycle error
 //!    `a_from_b·b_from_k` vs `a_from_k` passes the gate votes for its three
-//!    clusters. Departure from PCM: PCM's pairwise test needs odometry to relate
+//!    clusters; a cycle through a single-frame cluster gives only a weak vote,
+//!    which ranks after support (a misread ID closes triangles with the
+//!    neighbour actually seen). Departure from PCM: PCM's pairwise test needs odometry to relate
 //!    two loop closures; here the only composable relations are cycles of
 //!    relative poses, so the consistency test is over triangles (group-3, as in
 //!    generalized PCM) and is resolved by voting plus step 3 instead of a
@@ -30,8 +32,9 @@
 //!    the tree, its best-scored cluster consistent with the tree's prediction
 //!    (composed along the tree path, covariances propagated) is accepted and
 //!    the others rejected; only when nothing is verifiable is the tree extended,
-//!    by the frontier pair whose best cluster has the most votes, then margin
-//!    over its runner-up, then support. That tree is also the solver's
+//!    by the frontier pair whose best cluster was seen in more than one frame
+//!    (a single frame links a vehicle only when nothing else does), then has
+//!    the most votes, then margin over its runner-up, then support. That tree is also the solver's
 //!    initialization.
 
 mod clique;
@@ -137,8 +140,12 @@ pub struct Cluster {
     pub primaries: usize,
     /// Frames the members stand for (sum of their weights).
     pub frames: usize,
-    /// Triangles in which this cluster closes a consistent cycle.
+    /// Triangles in which this cluster closes a consistent cycle, every
+    /// cluster of it standing for two frames or more.
     pub votes: usize,
+    /// Triangles in which it closes a consistent cycle only through a
+    /// single-frame cluster: a tie-breaker after support.
+    pub weak_votes: usize,
 }
 
 impl Cluster {
@@ -146,8 +153,8 @@ impl Cluster {
     pub fn support(&self) -> usize {
         self.frames
     }
-    fn score(&self) -> (usize, usize, usize) {
-        (self.votes, self.frames, self.primaries)
+    fn score(&self) -> (usize, usize, usize, usize) {
+        (self.votes, self.frames, self.weak_votes, self.primaries)
     }
 }
 

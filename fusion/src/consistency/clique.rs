@@ -154,6 +154,7 @@ fn cluster_pair_large(candidates: &[Candidate], params: &ConsistencyParams) -> V
                 a_from_b: pose,
                 covariance: cov,
                 votes: 0,
+                weak_votes: 0,
             })
         })
         .collect()
@@ -233,6 +234,7 @@ pub fn cluster_pair(candidates: &[Candidate], params: &ConsistencyParams) -> Vec
             a_from_b: fused.0,
             covariance: fused.1,
             votes: 0,
+            weak_votes: 0,
         });
     }
     clusters

@@ -9,12 +9,15 @@ use proto::VehicleId;
 use std::cmp::Reverse;
 use std::collections::{BTreeMap, BinaryHeap};
 
-/// Votes, vote and support margins over the runner-up, support, primaries,
-/// and the pair (lowest first on a tie).
+/// Whether the best cluster was seen in two frames or more, votes, vote and
+/// support margins over the runner-up, support, weak votes, primaries, and
+/// the pair (lowest first on a tie).
 type FrontierKey = (
+    bool,
     usize,
     i64,
     i64,
+    usize,
     usize,
     usize,
     Reverse<(VehicleId, VehicleId)>,
@@ -194,10 +197,12 @@ pub fn select_with_prior(
                 .get(1)
                 .map_or((0, 0), |&s| (p.clusters[s].votes, p.clusters[s].support()));
             Some((
+                top.support() >= 2,
                 top.votes,
                 top.votes as i64 - sv as i64,
                 top.support() as i64 - ss as i64,
                 top.support(),
+                top.weak_votes,
                 top.primaries,
                 Reverse((p.a, p.b)),
             ))
@@ -383,5 +388,33 @@ mod tests {
             select(&wrong, 1, 27.86).choice,
             vec![None, Some(0), Some(0)]
         );
+    }
+
+    #[test]
+    fn a_single_frame_links_a_vehicle_only_when_nothing_repeated_does() {
+        let truth = |v: u32| pose_from_xyz_rpy([v as f64, 0.0, 0.0], [0.0, 0.0, 0.1 * v as f64]);
+        let rel = |a: u32, b: u32| truth(a).inverse() * truth(b);
+        let pair = |a: u32, b: u32, frames: usize, votes: usize| {
+            let candidates = vec![cand(0, 0, rel(a, b)).with_weight(frames)];
+            let mut clusters = cluster_pair(&candidates, &ConsistencyParams::default());
+            clusters[0].votes = votes;
+            PairCandidates {
+                a,
+                b,
+                candidates,
+                clusters,
+            }
+        };
+        // 1–2 in one frame, with a vote; 1–3 and 3–2 in two frames each, none.
+        let pairs = [pair(1, 2, 1, 1), pair(1, 3, 2, 0), pair(2, 3, 2, 0)];
+        let tree = &select(&pairs, 1, 27.86).trees[0];
+        assert_eq!(tree.parents[&3].0, 1);
+        assert_eq!(
+            tree.parents[&2].0, 3,
+            "2 joins through 3, not by its single frame"
+        );
+        // Without the repeated path, the single frame links 2.
+        let tree = &select(&pairs[..1], 1, 27.86).trees[0];
+        assert_eq!(tree.parents[&2].0, 1);
     }
 }
