@@ -151,17 +151,12 @@ pub(crate) struct PairMotion {
     /// rate) of a velocity fit of theirs that found no motion: a pair whose
     /// fit would have shown a motion of that size is known not to have it.
     pub still: BTreeMap<(VehicleId, VehicleId), (f64, f64)>,
-    /// How many of its σ a fit's velocity must be to be significant
-    /// (`√significance_chi2`): a still pair's fit would have shown a rate this
-    /// many of its σ.
-    pub detectable_sigmas: f64,
+    /// The motion model's significance gate ([`MotionModel::significance_chi2`]).
+    pub gate_chi2: f64,
     /// Groups whose primary hypothesis was fitted, and how many of them
     /// showed a motion (significant and above the rates worth inflating).
     pub fitted: usize,
     pub moved: usize,
-    /// The chance that a still swarm shows this many moving groups or more
-    /// ([`MotionModel::significance_chi2`] lets 1 % of still groups pass).
-    pub false_alarm_chance: f64,
     /// The largest significance (`vᵀ·Σ_v⁻¹·v`) among the moving groups.
     pub strongest: f64,
 }
@@ -178,9 +173,12 @@ impl PairMotion {
     /// test (their fits are far beyond the gate); a still swarm of a thousand
     /// passes neither (measured: `shoal eval fusion --profile realistic`).
     pub fn swarm_moves(&self) -> bool {
-        self.moved > 0
-            && (self.false_alarm_chance < SWARM_FALSE_ALARM
-                || chi2_6_tail(self.strongest) * (self.fitted as f64) < SWARM_FALSE_ALARM)
+        // A still group passes the gate with probability P(χ²₆ > gate) (1 %).
+        let by_count = || {
+            binomial_tail(self.fitted, self.moved, chi2_6_tail(self.gate_chi2)) < SWARM_FALSE_ALARM
+        };
+        let by_strength = || chi2_6_tail(self.strongest) * (self.fitted as f64) < SWARM_FALSE_ALARM;
+        self.moved > 0 && (by_count() || by_strength())
     }
 
     /// The fastest speed and turn rate of any moving pair once the swarm is
@@ -199,7 +197,7 @@ impl PairMotion {
     /// The motion a pair may have had in the window: its own when it was
     /// seen to move; otherwise, per component, the fastest of the swarm's
     /// (`fastest`) unless the pair's own fits would have shown a motion that
-    /// fast (its resolution times [`Self::detectable_sigmas`] at most) and showed none.
+    /// fast (its resolution times `√gate_chi2` at most) and showed none.
     pub fn bound(&self, pair: (VehicleId, VehicleId), fastest: (f64, f64)) -> (f64, f64) {
         if let Some(&own) = self.moving.get(&pair) {
             return own;
@@ -207,7 +205,8 @@ impl PairMotion {
         let Some(&(s_speed, s_turn)) = self.still.get(&pair) else {
             return fastest;
         };
-        let k = self.detectable_sigmas;
+        // A rate this many of the fit's σ would have passed its gate.
+        let k = self.gate_chi2.sqrt();
         let unseen = |rate: f64, sigma: f64| if k * sigma <= rate { 0.0 } else { rate };
         (unseen(fastest.0, s_speed), unseen(fastest.1, s_turn))
     }
@@ -265,7 +264,7 @@ pub(crate) fn pair_motion(
     model: &MotionModel,
 ) -> PairMotion {
     let mut out = PairMotion {
-        detectable_sigmas: model.significance_chi2.sqrt(),
+        gate_chi2: model.significance_chi2,
         ..PairMotion::default()
     };
     for (members, fit) in groups.members.iter().zip(fits) {
@@ -293,8 +292,6 @@ pub(crate) fn pair_motion(
         *e = (e.0.max(speed), e.1.max(turn));
     }
     out.still.retain(|pair, _| !out.moving.contains_key(pair));
-    out.false_alarm_chance =
-        binomial_tail(out.fitted, out.moved, chi2_6_tail(model.significance_chi2));
     out
 }
 
@@ -598,9 +595,9 @@ mod tests {
         // still): as many as 1 % lets through, and the strongest within chance.
         let still = PairMotion {
             moving: BTreeMap::from([((1, 2), (0.16, 0.1))]),
+            gate_chi2: MotionModel::default().significance_chi2,
             fitted: 5311,
             moved: 42,
-            false_alarm_chance: binomial_tail(5311, 42, 0.01),
             strongest: 37.0,
             ..PairMotion::default()
         };
@@ -609,7 +606,6 @@ mod tests {
         // A third of the groups moving is a manoeuvre; so is one group of two at χ² 60.
         let count = PairMotion {
             moved: 1770,
-            false_alarm_chance: binomial_tail(5311, 1770, 0.01),
             ..still.clone()
         };
         assert!(count.swarm_moves());
@@ -617,7 +613,6 @@ mod tests {
         let clear = PairMotion {
             fitted: 2,
             moved: 1,
-            false_alarm_chance: binomial_tail(2, 1, 0.01),
             strongest: 60.0,
             ..still
         };
