@@ -182,8 +182,9 @@ pub struct EvalOptions {
 
 /// The experiments that render through `--profile` (the rest refuse it
 /// rather than ignore it).
-pub const PROFILE_EXPERIMENTS: [Experiment; 8] = [
+pub const PROFILE_EXPERIMENTS: [Experiment; 9] = [
     Experiment::Detection,
+    Experiment::Restoration,
     Experiment::Accuracy,
     Experiment::AccuracyYaw,
     Experiment::AccuracyRmse,
