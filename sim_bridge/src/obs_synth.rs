@@ -108,21 +108,16 @@ impl Default for NoiseModel {
 /// `table`'s value at `x`: linear between rows (sorted by x), the end
 /// values beyond them.
 fn interpolate(table: &[(f64, f64)], x: f64) -> f64 {
-    match table {
-        [] => 0.0,
-        [(_, y)] => *y,
-        [first, .., last] if x <= first.0 || x >= last.0 => {
-            if x <= first.0 {
-                first.1
-            } else {
-                last.1
-            }
-        }
-        _ => table.windows(2).find(|w| x <= w[1].0).map_or(0.0, |w| {
-            let t = (x - w[0].0) / (w[1].0 - w[0].0).max(1e-12);
-            w[0].1 + t * (w[1].1 - w[0].1)
-        }),
+    let (Some(first), Some(last)) = (table.first(), table.last()) else {
+        return 0.0;
+    };
+    if x <= first.0 {
+        return first.1;
     }
+    table.windows(2).find(|w| x <= w[1].0).map_or(last.1, |w| {
+        let t = (x - w[0].0) / (w[1].0 - w[0].0).max(1e-12);
+        w[0].1 + t * (w[1].1 - w[0].1)
+    })
 }
 
 impl NoiseModel {

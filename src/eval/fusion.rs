@@ -387,6 +387,12 @@ pub(crate) fn observation_model(
     }
 }
 
+/// The seed of the cell of `n` vehicles at outlier rate index `ri` in a run
+/// of seed `seed`.
+fn cell_seed(seed: u64, n: usize, ri: usize) -> u64 {
+    seed.wrapping_add(n as u64 * 101 + ri as u64)
+}
+
 pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     let frames = opts.count(5, 20);
     let sizes: Vec<usize> = if opts.quick {
@@ -411,7 +417,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     let mut time_vals: Vec<Vec<Option<f64>>> = vec![Vec::new(); rates.len()];
     // Per rate: (vehicles, observations, solve ms) of every cell.
     let mut cost: Vec<Vec<(usize, usize, f64)>> = vec![Vec::new(); rates.len()];
-    let seed = |n: usize, ri: usize| opts.seed.wrapping_add(n as u64 * 101 + ri as u64);
+    let seed = |n: usize, ri: usize| cell_seed(opts.seed, n, ri);
     for &n in &sizes {
         let mut per = Map::new();
         for (ri, &r) in rates.iter().enumerate() {
@@ -509,7 +515,7 @@ mod tests {
             .iter()
             .position(|&r| r == rate)
             .expect("a rate of the full run");
-        run_cell(n, rate, 20, seed + n as u64 * 101 + ri as u64, model).expect("the cell runs")
+        run_cell(n, rate, 20, cell_seed(seed, n, ri), model).expect("the cell runs")
     }
 
     /// Two still fleets whose chance motion fits once merged planar flips
