@@ -244,9 +244,10 @@ impl ShoalDetector {
         if w < p.min_code_side_px.max(2.0) || h < p.min_code_side_px.max(2.0) {
             return Ok(Vec::new());
         }
-        let mut quads = quads::find_quads(p, images.gray)?;
+        let (mut quads, blobs) = quads::find_quads_and_blobs(p, images.gray)?;
         let mut found: Vec<CodeSquare> = Vec::new();
-        let undecoded = self.read_codes(images, &quads, &mut found);
+        let mut undecoded = self.read_codes(images, &quads, &mut found);
+        undecoded.extend(blobs);
         if images.gray.cols() > p.full_res_max_width && p.max_full_res_regions > 0 {
             // Quads inside a marker already read are its frame: nothing more to find there.
             let inside_found = |q: &Quad| {
@@ -294,7 +295,8 @@ impl ShoalDetector {
         let refine = |code: &[geom::Px; 4], module_px: f64| {
             corners::refine_square(&self.params, images, code, module_px, Polarity::DarkInside)
         };
-        self.reader.decode(&images.view, quads, refine, found)
+        self.reader
+            .decode((&images.view, images.raw.as_ref()), quads, refine, found)
     }
 }
 

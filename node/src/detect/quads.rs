@@ -49,12 +49,32 @@ pub fn find_quads(
     params: &DetectParams,
     gray: &(impl MatTraitConst + ToInputArray),
 ) -> Result<Vec<Quad>, DetectError> {
-    let mut quads: Vec<Quad> = Vec::new();
+    Ok(find_quads_and_blobs(params, gray)?.0)
+}
+
+/// [`find_quads`], and on a downsampled level also the *blobs*: contours
+/// of a small marker's size that are not a convex quadrilateral there but
+/// whose convex hull is nearly one (a one-module ring of ≤ 1.5 level px
+/// breaks into a frame with gaps or bridges: a 100 mm marker from ~4.5 m
+/// on the 1440x1080 camera). They are not quads: only windows for
+/// [`full_res_quads`] to search again.
+pub fn find_quads_and_blobs(
+    params: &DetectParams,
+    gray: &(impl MatTraitConst + ToInputArray),
+) -> Result<(Vec<Quad>, Vec<Quad>), DetectError> {
+    let mut found = Found::default();
     match without_edge_artefacts(gray)? {
-        Some(cleaned) => search_level(params, &cleaned, &mut quads)?,
-        None => search_level(params, gray, &mut quads)?,
+        Some(cleaned) => search_level(params, &cleaned, &mut found)?,
+        None => search_level(params, gray, &mut found)?,
     }
-    Ok(quads)
+    Ok((found.quads, found.blobs))
+}
+
+/// What one level's contours gave: quads, and (downsampled levels only) blobs.
+#[derive(Default)]
+struct Found {
+    quads: Vec<Quad>,
+    blobs: Vec<Quad>,
 }
 
 /// The quads of `img` searched at half size when it is wider than
@@ -62,11 +82,11 @@ pub fn find_quads(
 fn search_level(
     params: &DetectParams,
     img: &(impl MatTraitConst + ToInputArray),
-    quads: &mut Vec<Quad>,
+    found: &mut Found,
 ) -> Result<(), DetectError> {
     match half_level(params, img)? {
-        Some(half) => quads_of_level(params, &half, 2.0, [0.0, 0.0], quads),
-        None => quads_of_level(params, img, 1.0, [0.0, 0.0], quads),
+        Some(half) => quads_of_level(params, &half, 2.0, [0.0, 0.0], found),
+        None => quads_of_level(params, img, 1.0, [0.0, 0.0], found),
     }
 }
 
@@ -186,10 +206,11 @@ fn quads_of_level(
     level: &(impl MatTraitConst + ToInputArray),
     scale: f64,
     offset: Px,
-    quads: &mut Vec<Quad>,
+    found: &mut Found,
 ) -> Result<(), DetectError> {
     let mut bin = Mat::default();
     let mut approx: Vector<Point> = Vector::new();
+    let mut table = SumTable::new(GrayView::new(level)?);
     for &win in &params.threshold_windows {
         let win = (win.max(3)) | 1;
         binarize(params, level, win, &mut bin)?;
@@ -202,8 +223,11 @@ fn quads_of_level(
             Point::new(0, 0),
         )?;
         for c in contours.iter() {
-            let Some(q) = contour_quad(params, level, scale, &c, &mut approx)? else {
-                continue;
+            let (q, list) = match contour_quad(params, (level, &mut table), scale, &c, &mut approx)?
+            {
+                Shape::Quad(q) => (q, &mut found.quads),
+                Shape::Blob(q) => (q, &mut found.blobs),
+                Shape::Neither => continue,
             };
             // Level pixel centres to full-resolution pixel centres.
             let q = q.map(|c| {
@@ -213,10 +237,10 @@ fn quads_of_level(
                 ]
             });
             // The same square found by another threshold window: keep one.
-            if quads.iter().any(|o| o.same_as(&q)) {
+            if list.iter().any(|o| o.same_as(&q)) {
                 continue;
             }
-            quads.push(Quad {
+            list.push(Quad {
                 pts: q,
                 inset_px: 0.5 * scale,
             });
@@ -403,33 +427,96 @@ fn tile_offsets(
         .collect()
 }
 
+/// What a contour is: a quad, a blob ([`find_quads_and_blobs`]) or neither.
+enum Shape {
+    Quad([Px; 4]),
+    Blob([Px; 4]),
+    Neither,
+}
+
+/// A blob's least darkening against its surround, as a share of
+/// [`DetectParams::min_contrast`] ([`SumTable::contrast`]). A far marker's blob
+/// (half dark, in its white quiet zone) is ~6.5 grey levels below its
+/// surround on the 1440x1080 camera at 0.5 /m and 5 m; the sensor noise's
+/// speckle blobs, of the same size and shape, are within 1.1 (seeds 7–9).
+const BLOB_CONTRAST: f64 = 0.5;
+
+/// A summed-area table of a level, built on first use (the blob test).
+struct SumTable<'a> {
+    view: GrayView<'a>,
+    /// `(width + 1) x (height + 1)`, row-major; entry (x, y) sums the pixels
+    /// above and left of it.
+    sums: Vec<u64>,
+}
+
+impl<'a> SumTable<'a> {
+    fn new(view: GrayView<'a>) -> Self {
+        SumTable {
+            view,
+            sums: Vec::new(),
+        }
+    }
+
+    /// Sum and count of the pixels in `[x0, x1) x [y0, y1)`, clipped to the level.
+    fn sum(&mut self, x0: i32, y0: i32, x1: i32, y1: i32) -> (f64, f64) {
+        let (w, h) = (self.view.width, self.view.height);
+        if self.sums.is_empty() {
+            self.sums = vec![0u64; (w + 1) * (h + 1)];
+            for y in 0..h {
+                let mut run = 0u64;
+                let row = self.view.row(y);
+                for x in 0..w {
+                    run += u64::from(row[x]);
+                    self.sums[(y + 1) * (w + 1) + x + 1] = self.sums[y * (w + 1) + x + 1] + run;
+                }
+            }
+        }
+        let clip = |v: i32, n: usize| (v.max(0) as usize).min(n);
+        let (x0, x1, y0, y1) = (clip(x0, w), clip(x1, w), clip(y0, h), clip(y1, h));
+        if x1 <= x0 || y1 <= y0 {
+            return (0.0, 0.0);
+        }
+        let at = |x: usize, y: usize| self.sums[y * (w + 1) + x];
+        let s = at(x1, y1) + at(x0, y0) - at(x0, y1) - at(x1, y0);
+        (s as f64, ((x1 - x0) * (y1 - y0)) as f64)
+    }
+
+    /// How much darker the pixels inside `rect` (x, y, width, height) are
+    /// than those of the band half its larger side wide around it (grey
+    /// levels; the parts inside the level).
+    fn contrast(&mut self, rect: [i32; 4]) -> f64 {
+        let [x, y, w, h] = rect;
+        let pad = (w.max(h) / 2).max(2);
+        let (inner, n_inner) = self.sum(x, y, x + w, y + h);
+        let (all, n_all) = self.sum(x - pad, y - pad, x + w + pad, y + h + pad);
+        if n_inner == 0.0 || n_all <= n_inner {
+            return 0.0;
+        }
+        (all - inner) / (n_all - n_inner) - inner / n_inner
+    }
+}
+
 /// The contour `c` of `level` as a convex quad, clockwise, in level
-/// pixels; `None` when it is not one, is too small or too large, or comes
+/// pixels ([`Shape::Quad`]), or, on a downsampled level, as a blob's
+/// convex hull ([`Shape::Blob`]); [`Shape::Neither`] when it is neither, is
+/// too small or too large, or comes
 /// closer than [`DetectParams::border_margin_px`] to the border. `approx`
 /// is scratch space for the polygon.
 fn contour_quad(
     params: &DetectParams,
-    level: &impl MatTraitConst,
+    (level, table): (&impl MatTraitConst, &mut SumTable<'_>),
     scale: f64,
     c: &Vector<Point>,
     approx: &mut Vector<Point>,
-) -> Result<Option<[Px; 4]>, DetectError> {
+) -> Result<Shape, DetectError> {
     let (w, h) = (f64::from(level.cols()), f64::from(level.rows()));
     let min_side_lvl = params.min_code_side_px / scale;
     if c.len() < 4 {
-        return Ok(None);
+        return Ok(Shape::Neither);
     }
     let perim = imgproc::arc_length(c, true)?;
     if perim < 4.0 * min_side_lvl || perim > 2.0 * (w + h) {
-        return Ok(None);
-    }
-    imgproc::approx_poly_dp(c, approx, params.approx_epsilon * perim, true)?;
-    if approx.len() != 4 || !imgproc::is_contour_convex(&*approx)? {
-        return Ok(None);
-    }
-    let mut q = [[0.0; 2]; 4];
-    for (i, pt) in approx.iter().enumerate() {
-        q[i] = [f64::from(pt.x), f64::from(pt.y)];
+        return Ok(Shape::Neither);
     }
     // A region that reaches the image's outermost row or column is cut by
     // it: its outline follows the border, not the square.
@@ -437,25 +524,51 @@ fn contour_quad(
     if c.iter()
         .any(|p| p.x <= 0 || p.y <= 0 || p.x >= wi || p.y >= hi)
     {
-        return Ok(None);
+        return Ok(Shape::Neither);
+    }
+    imgproc::approx_poly_dp(c, approx, params.approx_epsilon * perim, true)?;
+    let blob = approx.len() != 4 || !imgproc::is_contour_convex(&*approx)?;
+    if blob {
+        // Only on a downsampled level, and only of a size the full-resolution
+        // search is for: its convex hull nearly a quadrilateral.
+        if scale <= 1.0 || perim > 4.0 * params.full_res_region_max_side_px / scale {
+            return Ok(Shape::Neither);
+        }
+        // Darker than what surrounds it, as a marker with its quiet zone
+        // is and sensor noise's speckle is not.
+        let r = imgproc::bounding_rect(c)?;
+        if table.contrast([r.x, r.y, r.width, r.height]) < BLOB_CONTRAST * params.min_contrast {
+            return Ok(Shape::Neither);
+        }
+        let mut hull: Vector<Point> = Vector::new();
+        imgproc::convex_hull(c, &mut hull, true, true)?;
+        let hull_perim = imgproc::arc_length(&hull, true)?;
+        imgproc::approx_poly_dp(&hull, approx, params.approx_epsilon * hull_perim, true)?;
+        if approx.len() != 4 {
+            return Ok(Shape::Neither);
+        }
+    }
+    let mut q = [[0.0; 2]; 4];
+    for (i, pt) in approx.iter().enumerate() {
+        q[i] = [f64::from(pt.x), f64::from(pt.y)];
     }
     let margin = params.border_margin_px / scale;
     if q.iter().any(|c| {
         c[0] < margin || c[1] < margin || c[0] > w - 1.0 - margin || c[1] > h - 1.0 - margin
     }) {
-        return Ok(None);
+        return Ok(Shape::Neither);
     }
     // The polygon traces the centres of the region's boundary pixels, half a
     // pixel inside the square's edge at each end: the square's side is one
     // level pixel longer than the traced one (a steeply tilted small tag's
     // short side sits right at the limit).
     if min_side(&q) + 1.0 < min_side_lvl {
-        return Ok(None);
+        return Ok(Shape::Neither);
     }
     if signed_area2(&q) < 0.0 {
         q.swap(1, 3);
     }
-    Ok(Some(q))
+    Ok(if blob { Shape::Blob(q) } else { Shape::Quad(q) })
 }
 
 /// The per-marker pyramid level: on a downsampled frame a small marker's
@@ -464,7 +577,13 @@ fn contour_quad(
 /// such small quad of `undecoded` (it read no code) is searched again at
 /// full resolution in a window around it (at most
 /// [`DetectParams::max_full_res_regions`], smallest first: the large ones
-/// were readable at the level). Returns the quads not already in `quads`.
+/// were readable at the level); so is every blob of the level
+/// ([`find_quads_and_blobs`]), passed among `undecoded`. Returns the quads
+/// not already in `quads`,
+/// but for those of `undecoded` themselves: found again at full
+/// resolution, their corners are a level's half pixel sharper, which is
+/// what a module of ~1.5 px at the level needs to read (a 100 mm marker
+/// from 3.5 m on, 1440x1080, 60°).
 pub fn full_res_quads(
     params: &DetectParams,
     view: &GrayView<'_>,
@@ -507,7 +626,7 @@ pub fn full_res_quads(
             height: rect.height as u32,
             data,
         })?;
-        let mut found: Vec<Quad> = Vec::new();
+        let mut found = Found::default();
         quads_of_level(
             params,
             &roi,
@@ -515,8 +634,10 @@ pub fn full_res_quads(
             [f64::from(x0), f64::from(y0)],
             &mut found,
         )?;
-        for f in found {
-            if !quads.iter().chain(extra.iter()).any(|o| o.same_as(&f.pts)) {
+        for f in found.quads {
+            let known = quads.iter().any(|o| o.same_as(&f.pts))
+                && !undecoded.iter().any(|o| o.same_as(&f.pts));
+            if !known && !extra.iter().any(|o| o.same_as(&f.pts)) {
                 extra.push(f);
             }
         }
@@ -610,10 +731,10 @@ mod tests {
             "the square beside the line"
         );
         // Without the guard (the same search on the frame as it is).
-        let mut unguarded = Vec::new();
+        let mut unguarded = Found::default();
         quads_of_level(&params, &img, 1.0, [0.0, 0.0], &mut unguarded).unwrap();
         assert!(
-            !found(&unguarded),
+            !found(&unguarded.quads),
             "the line's dark band merges with the square"
         );
     }
@@ -740,9 +861,9 @@ mod tests {
         // The quad search itself: a one-row white quiet zone above a flat
         // black square would pass for an edge-line artefact here.
         let search = |params: &DetectParams, img: &Mat| {
-            let mut quads = Vec::new();
-            quads_of_level(params, img, 1.0, [0.0, 0.0], &mut quads).unwrap();
-            quads
+            let mut found = Found::default();
+            quads_of_level(params, img, 1.0, [0.0, 0.0], &mut found).unwrap();
+            found.quads
         };
         let whole = frame(1);
         assert!(near_top(&search(&params, &whole)), "whole square at 1 px");
@@ -804,5 +925,57 @@ mod tests {
             &[[0.0, 0.0], [9.0, 0.0], [10.0, 10.0], [0.0, 10.0]],
             0.5
         ));
+    }
+
+    /// The summed-area table's rectangle sums equal the pixels' own, clipped
+    /// to the level; a dark square in a bright band is darker than its surround.
+    #[test]
+    fn sum_table_sums_and_a_dark_squares_contrast() {
+        let (w, h) = (37usize, 23usize);
+        let data: Vec<u8> = (0..w * h)
+            .map(|i| ((i * 7919 + i / w * 31) % 251) as u8)
+            .collect();
+        let img = shoal_proto::image::GrayImage {
+            width: w as u32,
+            height: h as u32,
+            data: data.clone(),
+        };
+        let mat = crate::mat::gray_to_mat(&img).unwrap();
+        let mut t = SumTable::new(GrayView::new(&mat).unwrap());
+        for (x0, y0, x1, y1) in [
+            (0, 0, 37, 23),
+            (3, 4, 10, 9),
+            (-5, -2, 4, 30),
+            (30, 20, 50, 40),
+            (5, 5, 5, 9),
+        ] {
+            let (mut s, mut n) = (0u64, 0u64);
+            for y in y0.max(0)..y1.min(h as i32) {
+                for x in x0.max(0)..x1.min(w as i32) {
+                    s += u64::from(data[y as usize * w + x as usize]);
+                    n += 1;
+                }
+            }
+            assert_eq!(
+                t.sum(x0, y0, x1, y1),
+                (s as f64, n as f64),
+                "{x0} {y0} {x1} {y1}"
+            );
+        }
+        let mut flat = vec![200u8; w * h];
+        for y in 8..14 {
+            for x in 15..21 {
+                flat[y * w + x] = 120;
+            }
+        }
+        let img = shoal_proto::image::GrayImage {
+            width: w as u32,
+            height: h as u32,
+            data: flat,
+        };
+        let mat = crate::mat::gray_to_mat(&img).unwrap();
+        let mut t = SumTable::new(GrayView::new(&mat).unwrap());
+        assert_eq!(t.contrast([15, 8, 6, 6]), 80.0);
+        assert_eq!(t.contrast([2, 2, 6, 6]), 0.0);
     }
 }

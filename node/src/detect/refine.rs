@@ -155,6 +155,11 @@ const PASSES: [(f64, f64, f64); 2] = [(0.45, 6.0, 3.0), (0.3, 2.5, 1.0)];
 
 /// Only the coarse pass of [`refine_by_edge_lines`]: the start of the
 /// step-edge model fit ([`super::edge_model`]), which replaces the fine pass.
+/// Where it finds no edge within ±0.45 module (at least 1.5 px) of a side,
+/// once more within ±0.9 module: a far marker's polygon from the
+/// half-resolution level can be 2–2.5 px off at a module of 2.8 px. Edges of
+/// the same polarity are two modules apart, so the wider search cannot
+/// take a neighbour's.
 pub fn refine_by_edge_lines_coarse(
     view: &GrayView<'_>,
     quad: &[Px; 4],
@@ -163,6 +168,7 @@ pub fn refine_by_edge_lines_coarse(
 ) -> Option<[Px; 4]> {
     // The fine fit starts from this: every 8th pixel along a side is enough.
     edge_line_passes(view, quad, module_px, polarity, &[(0.45, 6.0, 8.0)])
+        .or_else(|| edge_line_passes(view, quad, module_px, polarity, &[(0.9, 6.0, 4.0)]))
 }
 
 fn edge_line_passes(
