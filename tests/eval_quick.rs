@@ -249,16 +249,17 @@ fn detection_quick_renders_through_a_camera_profile_and_the_others_refuse_one() 
         }
     };
     let refused = eval::run(
-        Experiment::Swarm,
-        &with_profile("swarm-realistic", Some(CameraProfile::realistic())),
+        Experiment::Features,
+        &with_profile("features-realistic", Some(CameraProfile::realistic())),
     )
-    .expect_err("swarm does not take a profile yet");
+    .expect_err("features does not take a profile");
     let msg = format!("{refused:#}");
     assert!(
         msg.contains("camera profile `realistic`")
             && msg.contains("detection")
             && msg.contains("restoration")
-            && msg.contains("accuracy-rmse"),
+            && msg.contains("accuracy-rmse")
+            && msg.contains("swarm"),
         "{msg}"
     );
     // Accuracy through the realistic camera, one frame per water: the node
@@ -643,6 +644,10 @@ fn swarm_quick_localizes_every_pair_of_the_paper_fleet() {
         assert!(num(&r["median_angle_error_deg"]) < 1.0, "{pair}: {r}");
     }
     assert!(num(&s["processing"]["mean_camera_frame_ms"]) > 0.0);
+    assert_eq!(
+        (s["camera_profile"].as_str(), s["restore"].as_str()),
+        (Some("ideal"), Some("hoirm"))
+    );
 }
 
 #[test]

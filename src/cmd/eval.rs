@@ -28,7 +28,7 @@ pub struct EvalArgs {
     /// Seed of every random stream (pose jitter, sensor noise).
     #[arg(long, default_value_t = 1)]
     seed: u64,
-    /// Restoration applied to every marker's frames in the accuracy experiments: none, clahe, dcp, udcp, hoirm.
+    /// Restoration applied to every marker's frames in the accuracy experiments and to every camera in `swarm`: none, clahe, dcp, udcp, hoirm.
     #[arg(long, default_value = "hoirm")]
     restore: String,
     /// No progress bar.
@@ -45,7 +45,7 @@ pub struct EvalArgs {
     restore_param: Vec<String>,
     /// Camera profile the frames are rendered through: `ideal` (the default: the renderer
     /// every figure used so far) or `realistic` (every camera effect, issue #16). Taken by
-    /// `detection`, `restoration`, `accuracy`, `accuracy-yaw`, `accuracy-rmse` and `fit-noise`; `fusion`,
+    /// `detection`, `restoration`, `accuracy`, `accuracy-yaw`, `accuracy-rmse`, `fit-noise` and `swarm`; `fusion`,
     /// `links` and `nav` take `realistic` as the observation model fitted to that camera;
     /// the other experiments refuse it.
     #[arg(long)]

@@ -182,13 +182,14 @@ pub struct EvalOptions {
 
 /// The experiments that render through `--profile` (the rest refuse it
 /// rather than ignore it).
-pub const PROFILE_EXPERIMENTS: [Experiment; 9] = [
+pub const PROFILE_EXPERIMENTS: [Experiment; 10] = [
     Experiment::Detection,
     Experiment::Restoration,
     Experiment::Accuracy,
     Experiment::AccuracyYaw,
     Experiment::AccuracyRmse,
     Experiment::FitNoise,
+    Experiment::Swarm,
     // No images: their observation model fitted to `realistic` (`ObsSynthParams::realistic`).
     Experiment::Fusion,
     Experiment::Links,

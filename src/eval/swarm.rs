@@ -6,6 +6,15 @@
 //! deterministic. Measures the per-frame processing time, the fused relative
 //! pose error of every pair, and, over a sweep of the formation spacing, the
 //! largest spacing at which each vehicle is still localized.
+//!
+//! With `--profile` (issue #16) every camera's frames go through that
+//! camera profile ([`render_profiled`] over the swarm's own motion, so the
+//! blur and the rolling shutter are the vehicles'), and every node holds
+//! the calibration a lab would have for its camera
+//! ([`super::profiles::node_camera`], drawn per camera): behind the port,
+//! an in-water pinhole, off by the calibration error. The observations are
+//! stamped, and the errors taken against the ground truth, at the
+//! exposure's reference time.
 
 use super::features::plot_or_warn;
 use super::plot::{self, Grouped};
@@ -17,7 +26,11 @@ use shoal_fusion::{Fusion, FusionParams};
 use shoal_node::pipeline::{CameraPipeline, PipelineParams};
 use shoal_proto::config::Fleet;
 use shoal_proto::{VehicleId, VehicleState, VehicleTruth};
-use shoal_sim_bridge::render::{render_fleet_view, Renderer};
+use shoal_sim_bridge::profile::CameraProfile;
+use shoal_sim_bridge::render::motion::FleetTimeline;
+use shoal_sim_bridge::render::realistic::render_profiled;
+use shoal_sim_bridge::render::{render_fleet_view, RenderOutput, Renderer};
+use shoal_sim_bridge::water::WaterParams;
 use shoal_sim_bridge::world::{Formation, SwarmWorld};
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -53,6 +66,89 @@ fn relative(truth: &[VehicleTruth], a: VehicleId, b: VehicleId) -> Option<shoal_
     Some(wa.inverse() * wb)
 }
 
+/// The seed of vehicle `v`'s camera `cam` in frame `k` (its noise; with
+/// `k = 0` its calibration draw too).
+fn camera_seed(seed: u64, v: VehicleId, cam: u8, k: u64) -> u64 {
+    seed ^ ((v as u64) << 40) ^ ((cam as u64) << 32) ^ k
+}
+
+/// The cameras as the fleet's nodes hold them: through `profile`, each
+/// camera's calibration as a lab would have it ([`super::profiles::node_camera`],
+/// drawn per camera); without one, `fleet` itself.
+fn node_fleet(
+    fleet: &Arc<Fleet>,
+    profile: Option<&CameraProfile>,
+    seed: u64,
+) -> Result<Arc<Fleet>, EvalError> {
+    let Some(profile) = profile else {
+        return Ok(fleet.clone());
+    };
+    for v in &fleet.vehicles {
+        if let Some(cam) = v.cameras.iter().find(|c| c.port.is_some()) {
+            return Err(EvalError::Setup(format!(
+                "vehicle {} camera {}: the fleet gives a flat port and the profile adds \
+                 its own; the swarm through a profile takes in-water cameras",
+                v.id, cam.name
+            )));
+        }
+    }
+    let mut held = (**fleet).clone();
+    for v in &mut held.vehicles {
+        for (c, cam) in v.cameras.iter_mut().enumerate() {
+            cam.model = super::profiles::node_camera(
+                profile,
+                &cam.model,
+                camera_seed(seed, v.id, c as u8, 0),
+            )?;
+        }
+    }
+    Ok(Arc::new(held))
+}
+
+/// One camera's frame at the start of `world`'s next `DT_S`: through
+/// `profile` over the swarm's motion during the exposure, else the ideal
+/// render at that instant. Also the seconds after the start the frame's
+/// ground truth refers to.
+#[allow(clippy::too_many_arguments)]
+fn render_camera(
+    renderer: &mut Renderer,
+    profile: Option<&CameraProfile>,
+    fleet: &Fleet,
+    world: &SwarmWorld,
+    (v, cam): (VehicleId, u8),
+    water: &WaterParams,
+    k: u64,
+    seed: u64,
+) -> Result<(RenderOutput, f64), EvalError> {
+    let time_s = world.time_ns() as f64 * 1e-9;
+    let Some(profile) = profile else {
+        let truth = world.truth();
+        let out = render_fleet_view(renderer, fleet, &truth, v, cam, water, time_s, k, seed)?;
+        return Ok((out, 0.0));
+    };
+    let camera = &fleet
+        .vehicle(v)
+        .and_then(|x| x.cameras.get(cam as usize))
+        .ok_or_else(|| EvalError::Setup(format!("vehicle {v} has no camera {cam}")))?;
+    let timeline = FleetTimeline {
+        fleet,
+        world: world.clone(),
+        vehicle: v,
+        camera_index: cam,
+    };
+    let f = render_profiled(
+        renderer,
+        profile,
+        &camera.model,
+        camera.port.as_ref(),
+        &timeline,
+        water,
+        time_s,
+        seed,
+    )?;
+    Ok((f.output, f.report.reference_s))
+}
+
 fn run_trial(
     opts: &EvalOptions,
     fleet: &Arc<Fleet>,
@@ -64,6 +160,8 @@ fn run_trial(
     let mut world = SwarmWorld::new(fleet, Formation::Line, spacing_m, opts.seed)
         .map_err(|e| EvalError::Setup(e.to_string()))?;
     let mut renderer = Renderer::new();
+    let profile = opts.profile.clone().map(|p| p.with_seed(opts.seed));
+    let held = node_fleet(fleet, profile.as_ref(), opts.seed)?;
     let setup = |e: shoal_node::pipeline::PipelineError| EvalError::Setup(e.to_string());
     let mut pipelines = Vec::new();
     for v in &fleet.vehicles {
@@ -72,10 +170,11 @@ fn run_trial(
                 v.id,
                 c as u8,
                 CameraPipeline::new(
-                    fleet.clone(),
+                    held.clone(),
                     v.id,
                     c as u8,
                     PipelineParams {
+                        restore: opts.restore,
                         restore_params: opts.restore_params.clone(),
                         ..PipelineParams::default()
                     },
@@ -84,7 +183,7 @@ fn run_trial(
             ));
         }
     }
-    let mut fusion = Fusion::new(fleet, FusionParams::default(), "eval");
+    let mut fusion = Fusion::new(&held, FusionParams::default(), "eval");
     let ids: Vec<VehicleId> = fleet.vehicles.iter().map(|v| v.id).collect();
     let mut trial = Trial {
         camera_ms: Vec::new(),
@@ -97,23 +196,32 @@ fn run_trial(
     let bar = opts.bar(frames, what);
     for k in 0..frames {
         world.step(DT_S);
-        let truth = world.truth();
-        let stamp_ns = world.time_ns();
-        let time_s = stamp_ns as f64 * 1e-9;
-        let mut per_vehicle: BTreeMap<VehicleId, f64> = BTreeMap::new();
-        for (v, cam, pipeline) in pipelines.iter_mut() {
-            let seed = opts.seed ^ ((*v as u64) << 40) ^ ((*cam as u64) << 32) ^ k as u64;
-            let frame = render_fleet_view(
+        // Every camera's exposure has the same reference time (one profile).
+        let mut reference_s = 0.0;
+        let mut rendered = Vec::with_capacity(pipelines.len());
+        for (v, cam, _) in &pipelines {
+            let seed = camera_seed(opts.seed, *v, *cam, k as u64);
+            let (frame, r) = render_camera(
                 &mut renderer,
+                profile.as_ref(),
                 fleet,
-                &truth,
-                *v,
-                *cam,
+                &world,
+                (*v, *cam),
                 &water,
-                time_s,
                 k as u64,
                 seed,
             )?;
+            reference_s = r;
+            rendered.push(frame);
+        }
+        let mut at_reference = world.clone();
+        if reference_s > 0.0 {
+            at_reference.step(reference_s);
+        }
+        let truth = at_reference.truth();
+        let stamp_ns = at_reference.time_ns();
+        let mut per_vehicle: BTreeMap<VehicleId, f64> = BTreeMap::new();
+        for ((v, _cam, pipeline), frame) in pipelines.iter_mut().zip(&rendered) {
             let mat = shoal_node::mat::gray_as_mat(&frame.image)?;
             let owned = mat.try_clone().map_err(shoal_node::mat::MatError::from)?;
             let out = pipeline
@@ -210,7 +318,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     csv.write(&opts.out.join("swarm-pairs.csv"))?;
 
     // Range sweep: the largest spacing at which each vehicle is Live in at least half the maps.
-    let mut sweep_csv = Csv::new(&["spacing_m", "vehicle", "maps_live", "maps"]);
+    let mut sweep_csv = Csv::new(&["spacing_m", "vehicle", "maps_live", "maps", "observations"]);
     let mut largest: BTreeMap<VehicleId, f64> = BTreeMap::new();
     let mut live_frac: Vec<Vec<Option<f64>>> = vec![Vec::new(); fleet.vehicles.len()];
     for &s in &sweep {
@@ -228,6 +336,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
                 v.id.to_string(),
                 live.to_string(),
                 t.maps.to_string(),
+                t.observations.to_string(),
             ]);
             let frac = live as f64 / t.maps.max(1) as f64;
             live_frac[vi].push(Some(frac));
@@ -242,7 +351,10 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     let plots = plot_or_warn(plot::bars(
         &opts.out.join("eval-swarm-range"),
         &Grouped {
-            title: format!("Maps in which each vehicle is localized, by formation spacing (c = {WATER_C_PER_M} /m)"),
+            title: format!(
+                "Maps in which each vehicle is localized, by formation spacing (c = {WATER_C_PER_M} /m, {} camera)",
+                opts.profile_name()
+            ),
             x_label: "line-abreast spacing (m)".into(),
             y_label: "fraction of maps Live".into(),
             categories: sweep.iter().map(|s| format!("{s}")).collect(),
@@ -254,7 +366,9 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     Ok(json!({
         "frames": frames,
         "water_c_per_m": WATER_C_PER_M,
-        "setup": "paper fleet (configs/fleets/paper.toml), line abreast 1.75 m, 10 Hz, every camera rendered and run through CameraPipeline (HOIRM, shoal detector, PnP) and one Fusion, no Zenoh",
+        "camera_profile": opts.profile_name(),
+        "restore": opts.restore.name(),
+        "setup": "paper fleet (configs/fleets/paper.toml), line abreast 1.75 m, 10 Hz, every camera rendered and run through CameraPipeline (--restore, default HOIRM; shoal detector; PnP) and one Fusion, no Zenoh",
         "processing": {
             "mean_camera_frame_ms": mean(&main.camera_ms),
             "median_camera_frame_ms": median(&main.camera_ms),
@@ -273,4 +387,71 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
         "paper": { "mean_frame_ms": PAPER_FRAME_MS, "effective_range_m": PAPER_RANGE_M },
         "plots": plots,
     }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn paper_fleet() -> Arc<Fleet> {
+        Arc::new(
+            Fleet::parse(
+                crate::demo::PAPER_FLEET,
+                Path::new("configs/fleets/paper.toml"),
+            )
+            .unwrap(),
+        )
+    }
+
+    /// Through a profile every node holds its own camera's lab calibration
+    /// (in-water pinhole behind the port, off by a per-camera calibration
+    /// error), not the renderer's camera; without one, the fleet itself.
+    #[test]
+    fn each_node_holds_its_own_cameras_calibration_through_a_profile() {
+        let fleet = paper_fleet();
+        assert!(Arc::ptr_eq(&node_fleet(&fleet, None, 3).unwrap(), &fleet));
+        // Two vehicles: ten lab calibrations (each a few hundred ms).
+        let mut two = (*fleet).clone();
+        two.vehicles.truncate(2);
+        let fleet = Arc::new(two);
+        let profile = CameraProfile::realistic().with_seed(3);
+        let held = node_fleet(&fleet, Some(&profile), 3).unwrap();
+        let mut focal = Vec::new();
+        for (v, h) in fleet.vehicles.iter().zip(&held.vehicles) {
+            for (c, hc) in v.cameras.iter().zip(&h.cameras) {
+                assert_eq!(c.body_from_camera, hc.body_from_camera);
+                let rel = hc.model.fx / c.model.fx - 1.0;
+                // The port's lab calibration moves fx by well under 1 %; the
+                // calibration error draws within ±0.3 % (+ the fit's own error).
+                assert!(rel.abs() < 0.01 && rel != 0.0, "{} {}: {rel}", v.id, c.name);
+                focal.push(hc.model.fx);
+            }
+        }
+        focal.sort_by(f64::total_cmp);
+        focal.dedup();
+        assert_eq!(focal.len(), 10, "one draw per camera: {focal:?}");
+        // Deterministic in the seed.
+        let again = node_fleet(&fleet, Some(&profile), 3).unwrap();
+        assert_eq!(
+            again.vehicles[1].cameras[2].model,
+            held.vehicles[1].cameras[2].model
+        );
+    }
+
+    /// A fleet whose cameras already sit behind a port is refused with the
+    /// camera named (the profile would add a second window).
+    #[test]
+    fn a_ported_fleet_through_a_profile_is_refused_by_name() {
+        let mut fleet = (*paper_fleet()).clone();
+        fleet.vehicles[2].cameras[4].port = Some(shoal_proto::FlatPort {
+            distance_m: 0.01,
+            glass_m: 0.008,
+            n_glass: shoal_proto::FlatPort::N_ACRYLIC,
+            n_water: shoal_proto::FlatPort::N_SEA_WATER,
+        });
+        let profile = CameraProfile::realistic();
+        let e = node_fleet(&Arc::new(fleet), Some(&profile), 1).unwrap_err();
+        let msg = e.to_string();
+        assert!(msg.contains("vehicle 17 camera starboard"), "{msg}");
+    }
 }
