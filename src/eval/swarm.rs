@@ -352,8 +352,9 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
         &opts.out.join("eval-swarm-range"),
         &Grouped {
             title: format!(
-                "Maps in which each vehicle is localized, by formation spacing (c = {WATER_C_PER_M} /m, {} camera)",
-                opts.profile_name()
+                "Maps in which each vehicle is localized, by formation spacing (c = {WATER_C_PER_M} /m, {} camera, {})",
+                opts.profile_name(),
+                opts.restore.name()
             ),
             x_label: "line-abreast spacing (m)".into(),
             y_label: "fraction of maps Live".into(),
