@@ -271,6 +271,42 @@ fn reads_the_100_mm_marker_at_the_papers_swarm_range() {
     }
 }
 
+/// What `vehicle`'s starboard camera sees of the paper's fleet line abreast
+/// `spacing_m` apart at 0.5 /m, `time_s` into the run (seed 7, as `shoal
+/// sim render --spacing S --time T --vehicle V`): one frame whose only
+/// visible marker is `marker`.
+fn paper_fleet_view(
+    spacing_m: f64,
+    time_s: f64,
+    vehicle: u32,
+    marker: u32,
+) -> shoal_sim_bridge::render::RenderOutput {
+    use shoal_sim_bridge::render::render_fleet_view;
+    use shoal_sim_bridge::world::{Formation, SwarmWorld};
+    let fleet = shoal_proto::config::Fleet::load(
+        &std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/fleets/paper.toml"),
+    )
+    .unwrap();
+    let mut world = SwarmWorld::new(&fleet, Formation::Line, spacing_m, 7).unwrap();
+    world.step(time_s);
+    let water = WaterParams::preset(0.5);
+    let frame = render_fleet_view(
+        &mut Renderer::new(),
+        &fleet,
+        &world.truth(),
+        vehicle,
+        4,
+        &water,
+        time_s,
+        0,
+        7,
+    )
+    .unwrap();
+    let ids: Vec<u32> = frame.visible.iter().map(|v| v.marker).collect();
+    assert_eq!(ids, vec![marker], "the scene");
+    frame
+}
+
 /// A code square is read again on its refined edges, on the restored and
 /// the raw frame, and a disagreement is settled by the fewer corrected
 /// bits. The paper's fleet 3.5 m abreast at 0.5 /m: vehicle 10's starboard
@@ -283,28 +319,7 @@ fn reads_the_100_mm_marker_at_the_papers_swarm_range() {
 #[test]
 fn a_far_marker_through_hoirm_is_read_as_itself() {
     use shoal_node::restore::{restorer, Method, RestoreParams};
-    use shoal_sim_bridge::render::render_fleet_view;
-    use shoal_sim_bridge::world::{Formation, SwarmWorld};
-    let fleet = shoal_proto::config::Fleet::load(
-        &std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/fleets/paper.toml"),
-    )
-    .unwrap();
-    let world = SwarmWorld::new(&fleet, Formation::Line, 3.5, 7).unwrap();
-    let water = WaterParams::preset(0.5);
-    let frame = render_fleet_view(
-        &mut Renderer::new(),
-        &fleet,
-        &world.truth(),
-        10,
-        4,
-        &water,
-        0.0,
-        0,
-        7,
-    )
-    .unwrap();
-    let ids: Vec<u32> = frame.visible.iter().map(|v| v.marker).collect();
-    assert_eq!(ids, vec![35], "the scene");
+    let frame = paper_fleet_view(3.5, 0.0, 10, 35);
     let raw = shoal_node::mat::gray_to_mat(&frame.image).unwrap();
     let restored = restorer(Method::Hoirm, &RestoreParams::default())
         .restore(&raw, 0)
@@ -324,29 +339,7 @@ fn a_far_marker_through_hoirm_is_read_as_itself() {
 /// per module), which only the blob's window finds.
 #[test]
 fn a_far_markers_broken_contour_is_searched_again_at_full_resolution() {
-    use shoal_sim_bridge::render::render_fleet_view;
-    use shoal_sim_bridge::world::{Formation, SwarmWorld};
-    let fleet = shoal_proto::config::Fleet::load(
-        &std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/fleets/paper.toml"),
-    )
-    .unwrap();
-    let mut world = SwarmWorld::new(&fleet, Formation::Line, 4.5, 7).unwrap();
-    world.step(0.1);
-    let water = WaterParams::preset(0.5);
-    let frame = render_fleet_view(
-        &mut Renderer::new(),
-        &fleet,
-        &world.truth(),
-        15,
-        4,
-        &water,
-        0.1,
-        0,
-        7,
-    )
-    .unwrap();
-    let ids: Vec<u32> = frame.visible.iter().map(|v| v.marker).collect();
-    assert_eq!(ids, vec![37], "the scene");
+    let frame = paper_fleet_view(4.5, 0.1, 15, 37);
     let found = ShoalDetector::new(CodeSet::Shoal, DetectParams::default())
         .detect_gray(&frame.image)
         .unwrap();

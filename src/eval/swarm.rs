@@ -149,9 +149,12 @@ fn render_camera(
     Ok((f.output, f.report.reference_s))
 }
 
+/// One trial: `fleet` rendered (through `profile`, seeded), `held` the
+/// cameras as the nodes hold them ([`node_fleet`]).
 fn run_trial(
     opts: &EvalOptions,
-    fleet: &Arc<Fleet>,
+    (fleet, held): (&Arc<Fleet>, &Arc<Fleet>),
+    profile: Option<&CameraProfile>,
     spacing_m: f64,
     frames: usize,
     what: &str,
@@ -160,8 +163,6 @@ fn run_trial(
     let mut world = SwarmWorld::new(fleet, Formation::Line, spacing_m, opts.seed)
         .map_err(|e| EvalError::Setup(e.to_string()))?;
     let mut renderer = Renderer::new();
-    let profile = opts.profile.clone().map(|p| p.with_seed(opts.seed));
-    let held = node_fleet(fleet, profile.as_ref(), opts.seed)?;
     let setup = |e: shoal_node::pipeline::PipelineError| EvalError::Setup(e.to_string());
     let mut pipelines = Vec::new();
     for v in &fleet.vehicles {
@@ -183,7 +184,7 @@ fn run_trial(
             ));
         }
     }
-    let mut fusion = Fusion::new(&held, FusionParams::default(), "eval");
+    let mut fusion = Fusion::new(held, FusionParams::default(), "eval");
     let ids: Vec<VehicleId> = fleet.vehicles.iter().map(|v| v.id).collect();
     let mut trial = Trial {
         camera_ms: Vec::new(),
@@ -203,7 +204,7 @@ fn run_trial(
             let seed = camera_seed(opts.seed, *v, *cam, k as u64);
             let (frame, r) = render_camera(
                 &mut renderer,
-                profile.as_ref(),
+                profile,
                 fleet,
                 &world,
                 (*v, *cam),
@@ -285,7 +286,19 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
         )
         .map_err(|e| EvalError::Setup(e.to_string()))?,
     );
-    let main = run_trial(opts, &fleet, SWEEP_M[0], frames, "swarm: frames")?;
+    // Drawn once: the profile's seed, and the nodes' calibrations (a lab
+    // calibration each through the port: ~0.4 s per camera).
+    let profile = opts.profile.clone().map(|p| p.with_seed(opts.seed));
+    let held = node_fleet(&fleet, profile.as_ref(), opts.seed)?;
+    let fleets = (&fleet, &held);
+    let main = run_trial(
+        opts,
+        fleets,
+        profile.as_ref(),
+        SWEEP_M[0],
+        frames,
+        "swarm: frames",
+    )?;
 
     let mut pairs = Map::new();
     let mut csv = Csv::new(&[
@@ -324,7 +337,8 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     for &s in &sweep {
         let t = run_trial(
             opts,
-            &fleet,
+            fleets,
+            profile.as_ref(),
             s,
             sweep_frames,
             &format!("swarm: spacing {s} m"),
