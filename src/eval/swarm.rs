@@ -267,6 +267,41 @@ fn run_trial(
     Ok(trial)
 }
 
+/// Every pair's fused errors over the trial's maps: written to
+/// `swarm-pairs.csv` in `out`, returned for the summary.
+fn pair_errors(main: &Trial, out: &Path) -> Result<Map<String, Value>, EvalError> {
+    let mut pairs = Map::new();
+    let mut csv = Csv::new(&[
+        "pair",
+        "maps_localized",
+        "median_position_error_mm",
+        "p90_position_error_mm",
+        "median_angle_error_deg",
+    ]);
+    for ((a, b), errs) in &main.pair_errors {
+        let d: Vec<f64> = errs.iter().map(|e| e.0 * 1e3).collect();
+        let g: Vec<f64> = errs.iter().map(|e| e.1).collect();
+        csv.row(vec![
+            format!("{a}-{b}"),
+            errs.len().to_string(),
+            format!("{:.3}", median(&d).unwrap_or(f64::NAN)),
+            format!("{:.3}", quantile(&d, 0.9).unwrap_or(f64::NAN)),
+            format!("{:.4}", median(&g).unwrap_or(f64::NAN)),
+        ]);
+        pairs.insert(
+            format!("{a}-{b}"),
+            json!({
+                "maps_localized": errs.len(),
+                "median_position_error_mm": median(&d),
+                "p90_position_error_mm": quantile(&d, 0.9),
+                "median_angle_error_deg": median(&g),
+            }),
+        );
+    }
+    csv.write(&out.join("swarm-pairs.csv"))?;
+    Ok(pairs)
+}
+
 pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     let frames = opts.count(2, 100);
     let sweep_frames = if opts.quick {
@@ -300,35 +335,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
         "swarm: frames",
     )?;
 
-    let mut pairs = Map::new();
-    let mut csv = Csv::new(&[
-        "pair",
-        "maps_localized",
-        "median_position_error_mm",
-        "p90_position_error_mm",
-        "median_angle_error_deg",
-    ]);
-    for ((a, b), errs) in &main.pair_errors {
-        let d: Vec<f64> = errs.iter().map(|e| e.0 * 1e3).collect();
-        let g: Vec<f64> = errs.iter().map(|e| e.1).collect();
-        csv.row(vec![
-            format!("{a}-{b}"),
-            errs.len().to_string(),
-            format!("{:.3}", median(&d).unwrap_or(f64::NAN)),
-            format!("{:.3}", quantile(&d, 0.9).unwrap_or(f64::NAN)),
-            format!("{:.4}", median(&g).unwrap_or(f64::NAN)),
-        ]);
-        pairs.insert(
-            format!("{a}-{b}"),
-            json!({
-                "maps_localized": errs.len(),
-                "median_position_error_mm": median(&d),
-                "p90_position_error_mm": quantile(&d, 0.9),
-                "median_angle_error_deg": median(&g),
-            }),
-        );
-    }
-    csv.write(&opts.out.join("swarm-pairs.csv"))?;
+    let pairs = pair_errors(&main, &opts.out)?;
 
     // Range sweep: the largest spacing at which each vehicle is Live in at least half the maps.
     let mut sweep_csv = Csv::new(&["spacing_m", "vehicle", "maps_live", "maps", "observations"]);
