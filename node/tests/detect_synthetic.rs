@@ -311,7 +311,7 @@ fn paper_fleet_view(
 /// the raw frame, and a disagreement is settled by the fewer corrected
 /// bits. The paper's fleet 3.5 m abreast at 0.5 /m: vehicle 10's starboard
 /// camera sees marker 35 (vehicle 15's port side) at 3.46 m. HOIRM
-/// estimates 4.2 /m in this scene, hands the detector its smoothed level
+/// estimates 3.3 /m in this scene, hands the detector its smoothed level
 /// and rings the 3.7 px modules; the contour of the half-resolution level
 /// is a module off, and its grid read one corrected bit from marker 17 —
 /// a fleet ID, a wrong read. On its refined edges the raw frame reads 35
