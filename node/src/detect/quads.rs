@@ -438,7 +438,8 @@ enum Shape {
 /// [`DetectParams::min_contrast`] ([`SumTable::contrast`]). A far marker's blob
 /// (half dark, in its white quiet zone) is ~6.5 grey levels below its
 /// surround on the 1440x1080 camera at 0.5 /m and 5 m; the sensor noise's
-/// speckle blobs, of the same size and shape, are within 1.1 (seeds 7–9).
+/// speckle blobs, of the same size and shape, are within 1.1 (four
+/// rendered fleet frames; `docs/detector.md`, *The paper's swarm range*).
 const BLOB_CONTRAST: f64 = 0.5;
 
 /// A summed-area table of a level, built on first use (the blob test).
@@ -579,11 +580,10 @@ fn contour_quad(
 /// [`DetectParams::max_full_res_regions`], smallest first: the large ones
 /// were readable at the level); so is every blob of the level
 /// ([`find_quads_and_blobs`]), passed among `undecoded`. Returns the quads
-/// not already in `quads`,
-/// but for those of `undecoded` themselves: found again at full
-/// resolution, their corners are a level's half pixel sharper, which is
-/// what a module of ~1.5 px at the level needs to read (a 100 mm marker
-/// from 3.5 m on, 1440x1080, 60°).
+/// not already in `quads`, but for those of `undecoded` themselves: found
+/// again at full resolution, their corners are a level's half pixel
+/// sharper, which is what a module of ~1.5 px at the level needs to read
+/// (a 100 mm marker from 3.5 m on, 1440x1080, 60°).
 pub fn full_res_quads(
     params: &DetectParams,
     view: &GrayView<'_>,
