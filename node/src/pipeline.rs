@@ -11,9 +11,9 @@ use crate::detect::{
 use crate::pose::{
     calibration_covariance, corner_covariance, estimate_pose_with, Hypothesis, PoseError,
 };
-use crate::restore::{restorer, Method, RestoreError, RestoreParams, Restorer};
+use crate::restore::{restorer, Method, RestoreError, RestoreParams, Restored, Restorer};
 use crate::track::{Track, TrackParams};
-use opencv::core::Mat;
+use opencv::core::{Mat, Rect};
 use shoal_proto::config::{Camera, Fleet, MarkerOwner};
 use shoal_proto::geometry::{Cov6, Pose, PoseWithCovariance};
 use shoal_proto::marker::{CodeSet, MarkerId};
@@ -61,6 +61,67 @@ pub enum PipelineError {
     Detect(#[from] DetectError),
 }
 
+/// Markers found in one restored frame ([`detect_restoration`]).
+#[derive(Debug, Default)]
+pub struct Found {
+    pub detections: Vec<Detection>,
+    /// Of them, read on the detail-keeping restoration of a region where
+    /// the frame's restoration read nothing ([`Restored::fine`]).
+    pub fine_reads: usize,
+}
+
+/// Find markers in `restored`, the restoration of `raw`: in its image, then,
+/// where it gave up detail in a region ([`Restored::fine`]: smoothed, or
+/// deconvolved with the scatter halo alone) and no marker was read there,
+/// in the region's detail-keeping restoration, keeping what is read inside
+/// such a region. A far marker's 2–4 px modules do not survive the first
+/// and a turbid frame's noise is what the second leaves in, so the frame
+/// is searched first as restored for the water, and again only where that
+/// read nothing.
+pub fn detect_restoration<D: MarkerDetector + ?Sized>(
+    detector: &mut D,
+    restored: &Restored,
+    raw: &Mat,
+) -> Result<Found, PipelineError> {
+    let mut found = Found {
+        detections: detector.detect_restored(&restored.image, raw)?,
+        ..Found::default()
+    };
+    let Some(fine) = &restored.fine else {
+        return Ok(found);
+    };
+    let unread: Vec<Rect> = fine
+        .regions
+        .iter()
+        .copied()
+        .filter(|r| !found.detections.iter().any(|d| inside(d, *r)))
+        .collect();
+    if unread.is_empty() {
+        return Ok(found);
+    }
+    let image = fine.image(&restored.image, raw, &unread)?;
+    for d in detector.detect_restored(&image, raw)? {
+        if unread.iter().any(|r| inside(&d, *r)) {
+            found.fine_reads += 1;
+            found.detections.push(d);
+        }
+    }
+    Ok(found)
+}
+
+/// Whether the centre of `d`'s corners lies in `r`.
+fn inside(d: &Detection, r: Rect) -> bool {
+    let n = d.corners_px.len().max(1) as f64;
+    let (x, y) = d
+        .corners_px
+        .iter()
+        .fold((0.0, 0.0), |(x, y), c| (x + c[0] / n, y + c[1] / n));
+    x >= f64::from(r.x)
+        && y >= f64::from(r.y)
+        && x < f64::from(r.x + r.width)
+        && y < f64::from(r.y + r.height)
+}
+
 /// What one frame produced.
 #[derive(Debug, Default)]
 pub struct FrameOutput {
@@ -71,6 +132,8 @@ pub struct FrameOutput {
     /// The detections per corner fit ([`crate::detect::CornerFit`]): which
     /// fits ran, for the node's status.
     pub corner_fits: CornerFitCounts,
+    /// Of `detections`, read only on the detail-keeping restoration ([`detect_restoration`]).
+    pub fine_reads: usize,
     /// Detections dropped: PnP failed, or the marker size is unknown.
     pub pose_failures: Vec<String>,
     pub restore_ms: f64,
@@ -150,9 +213,11 @@ impl CameraPipeline {
         let t0 = Instant::now();
         let restored = self.restorer.restore(gray, stamp_ns)?;
         let t1 = Instant::now();
-        let detections = self.detector.detect_restored(&restored.image, gray)?;
+        let found = detect_restoration(&mut self.detector, &restored, gray)?;
+        let detections = found.detections;
         let t2 = Instant::now();
         out.detections = detections.len();
+        out.fine_reads = found.fine_reads;
         out.corner_fits = detections.iter().collect();
         // The frame's figures; the marker's own contrast is added per
         // detection (and stays 0 on predictions, where no marker was seen).

@@ -161,6 +161,18 @@ pub struct RestoreParams {
     pub white_over_veil: f64,
     /// Part of `c` that is small-angle forward scatter (still reaches the camera), for the `c` estimate.
     pub forward_scatter_fraction: f64,
+    /// Deconvolve the PSF mixed with the unscattered light, `e^{−s·c·d_ref}`
+    /// of it sharp (`psf::GgPsf::direct`), in the frame's restoration too;
+    /// `false` (default): Eq. (14)'s PSF alone, as the paper writes it, whose
+    /// filter also suppresses noise finer than the halo (what turbid water
+    /// needs) and erases detail as fine (what a far marker needs; the
+    /// detail-keeping restoration, `fine_pass`, always keeps the unscattered
+    /// part). See docs/restoration.md, "Fine detail".
+    pub psf_unscattered: bool,
+    /// Where the restoration smoothed or deconvolved a region and no marker
+    /// was read in it, search the region's detail-keeping restoration
+    /// (no smoothing, the unscattered part kept) too.
+    pub fine_pass: bool,
     /// Grey level the 99.5th percentile of `I − B_L` is stretched to (global de-attenuation, 1/t).
     pub stretch_target: f64,
     /// Largest global de-attenuation gain.
@@ -242,6 +254,8 @@ impl Default for RestoreParams {
             reference_range_m: 0.6,
             white_over_veil: 0.5,
             forward_scatter_fraction: 0.3,
+            psf_unscattered: false,
+            fine_pass: true,
             stretch_target: 235.0,
             stretch_max_gain: 6.0,
             max_pyramid_level: 3,
@@ -413,6 +427,11 @@ pub struct Restored {
     pub rois: Vec<Rect>,
     /// Intermediate stages `(name, full-res 8-bit image)` when `keep_stages`.
     pub stages: Option<Vec<(String, Mat)>>,
+    /// HOIRM: the regions where this restoration gave up detail (smoothed
+    /// them, or deconvolved them with the scatter halo alone), and how to
+    /// restore them again keeping it; searched where nothing was read there
+    /// ([`crate::pipeline::detect_restoration`]). `None` elsewhere.
+    pub fine: Option<hoirm::FineRestoration>,
 }
 
 /// Errors of restoration.
@@ -438,6 +457,11 @@ pub enum RestoreError {
     File(#[from] crate::image_file::ImageError),
     #[error("cannot write image {path}: {reason}")]
     Write { path: String, reason: String },
+    #[error("the fine restoration needs the frame it was made from: {restored:?} restored, {given:?} given")]
+    FrameMismatch {
+        restored: (i32, i32),
+        given: (i32, i32),
+    },
     #[error("OpenCV")]
     OpenCv(#[from] opencv::Error),
 }

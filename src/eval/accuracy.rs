@@ -130,7 +130,7 @@ pub fn run_conditions(
                                 codes.name()
                             ),
                             &frame.image,
-                            &r,
+                            &r.image,
                             opts.restore,
                         )?;
                     }

@@ -13,7 +13,8 @@ use super::table::Csv;
 use super::{water_key, EvalError, EvalOptions};
 use rand::Rng;
 use serde_json::{json, Map, Value};
-use shoal_node::detect::{DetectParams, MarkerDetector, ShoalDetector};
+use shoal_node::detect::{DetectParams, ShoalDetector};
+use shoal_node::pipeline::detect_restoration;
 use shoal_node::restore::Method;
 use shoal_proto::{CameraModel, CodeSet};
 use shoal_sim_bridge::render::Renderer;
@@ -97,17 +98,17 @@ pub fn success_rates(
             let raw = shoal_node::mat::gray_to_mat(&frame.image)
                 .map_err(shoal_node::detect::DetectError::from)?;
             for (mi, r) in restorers.iter_mut().enumerate() {
-                let img = restore(r.as_mut(), &frame.image, (time_s * 1e9) as u64)?;
+                let restored = restore(r.as_mut(), &frame.image, (time_s * 1e9) as u64)?;
                 if opts.save_frames && k == 0 {
                     save_frame_pair(
                         opts,
                         &format!("c{}", water_key(c)),
                         &frame.image,
-                        &img,
+                        &restored.image,
                         methods[mi],
                     )?;
                 }
-                let dets = detector.detect_restored(&img, &raw)?;
+                let dets = detect_restoration(&mut detector, &restored, &raw)?.detections;
                 let decoded = dets.iter().any(|d| d.id == MARKER_ID);
                 let wrong = dets.iter().filter(|d| d.id != MARKER_ID).count();
                 successes[mi][wi] += usize::from(decoded);

@@ -289,6 +289,9 @@ pub enum EvalError {
     Restore(#[from] shoal_node::restore::RestoreError),
     #[error("detection: {0}")]
     Detect(#[from] shoal_node::detect::DetectError),
+    /// Restoring and detecting as the node does (its messages name the stage).
+    #[error("{0}")]
+    Pipeline(#[from] shoal_node::pipeline::PipelineError),
     #[error("image: {0}")]
     Image(#[from] shoal_node::mat::MatError),
     #[error("image metric: {0}")]

@@ -25,6 +25,7 @@
 use super::{EvalError, EvalOptions};
 use serde_json::{json, Value};
 use shoal_node::pipeline::{CameraPipeline, PipelineParams};
+use shoal_node::restore::RestoreParams;
 use shoal_node::vehicle::{spawn_camera, LocalInput, NodeStats};
 use shoal_proto::config::Fleet;
 use shoal_proto::messages::{CameraFrame, CameraInfo, PixelFormat};
@@ -175,9 +176,10 @@ fn render_frames(
 }
 
 /// Feed `frames` (per camera) through the node's camera threads at
-/// `rate_hz` for `seconds` of wall time.
+/// `rate_hz` for `seconds` of wall time, each restoring with `restore`.
 pub fn run_rate(
     fleet: &Arc<Fleet>,
+    restore: &RestoreParams,
     frames: &[Vec<CameraFrame>],
     water_c: f64,
     rate_hz: f64,
@@ -193,9 +195,12 @@ pub fn run_rate(
     let mut inputs = Vec::new();
     let mut threads = Vec::new();
     for i in 0..frames.len() {
-        let pipeline =
-            CameraPipeline::new(fleet.clone(), VEHICLE, i as u8, PipelineParams::default())
-                .map_err(|e| EvalError::Setup(e.to_string()))?;
+        let params = PipelineParams {
+            restore_params: restore.clone(),
+            ..PipelineParams::default()
+        };
+        let pipeline = CameraPipeline::new(fleet.clone(), VEHICLE, i as u8, params)
+            .map_err(|e| EvalError::Setup(e.to_string()))?;
         let input = LocalInput::new(QUEUE);
         inputs.push(input.clone());
         let seen = observations.clone();
@@ -292,7 +297,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
             "node-rate: {c} /m, {} cameras at {RATE_HZ} frames/s for {seconds} s",
             frames.len()
         );
-        let r = run_rate(&fleet, &frames, c, RATE_HZ, seconds)?;
+        let r = run_rate(&fleet, &opts.restore_params, &frames, c, RATE_HZ, seconds)?;
         table.push_str(&format!(
             "| {c} | {:?} {} m | {} | {:.0} | {:.2} | {} ({:.1} %) | {} | {} | {} | {} | {} | {} / {} |\n",
             scene.1,

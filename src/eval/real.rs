@@ -47,6 +47,7 @@ use serde_json::{json, Value};
 use shoal_node::baseline::{AprilTag, OpenCvAruco};
 use shoal_node::detect::{DetectParams, MarkerDetector, ShoalDetector};
 use shoal_node::image_file;
+use shoal_node::pipeline::detect_restoration;
 use shoal_node::pose::estimate_pose;
 use shoal_node::restore::{restorer, Method, RestoreParams, Restorer};
 use shoal_proto::camera::CameraModel;
@@ -76,7 +77,7 @@ impl Runner {
         match self.restorer.as_mut() {
             Some(r) => {
                 let restored = r.restore(gray, stamp_ns)?;
-                Ok(self.detector.detect_restored(&restored.image, gray)?)
+                Ok(detect_restoration(self.detector.as_mut(), &restored, gray)?.detections)
             }
             None if self.raw_fit => Ok(self.detector.detect_restored(gray, gray)?),
             None => Ok(self.detector.detect(gray)?),

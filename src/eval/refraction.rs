@@ -41,6 +41,7 @@ use opencv::prelude::*;
 use rand::Rng;
 use rand_distr::{Distribution, Normal};
 use serde_json::{json, Map, Value};
+use shoal_node::pipeline::detect_restoration;
 use shoal_node::pose::{estimate_pose, estimate_pose_with};
 use shoal_proto::camera::{CameraModel, Distortion, FlatPort};
 use shoal_proto::geometry::{pose_from_xyz_rpy, Pose};
@@ -301,7 +302,7 @@ fn run_frames(opts: &EvalOptions, plan: &Plan, lab: &CameraModel) -> Result<Vec<
                     let raw = shoal_node::mat::gray_to_mat(&out.image)
                         .map_err(shoal_node::detect::DetectError::from)?;
                     let restored = restore(restorer.as_mut(), &out.image, (time_s * 1e9) as u64)?;
-                    let dets = detector.detect_restored(&restored, &raw)?;
+                    let dets = detect_restoration(detector.as_mut(), &restored, &raw)?.detections;
                     let best = dets
                         .iter()
                         .filter(|d| d.id == MARKER_ID)

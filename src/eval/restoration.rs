@@ -126,7 +126,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
             let (white, black) = (crop(&white, width, roi), crop(&black, width, roi));
             for (mi, r) in restorers.iter_mut().enumerate() {
                 let restored = restore(r.as_mut(), &frame.image, (time_s * 1e9) as u64)?;
-                let img = cut(&gray_from_mat(&restored)?);
+                let img = cut(&gray_from_mat(&restored.image)?);
                 let s = ssim(&img, &clean)?;
                 let p = psnr(&img, &clean)?;
                 let n = cnr(&img, &white, &black).ok();

@@ -14,8 +14,9 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use shoal_node::baseline::{AprilTag, OpenCvAruco};
 use shoal_node::detect::{DetectParams, MarkerDetector, ShoalDetector};
+use shoal_node::pipeline::detect_restoration;
 use shoal_node::pose::estimate_pose;
-use shoal_node::restore::{restorer, Method, RestoreParams, Restorer};
+use shoal_node::restore::{restorer, Method, RestoreParams, Restored, Restorer};
 use shoal_proto::geometry::Pose;
 use shoal_proto::{CameraModel, CodeSet, GrayImage, MarkerId};
 use shoal_sim_bridge::profile::CameraProfile;
@@ -178,15 +179,15 @@ pub fn make_restorer(method: Method, params: &RestoreParams) -> Box<dyn Restorer
     restorer(method, params)
 }
 
-/// Restore a rendered frame; returns the full-resolution restored `Mat`.
+/// Restore a rendered frame.
 pub fn restore(
     restorer: &mut dyn Restorer,
     img: &GrayImage,
     stamp_ns: u64,
-) -> Result<Mat, EvalError> {
+) -> Result<Restored, EvalError> {
     let mat = shoal_node::mat::gray_as_mat(img)?;
     let owned = mat.try_clone().map_err(shoal_node::mat::MatError::from)?;
-    Ok(restorer.restore(&owned, stamp_ns)?.image)
+    Ok(restorer.restore(&owned, stamp_ns)?)
 }
 
 /// What one detector made of one frame.
@@ -204,15 +205,16 @@ pub struct Located {
     pub detect_ms: f64,
 }
 
-/// Detect in `restored` and solve the pose of marker #[`MARKER_ID`].
+/// Detect in `restored` (as the node does: [`detect_restoration`]) and
+/// solve the pose of marker #[`MARKER_ID`].
 pub fn locate(
     detector: &mut dyn MarkerDetector,
-    restored: &Mat,
+    restored: &Restored,
     raw: &Mat,
     cam: &CameraModel,
 ) -> Result<Located, EvalError> {
     let t0 = std::time::Instant::now();
-    let dets = detector.detect_restored(restored, raw)?;
+    let dets = detect_restoration(detector, restored, raw)?.detections;
     let detect_ms = t0.elapsed().as_secs_f64() * 1e3;
     let wrong_ids = dets.iter().filter(|d| d.id != MARKER_ID).count();
     // Prefer the detection with the most corners (a full enhanced marker over its code square alone).

@@ -52,6 +52,7 @@ impl Degradation {
             psf: GgPsf {
                 p,
                 sigma_px: scale_px / ratio,
+                direct: 0.0,
             },
             direct_fraction: (-0.3 * c * r).exp(),
             noise_sigma: 1.5 + 0.25 * c,

@@ -54,6 +54,7 @@ fn finish(
         backscatter: b,
         rois: vec![frame],
         stages: params.keep_stages.then_some(stages),
+        fine: None,
     })
 }
 

@@ -37,6 +37,7 @@ use super::{
 use opencv::core::{self, Mat, Rect, CV_32F, CV_8U};
 use opencv::imgproc;
 use opencv::prelude::*;
+use std::sync::{Arc, Mutex, PoisonError};
 
 /// Down-sampling of the level used for the water estimate, ambient light and ROI search.
 pub const COARSE_FACTOR: i32 = 8;
@@ -63,6 +64,65 @@ pub struct Hoirm {
     params: RestoreParams,
     ambient: AmbientLight,
     wiener: Wiener,
+    /// The filter cache of the frames' [`FineRestoration`]s.
+    fine_wiener: Arc<Mutex<Wiener>>,
+}
+
+/// How to restore again, keeping detail, the regions where HOIRM gave it
+/// up in one frame: there it smoothed the region (denoising, for edges weak
+/// against the noise) or deconvolved it with Eq. (14)'s halo alone, whose
+/// Wiener filter cuts every frequency the halo does not pass. Both serve a
+/// marker whose modules are wider than the halo (turbid water, a marker
+/// near) and erase one whose modules are 2–4 px (a marker metres away in
+/// clear water), and the image does not tell which is in view. Here the
+/// region is restored with neither: no smoothing, and the PSF with its
+/// unscattered part (`psf::GgPsf::direct`), whose spectrum keeps the fine
+/// detail, deconvolved at full resolution (`docs/restoration.md`, "Fine
+/// detail").
+#[derive(Debug, Clone)]
+pub struct FineRestoration {
+    /// The regions that gave up detail (full-resolution pixels).
+    pub regions: Vec<Rect>,
+    /// The ambient light at the coarse level, scaled by α (f32).
+    bl_coarse_f: Mat,
+    gain: f64,
+    /// CLAHE's clip limit, over the gain (not raised for denoising).
+    clip: f64,
+    /// Eq. (14)'s PSF with the unscattered part.
+    psf: GgPsf,
+    deblur: bool,
+    params: RestoreParams,
+    wiener: Arc<Mutex<Wiener>>,
+}
+
+impl FineRestoration {
+    /// `image` (the frame's restoration) with `regions` (normally some of
+    /// [`Self::regions`]) restored again from `gray`, the frame it was
+    /// restored from, keeping their detail.
+    pub fn image(&self, image: &Mat, gray: &Mat, regions: &[Rect]) -> Result<Mat, RestoreError> {
+        let frame = Rect::new(0, 0, gray.cols(), gray.rows());
+        if image.size()? != gray.size()? {
+            return Err(RestoreError::FrameMismatch {
+                restored: (image.cols(), image.rows()),
+                given: (gray.cols(), gray.rows()),
+            });
+        }
+        let mut out = image.try_clone()?;
+        let mut wiener = self.wiener.lock().unwrap_or_else(PoisonError::into_inner);
+        for &r in regions {
+            let r = r & frame;
+            if r.width < 1 || r.height < 1 {
+                continue;
+            }
+            let diff = veil_removed_region(gray, &self.bl_coarse_f, r)?;
+            let view = finish_region(diff, self.gain, 0.0)?;
+            let deblur = self.deblur.then_some(&self.psf);
+            let (_, last) =
+                restore_region_with(&mut wiener, &self.params, &view, self.clip, deblur, None, 0)?;
+            feather_into(&mut out, &last, r, frame)?;
+        }
+        Ok(out)
+    }
 }
 
 /// What every region of one frame is restored with
@@ -108,6 +168,7 @@ impl Hoirm {
             params,
             ambient,
             wiener: Wiener::new(),
+            fine_wiener: Arc::new(Mutex::new(Wiener::new())),
         }
     }
 
@@ -124,98 +185,19 @@ impl Hoirm {
     pub fn parameters_for(&self, c_per_m: f64) -> (f64, GgPsf) {
         let p = water::psf_p(c_per_m, &self.params);
         let sigma_px = water::psf_sigma_px(p, &self.params);
+        let direct = if self.params.psf_unscattered {
+            water::direct_share(c_per_m, &self.params)
+        } else {
+            0.0
+        };
         (
             water::clahe_clip(c_per_m, &self.params),
-            GgPsf { p, sigma_px },
+            GgPsf {
+                p,
+                sigma_px,
+                direct,
+            },
         )
-    }
-
-    /// CLAHE and Wiener deconvolution of one region of the globally
-    /// de-attenuated frame, in the configured order; returns
-    /// `(after the first stage, after both)`.
-    fn restore_region(
-        &mut self,
-        src: &(impl MatTraitConst + core::ToInputArray),
-        clip: f64,
-        psf: Option<&GgPsf>,
-        nsr: Option<f64>,
-        level: u32,
-    ) -> Result<(Mat, Mat), RestoreError> {
-        let tile = self.params.clahe_tile_px;
-        Ok(match (self.params.order, psf) {
-            (StageOrder::Paper, Some(psf)) => {
-                let deatt = clahe(src, clip, tile)?;
-                let deblurred = self.deconvolve(&deatt, psf, nsr, level)?;
-                (deatt, deblurred)
-            }
-            (StageOrder::Physical, Some(psf)) => {
-                let deblurred = self.deconvolve(src, psf, nsr, level)?;
-                let deatt = clahe(&deblurred, clip, tile)?;
-                (deblurred, deatt)
-            }
-            (_, None) => {
-                let deatt = clahe(src, clip, tile)?;
-                (deatt.try_clone()?, deatt)
-            }
-        })
-    }
-
-    /// Wiener deconvolution of a region at pyramid level `deconv_level`:
-    /// the region is `pyrDown`-ed, deconvolved with the PSF scaled to that
-    /// level, and the correction (restored − blurred) is up-sampled and
-    /// added to the full-resolution region. Forward scatter is a
-    /// low-frequency degradation (a halo of σ ≈ 5 px at working range), so
-    /// the correction it needs lies well below the 1/2 level's Nyquist
-    /// frequency, while the frequencies above it — mostly noise — are left
-    /// alone rather than amplified; the DFTs are 4x smaller per level.
-    fn deconvolve(
-        &mut self,
-        src: &(impl MatTraitConst + core::ToInputArray),
-        psf: &GgPsf,
-        nsr_given: Option<f64>,
-        level: u32,
-    ) -> Result<Mat, RestoreError> {
-        if level == 0 {
-            let nsr = match nsr_given {
-                Some(k) => k,
-                None => self.nsr(src)?,
-            };
-            return self.wiener.deconvolve(src, psf, nsr);
-        }
-        let mut small = Mat::default();
-        imgproc::pyr_down_def(src, &mut small)?;
-        for _ in 1..level {
-            let mut next = Mat::default();
-            imgproc::pyr_down_def(&small, &mut next)?;
-            small = next;
-        }
-        let psf_l = GgPsf {
-            p: psf.p,
-            sigma_px: psf.sigma_px / f64::from(1u32 << level),
-        };
-        let nsr = match nsr_given {
-            Some(k) => k,
-            None => self.nsr(&small)?,
-        };
-        let restored = self.wiener.deconvolve(&small, &psf_l, nsr)?;
-        // The restored level, up-sampled: the band above its Nyquist
-        // frequency — mostly CLAHE-amplified noise, which the full-resolution
-        // Wiener filter would suppress anyway — is dropped.
-        upsample_pyramid_level(&restored, level, src.size()?)
-    }
-
-    /// Wiener `K = gain·σ_noise²/σ_signal²`, measured on the region, clamped.
-    /// The noise is read across scales ([`NSR_NOISE_LEVELS`]): noise a codec
-    /// or demosaicing has low-passed hides from a 3x3 mask at full
-    /// resolution, and a filter told the region is clean sharpens it into
-    /// blotches (`docs/restoration.md`, "Water estimate").
-    fn nsr(&self, view: &(impl MatTraitConst + core::ToInputArray)) -> Result<f64, RestoreError> {
-        let noise = water::noise_sigma_across_scales(view, 2, NSR_NOISE_LEVELS)?;
-        let (mut mean, mut std) = (core::Scalar::default(), core::Scalar::default());
-        core::mean_std_dev(view, &mut mean, &mut std, &core::no_array())?;
-        let signal_var = (std[0] * std[0]).max(1e-6);
-        Ok((self.params.nsr_gain * noise * noise / signal_var)
-            .clamp(self.params.nsr_min, self.params.nsr_max))
     }
 
     /// Choose the pyramid level for edge detection on a patch of `img`
@@ -319,13 +301,15 @@ impl Hoirm {
     /// Steps 3b./4. in one region `r` of the frame: the veil removed, the
     /// PSF's width measured when the region's edges tell (pushed to
     /// `measured_sigma`), denoised, de-attenuated and deblurred. Returns
-    /// the region after the first local stage and after both.
+    /// the region after the first local stage and after both, and whether
+    /// it gave up detail (smoothed, or deconvolved with the halo alone or
+    /// on a coarser level: [`FineRestoration`]).
     fn restore_one_region(
         &mut self,
         g: &RegionInputs<'_>,
         r: Rect,
         measured_sigma: &mut Vec<f64>,
-    ) -> Result<(Mat, Mat), RestoreError> {
+    ) -> Result<(Mat, Mat, bool), RestoreError> {
         let diff = veil_removed_region(g.gray, g.bl_coarse_f, r)?;
         // The PSF's width from the region's own edges when they tell
         // (else Eq. (14)'s σ from c), see `psf::edge_blur_sigma_px`.
@@ -340,8 +324,8 @@ impl Hoirm {
             // sharper than Eq. (14)'s σ.
             let trusted = est.filter(|s| *s < self.params.psf_trust_ratio * g.psf.sigma_px);
             GgPsf {
-                p: g.psf.p,
                 sigma_px: trusted.map_or(g.psf.sigma_px, |s| s.max(self.params.psf_min_sigma_px)),
+                ..g.psf
             }
         } else {
             g.psf
@@ -376,7 +360,71 @@ impl Hoirm {
         } else {
             self.params.deconv_level
         };
-        self.restore_region(&view, g.clip, deblur, nsr, level)
+        let lost =
+            g.denoise_sigma > 0.0 || deblur.is_some_and(|psf| psf.direct <= 0.0 || level > 0);
+        let (first, last) = restore_region_with(
+            &mut self.wiener,
+            &self.params,
+            &view,
+            g.clip,
+            deblur,
+            nsr,
+            level,
+        )?;
+        Ok((first, last, lost))
+    }
+
+    /// Steps 3b./4. in every region of `rois`, each feathered into `image`
+    /// (and its first local stage into `first_stage`); returns the PSF
+    /// widths measured on the regions and the regions that gave up detail.
+    fn restore_regions(
+        &mut self,
+        g: &RegionInputs<'_>,
+        rois: &[Rect],
+        image: &mut Mat,
+        mut first_stage: Option<&mut Mat>,
+    ) -> Result<(Vec<f64>, Vec<Rect>), RestoreError> {
+        let frame = Rect::new(0, 0, image.cols(), image.rows());
+        let mut measured_sigma = Vec::new();
+        let mut detail_lost = Vec::new();
+        for &r in rois {
+            let (first, last, lost) = self.restore_one_region(g, r, &mut measured_sigma)?;
+            if lost {
+                detail_lost.push(r);
+            }
+            feather_into(image, &last, r, frame)?;
+            if let Some(st) = first_stage.as_deref_mut() {
+                feather_into(st, &first, r, frame)?;
+            }
+        }
+        Ok((measured_sigma, detail_lost))
+    }
+
+    /// The [`FineRestoration`] of `regions` in water of attenuation `c`:
+    /// the frame's ambient light, gain and undenoised clip limit (over the
+    /// gain), `psf` with its unscattered part.
+    fn fine_restoration(
+        &self,
+        regions: Vec<Rect>,
+        bl_coarse_f: Mat,
+        gain: f64,
+        clip: f64,
+        psf: GgPsf,
+        c: f64,
+    ) -> FineRestoration {
+        FineRestoration {
+            regions,
+            bl_coarse_f,
+            gain,
+            clip,
+            psf: GgPsf {
+                direct: water::direct_share(c, &self.params),
+                ..psf
+            },
+            deblur: c >= self.params.deconv_min_c_per_m,
+            params: self.params.clone(),
+            wiener: Arc::clone(&self.fine_wiener),
+        }
     }
 
     /// Restore one frame and also return the parameters derived for it.
@@ -448,17 +496,13 @@ impl Hoirm {
         // 3b./4. Local de-attenuation (CLAHE) and de-blurring (Wiener), in
         // the regions of interest (feathered into the globally restored
         // frame) or on the whole frame.
-        let frame = Rect::new(0, 0, full.width, full.height);
         let rois = self.regions(gray, &coarse, &water, &psf)?;
         let mut image = global.try_clone()?;
-        let mut first_stage = if keep {
-            Some(global.try_clone()?)
-        } else {
-            None
-        };
+        let mut first_stage = keep.then(|| global.try_clone()).transpose()?;
         // Denoising before the local stretch when the edges are weak
         // against the noise, and the stretch it allows.
         let denoise_sigma = water::denoise_sigma_px(&water, &self.params);
+        let clip_undenoised = clip;
         let clip = if denoise_sigma > 0.0 {
             clip.max(self.params.clahe_contrast_target / water.local_contrast.max(0.5))
         } else {
@@ -466,24 +510,18 @@ impl Hoirm {
         } / gain;
         let mut bl_coarse_f = Mat::default();
         set_mean.convert_to(&mut bl_coarse_f, CV_32F, alpha, 0.0)?;
-        let mut measured_sigma = Vec::new();
-        for &r in &rois {
-            let region = RegionInputs {
-                gray,
-                bl_coarse_f: &bl_coarse_f,
-                water: &water,
-                psf,
-                c,
-                gain,
-                clip,
-                denoise_sigma,
-            };
-            let (first, last) = self.restore_one_region(&region, r, &mut measured_sigma)?;
-            feather_into(&mut image, &last, r, frame)?;
-            if let Some(st) = first_stage.as_mut() {
-                feather_into(st, &first, r, frame)?;
-            }
-        }
+        let region = RegionInputs {
+            gray,
+            bl_coarse_f: &bl_coarse_f,
+            water: &water,
+            psf,
+            c,
+            gain,
+            clip,
+            denoise_sigma,
+        };
+        let (measured_sigma, detail_lost) =
+            self.restore_regions(&region, &rois, &mut image, first_stage.as_mut())?;
         if let Some(st) = first_stage {
             let [first, second] = self.local_stage_names();
             stages.push((first.to_string(), st));
@@ -500,6 +538,16 @@ impl Hoirm {
                 stages.push((format!("pyramid level {pyramid_level}"), up));
             }
         }
+        let fine = (self.params.fine_pass && !detail_lost.is_empty()).then(|| {
+            self.fine_restoration(
+                detail_lost,
+                bl_coarse_f,
+                gain,
+                clip_undenoised / gain,
+                psf,
+                c,
+            )
+        });
         let restored = Restored {
             image,
             pyramid_level,
@@ -508,6 +556,7 @@ impl Hoirm {
             backscatter: water.backscatter,
             rois,
             stages: keep.then_some(stages),
+            fine,
         };
         let frame_params = HoirmFrameParams {
             water,
@@ -537,6 +586,98 @@ fn level_image(image: &Mat, level: u32) -> Result<Option<Mat>, RestoreError> {
     Ok(Some(cur))
 }
 
+/// CLAHE and Wiener deconvolution of one region of the globally
+/// de-attenuated frame, in the configured order; returns
+/// `(after the first stage, after both)`.
+fn restore_region_with(
+    wiener: &mut Wiener,
+    params: &RestoreParams,
+    src: &(impl MatTraitConst + core::ToInputArray),
+    clip: f64,
+    psf: Option<&GgPsf>,
+    nsr: Option<f64>,
+    level: u32,
+) -> Result<(Mat, Mat), RestoreError> {
+    let tile = params.clahe_tile_px;
+    Ok(match (params.order, psf) {
+        (StageOrder::Paper, Some(psf)) => {
+            let deatt = clahe(src, clip, tile)?;
+            let deblurred = deconvolve_with(wiener, params, &deatt, psf, nsr, level)?;
+            (deatt, deblurred)
+        }
+        (StageOrder::Physical, Some(psf)) => {
+            let deblurred = deconvolve_with(wiener, params, src, psf, nsr, level)?;
+            let deatt = clahe(&deblurred, clip, tile)?;
+            (deblurred, deatt)
+        }
+        (_, None) => {
+            let deatt = clahe(src, clip, tile)?;
+            (deatt.try_clone()?, deatt)
+        }
+    })
+}
+
+/// Wiener deconvolution of a region at pyramid level `deconv_level`:
+/// the region is `pyrDown`-ed, deconvolved with the PSF scaled to that
+/// level, and the correction (restored − blurred) is up-sampled and
+/// added to the full-resolution region. Forward scatter is a
+/// low-frequency degradation (a halo of σ ≈ 5 px at working range), so
+/// the correction it needs lies well below the 1/2 level's Nyquist
+/// frequency, while the frequencies above it — mostly noise — are left
+/// alone rather than amplified; the DFTs are 4x smaller per level.
+fn deconvolve_with(
+    wiener: &mut Wiener,
+    params: &RestoreParams,
+    src: &(impl MatTraitConst + core::ToInputArray),
+    psf: &GgPsf,
+    nsr_given: Option<f64>,
+    level: u32,
+) -> Result<Mat, RestoreError> {
+    if level == 0 {
+        let nsr = match nsr_given {
+            Some(k) => k,
+            None => nsr_of(params, src)?,
+        };
+        return wiener.deconvolve(src, psf, nsr);
+    }
+    let mut small = Mat::default();
+    imgproc::pyr_down_def(src, &mut small)?;
+    for _ in 1..level {
+        let mut next = Mat::default();
+        imgproc::pyr_down_def(&small, &mut next)?;
+        small = next;
+    }
+    let psf_l = GgPsf {
+        sigma_px: psf.sigma_px / f64::from(1u32 << level),
+        ..*psf
+    };
+    let nsr = match nsr_given {
+        Some(k) => k,
+        None => nsr_of(params, &small)?,
+    };
+    let restored = wiener.deconvolve(&small, &psf_l, nsr)?;
+    // The restored level, up-sampled: the band above its Nyquist
+    // frequency — mostly CLAHE-amplified noise, which the full-resolution
+    // Wiener filter would suppress anyway — is dropped.
+    upsample_pyramid_level(&restored, level, src.size()?)
+}
+
+/// Wiener `K = gain·σ_noise²/σ_signal²`, measured on the region, clamped.
+/// The noise is read across scales ([`NSR_NOISE_LEVELS`]): noise a codec
+/// or demosaicing has low-passed hides from a 3x3 mask at full
+/// resolution, and a filter told the region is clean sharpens it into
+/// blotches (`docs/restoration.md`, "Water estimate").
+fn nsr_of(
+    params: &RestoreParams,
+    view: &(impl MatTraitConst + core::ToInputArray),
+) -> Result<f64, RestoreError> {
+    let noise = water::noise_sigma_across_scales(view, 2, NSR_NOISE_LEVELS)?;
+    let (mut mean, mut std) = (core::Scalar::default(), core::Scalar::default());
+    core::mean_std_dev(view, &mut mean, &mut std, &core::no_array())?;
+    let signal_var = (std[0] * std[0]).max(1e-6);
+    Ok((params.nsr_gain * noise * noise / signal_var).clamp(params.nsr_min, params.nsr_max))
+}
+
 /// The frame itself as its restoration (clear water), with the input as
 /// its one stage when `keep`.
 fn passed_through(
@@ -560,6 +701,7 @@ fn passed_through(
         backscatter: frame.water.backscatter,
         rois: Vec::new(),
         stages: keep.then_some(stages),
+        fine: None,
     })
 }
 

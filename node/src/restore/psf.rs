@@ -16,6 +16,18 @@
 //! `psf_px_per_unit` pixels (measured against the simulator's blur, see
 //! `docs/restoration.md`).
 //!
+//! **The unscattered part.** Eq. (14) is the PSF of the light that forward
+//! scatter displaces; of the light that reaches the camera from an object at
+//! optical depth `τ = c·d`, the share `e^{−s·τ}` (`s` the forward-scatter
+//! share of `c`) is not scattered at all and stays sharp [Jaffe 1990]. The
+//! PSF HOIRM deconvolves is therefore `direct·δ + (1 − direct)·h`
+//! ([`GgPsf::direct`]; the simulator renders the same mixture,
+//! `docs/water-model.md`). Its spectrum never falls below `direct`, so the
+//! Wiener filter lifts detail finer than the halo instead of removing it:
+//! with `h` alone, frequencies where `|H|² ≪ K` are cut, which on a marker
+//! a few metres away erases its 3 px modules (`docs/restoration.md`, "The
+//! unscattered part").
+//!
 //! **Wiener filter.** `Ĵ = F⁻¹[ H* / (|H|² + K(ρ)) · F[I − mean] ] + mean` with
 //! `K(ρ)` the noise-to-signal power ratio at radial frequency ρ: white
 //! noise over a signal spectrum `∝ 1/(1 + (ρ/ρ0)²)` whose mean is the
@@ -25,7 +37,7 @@
 //! DC gain `1/(1+K)` does not darken the image. The region is reflected by
 //! half the kernel radius on each side before the DFT so the circular
 //! convolution does not wrap the opposite border in. Filter spectra are
-//! cached per (DFT size, p, σ, K) with sizes rounded up to multiples of 32
+//! cached per (DFT size, p, σ, direct share, K) with sizes rounded up to multiples of 32
 //! and `K` quantized to steps of 25 %, so consecutive frames reuse them.
 
 use super::RestoreError;
@@ -72,11 +84,16 @@ pub const SIGNAL_CORNER_CYCLES_PER_PX: f64 = 1.0 / 8.0;
 /// Largest kernel radius considered, pixels (beyond it the heaviest tails used are < 1e-5).
 pub const MAX_RADIUS_PX: i32 = 32;
 
-/// Eq. (14)'s PSF with shape `p` and standard deviation `sigma_px` (pixels).
+/// Eq. (14)'s PSF with shape `p` and standard deviation `sigma_px` (pixels),
+/// mixed with the light that arrives unscattered: `direct·δ + (1 − direct)·h`
+/// (Jaffe's decomposition of the transmitted signal, see the module doc).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct GgPsf {
     pub p: f64,
     pub sigma_px: f64,
+    /// Share of the transmitted light that is not scattered (0..1): a sharp
+    /// image under the halo. 0 is the paper's Eq. (14) alone.
+    pub direct: f64,
 }
 
 impl GgPsf {
@@ -96,7 +113,17 @@ impl GgPsf {
         (-(r / self.scale_px()).powf(self.p)).exp()
     }
 
-    /// The normalized `(2R+1)²` kernel, f32 (for blurring test images and for display).
+    /// `direct` as used (clamped to 0..1; NaN as 0).
+    fn direct_share(&self) -> f64 {
+        if self.direct.is_nan() {
+            0.0
+        } else {
+            self.direct.clamp(0.0, 1.0)
+        }
+    }
+
+    /// The normalized `(2R+1)²` kernel, f32 (for blurring test images and
+    /// for display): the halo's mass `1 − direct`, the centre's `direct` more.
     pub fn kernel(&self) -> Result<Mat, RestoreError> {
         let r = self.radius_px();
         let n = 2 * r + 1;
@@ -111,19 +138,22 @@ impl GgPsf {
             }
         }
         let mut out = Mat::default();
-        k.convert_to(&mut out, CV_32F, 1.0 / sum, 0.0)?;
+        let direct = self.direct_share();
+        k.convert_to(&mut out, CV_32F, (1.0 - direct) / sum, 0.0)?;
+        *out.at_2d_mut::<f32>(r, r)? += direct as f32;
         Ok(out)
     }
 
-    fn key(&self) -> (u32, u32) {
+    fn key(&self) -> (u32, u32, u32) {
         (
             (self.p * 1000.0).round() as u32,
             (self.sigma_px * 1000.0).round() as u32,
+            (self.direct_share() * 1000.0).round() as u32,
         )
     }
 }
 
-type FilterKey = (i32, i32, (u32, u32), i32);
+type FilterKey = (i32, i32, (u32, u32, u32), i32);
 
 /// Wiener deconvolution with a cache of filter spectra.
 #[derive(Debug, Default)]
@@ -253,7 +283,9 @@ fn wiener_spectrum(rows: i32, cols: i32, psf: &GgPsf, k: f64) -> Result<Mat, Res
         }
     }
     let mut h = Mat::default();
-    grid.convert_to(&mut h, CV_32F, 1.0 / sum, 0.0)?;
+    let direct = psf.direct_share();
+    grid.convert_to(&mut h, CV_32F, (1.0 - direct) / sum, 0.0)?;
+    *h.at_2d_mut::<f32>(0, 0)? += direct as f32;
     let mut hc = Mat::default();
     core::dft(&h, &mut hc, DFT_COMPLEX_OUTPUT, 0)?;
     // Signal spectrum shape g(ρ) = 1/(1 + (ρ/ρ0)²), scaled so its mean is
@@ -389,6 +421,7 @@ mod tests {
         let psf = GgPsf {
             p: 2.0,
             sigma_px: 1.7,
+            direct: 0.0,
         };
         assert!((psf.scale_px() - 1.7 * 2f64.sqrt()).abs() < 1e-12);
         let k = psf.kernel().unwrap();
@@ -411,10 +444,12 @@ mod tests {
         let a = GgPsf {
             p: 2.0,
             sigma_px: 1.5,
+            direct: 0.0,
         };
         let b = GgPsf {
             p: 0.8,
             sigma_px: 1.5,
+            direct: 0.0,
         };
         assert!(b.profile(9.0) / b.profile(0.0) > 100.0 * a.profile(9.0) / a.profile(0.0));
         assert!(b.radius_px() > a.radius_px());
@@ -437,6 +472,7 @@ mod tests {
         let psf = GgPsf {
             p: 1.2,
             sigma_px: 1.8,
+            direct: 0.0,
         };
         let mut blurred = Mat::default();
         imgproc::filter_2d(
@@ -462,6 +498,99 @@ mod tests {
         // Same size and parameters again: served from the cache.
         wiener.deconvolve(&blurred, &psf, 1e-3).unwrap();
         assert_eq!(wiener.cached_filters(), 1);
+    }
+
+    /// 3-px bars (a far marker's modules) seen through water that scatters
+    /// half the light into a halo of σ 4.6 px and leaves half sharp (the
+    /// simulator's `(1 − w)·δ + w·h`): deconvolved with that PSF the bars
+    /// come back at every NSR; deconvolved with the halo alone (the paper's
+    /// Eq. (14)) the result is further from them than the blurred input —
+    /// over-amplified where the NSR is small, cut where it is not.
+    #[test]
+    fn the_unscattered_part_keeps_detail_finer_than_the_halo() {
+        let mut sharp =
+            Mat::new_rows_cols_with_default(96, 96, CV_8UC1, Scalar::all(60.0)).unwrap();
+        for y in 0..96 {
+            let row = sharp.at_row_mut::<u8>(y).unwrap();
+            for x in 0..96usize {
+                if (x / 3) % 2 == 0 {
+                    row[x] = 190;
+                }
+            }
+        }
+        let water = GgPsf {
+            p: 1.2,
+            sigma_px: 4.6,
+            direct: 0.5,
+        };
+        let k = water.kernel().unwrap();
+        let r = water.radius_px();
+        let total: f64 = (0..k.rows())
+            .flat_map(|y| (0..k.cols()).map(move |x| (y, x)))
+            .map(|(y, x)| f64::from(*k.at_2d::<f32>(y, x).unwrap()))
+            .sum();
+        assert!((total - 1.0).abs() < 1e-5, "kernel mass {total}");
+        assert!(f64::from(*k.at_2d::<f32>(r, r).unwrap()) > 0.5);
+        let mut blurred = Mat::default();
+        imgproc::filter_2d(
+            &sharp,
+            &mut blurred,
+            -1,
+            &k,
+            Point::new(-1, -1),
+            0.0,
+            BORDER_REFLECT_101,
+        )
+        .unwrap();
+        // Bright bars less dark bars over the central 64x64.
+        let bars = |m: &Mat| {
+            let (mut on, mut off) = (0.0, 0.0);
+            for y in 16..80 {
+                let row = m.at_row::<u8>(y).unwrap();
+                for x in 16..80usize {
+                    if (x / 3) % 2 == 0 {
+                        on += f64::from(row[x]);
+                    } else {
+                        off += f64::from(row[x]);
+                    }
+                }
+            }
+            (on - off) / (64.0 * 32.0)
+        };
+        let err = |m: &Mat| {
+            let mut d = Mat::default();
+            core::absdiff(&sharp, m, &mut d).unwrap();
+            core::mean(&d, &core::no_array()).unwrap()[0]
+        };
+        let mut wiener = Wiener::new();
+        let halo = GgPsf {
+            direct: 0.0,
+            ..water
+        };
+        for nsr in [1e-3, 1e-2, 5e-2, 0.2] {
+            let kept = wiener.deconvolve(&blurred, &water, nsr).unwrap();
+            let cut = wiener.deconvolve(&blurred, &halo, nsr).unwrap();
+            let (e_blur, e_kept, e_cut) = (err(&blurred), err(&kept), err(&cut));
+            // Measured: kept 0.15 / 1.4 / 7.5 / 19 grey levels from the bars
+            // (blurred 32), the halo alone 62 / 33 / 45 / 58.
+            assert!(
+                e_kept < 0.7 * e_blur && bars(&kept) > bars(&blurred),
+                "NSR {nsr}: blurred {e_blur}, restored with the unscattered part {e_kept}"
+            );
+            assert!(
+                e_cut > e_blur,
+                "NSR {nsr}: blurred {e_blur}, restored with the halo alone {e_cut}"
+            );
+        }
+        // With the NSR of a noisy region the halo alone cuts the bars
+        // (10 grey levels of 66 left).
+        let cut = wiener.deconvolve(&blurred, &halo, 0.2).unwrap();
+        assert!(bars(&cut) < 0.25 * bars(&blurred), "{}", bars(&cut));
+        assert_eq!(
+            wiener.cached_filters(),
+            8,
+            "the share is part of the filter's key"
+        );
     }
 
     /// Square rings blurred by a Gaussian of known σ, with noise: the two-scale
@@ -535,6 +664,7 @@ mod tests {
                 &GgPsf {
                     p: 1.0,
                     sigma_px: 1.0,
+                    direct: 0.0,
                 },
                 0.05,
             )

@@ -124,6 +124,19 @@ pub fn psf_p(c_per_m: f64, params: &RestoreParams) -> f64 {
     (params.psf_p_clear / (1.0 + c_per_m.max(0.0) / params.psf_c_half_per_m)).clamp(0.3, 4.0)
 }
 
+/// Share of the transmitted light that arrives unscattered, for water of
+/// attenuation `c` at the reference range: `e^{−s·c·d_ref}` of the
+/// `e^{−(1−s)·c·d_ref}` that is transmitted [Jaffe 1990]. With `c` from the
+/// image it is `t^{s/(1−s)}`, `t` the transmission read off the strongest
+/// contrast in view, so it does not depend on the reference range: a
+/// marker at 4.5 m in 0.5 /m water reads as one at 0.6 m in ~4 /m, and
+/// both carry the same unscattered share (0.5).
+pub fn direct_share(c_per_m: f64, params: &RestoreParams) -> f64 {
+    (-params.forward_scatter_fraction * c_per_m.max(0.0) * params.reference_range_m)
+        .exp()
+        .clamp(0.0, 1.0)
+}
+
 /// Eq. (14)'s σ = 1/(2√p), converted to pixels with `psf_px_per_unit`.
 pub fn psf_sigma_px(p: f64, params: &RestoreParams) -> f64 {
     params.psf_px_per_unit / (2.0 * p.sqrt())

@@ -88,6 +88,7 @@ pub fn run(a: &PsfScaleArgs) -> Result<(), EvalError> {
                 let psf = GgPsf {
                     p,
                     sigma_px: s / (2.0 * p.sqrt()),
+                    direct: 0.0,
                 };
                 let mut blurred = Mat::default();
                 imgproc::filter_2d(
