@@ -19,14 +19,15 @@
 //! **The unscattered part.** Eq. (14) is the PSF of the light that forward
 //! scatter displaces; of the light that reaches the camera from an object at
 //! optical depth `τ = c·d`, the share `e^{−s·τ}` (`s` the forward-scatter
-//! share of `c`) is not scattered at all and stays sharp [Jaffe 1990]. The
-//! PSF HOIRM deconvolves is therefore `direct·δ + (1 − direct)·h`
-//! ([`GgPsf::direct`]; the simulator renders the same mixture,
-//! `docs/water-model.md`). Its spectrum never falls below `direct`, so the
-//! Wiener filter lifts detail finer than the halo instead of removing it:
-//! with `h` alone, frequencies where `|H|² ≪ K` are cut, which on a marker
-//! a few metres away erases its 3 px modules (`docs/restoration.md`, "The
-//! unscattered part").
+//! share of `c`) is not scattered at all and stays sharp [Jaffe 1990]: the
+//! whole PSF is `direct·δ + (1 − direct)·h` ([`GgPsf::direct`]; the
+//! simulator renders the same mixture, `docs/water-model.md`). Its spectrum
+//! never falls below `direct`, so the Wiener filter lifts detail finer than
+//! the halo instead of removing it: with `h` alone, frequencies where
+//! `|H|² ≪ K` are cut, which on a marker a few metres away erases its 3 px
+//! modules. HOIRM's detail-keeping restoration deconvolves the mixture; its
+//! frame restoration keeps `h` alone by default, whose cut also removes
+//! noise (`docs/restoration.md`, "Fine detail").
 //!
 //! **Wiener filter.** `Ĵ = F⁻¹[ H* / (|H|² + K(ρ)) · F[I − mean] ] + mean` with
 //! `K(ρ)` the noise-to-signal power ratio at radial frequency ρ: white
@@ -455,6 +456,13 @@ mod tests {
         assert!(b.radius_px() > a.radius_px());
     }
 
+    /// Mean absolute difference of two 8-bit images, grey levels.
+    fn mean_abs_diff(a: &Mat, b: &Mat) -> f64 {
+        let mut d = Mat::default();
+        core::absdiff(a, b, &mut d).unwrap();
+        core::mean(&d, &core::no_array()).unwrap()[0]
+    }
+
     /// A 96x96 bar pattern blurred with the PSF; deconvolution must bring it
     /// closer to the original than the blurred image is.
     #[test]
@@ -488,11 +496,7 @@ mod tests {
         let mut wiener = Wiener::new();
         let restored = wiener.deconvolve(&blurred, &psf, 1e-3).unwrap();
         assert_eq!(restored.size().unwrap(), Size::new(96, 96));
-        let err = |m: &Mat| {
-            let mut d = Mat::default();
-            core::absdiff(&sharp, m, &mut d).unwrap();
-            core::mean(&d, &core::no_array()).unwrap()[0]
-        };
+        let err = |m: &Mat| mean_abs_diff(&sharp, m);
         let (e_blur, e_rest) = (err(&blurred), err(&restored));
         assert!(e_rest < 0.5 * e_blur, "blurred {e_blur}, restored {e_rest}");
         // Same size and parameters again: served from the cache.
@@ -557,11 +561,7 @@ mod tests {
             }
             (on - off) / (64.0 * 32.0)
         };
-        let err = |m: &Mat| {
-            let mut d = Mat::default();
-            core::absdiff(&sharp, m, &mut d).unwrap();
-            core::mean(&d, &core::no_array()).unwrap()[0]
-        };
+        let err = |m: &Mat| mean_abs_diff(&sharp, m);
         let mut wiener = Wiener::new();
         let halo = GgPsf {
             direct: 0.0,
