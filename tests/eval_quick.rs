@@ -644,6 +644,12 @@ fn swarm_quick_localizes_every_pair_of_the_paper_fleet() {
         assert!(num(&r["median_angle_error_deg"]) < 1.0, "{pair}: {r}");
     }
     assert!(num(&s["processing"]["mean_camera_frame_ms"]) > 0.0);
+    // The fine pass is counted per camera frame, at most once each.
+    let fine = &s["fine_pass"];
+    assert!(
+        num(&fine["camera_frames"]) > 0.0 && num(&fine["searched"]) <= num(&fine["camera_frames"]),
+        "{fine}"
+    );
     assert_eq!(
         (s["camera_profile"].as_str(), s["restore"].as_str()),
         (Some("ideal"), Some("hoirm"))

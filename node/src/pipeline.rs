@@ -68,6 +68,8 @@ pub struct Found {
     /// Of them, read on the detail-keeping restoration of a region where
     /// the frame's restoration read nothing ([`Restored::fine`]).
     pub fine_reads: usize,
+    /// Whether that restoration was made and searched (what the pass costs).
+    pub fine_searched: bool,
 }
 
 /// Find markers in `restored`, the restoration of `raw`: in its image, then,
@@ -100,6 +102,7 @@ pub fn detect_restoration<D: MarkerDetector + ?Sized>(
         return Ok(found);
     }
     let image = fine.image(&restored.image, raw, &unread)?;
+    found.fine_searched = true;
     for d in detector.detect_restored(&image, raw)? {
         if unread.iter().any(|r| inside(&d, *r)) {
             found.fine_reads += 1;
@@ -134,6 +137,8 @@ pub struct FrameOutput {
     pub corner_fits: CornerFitCounts,
     /// Of `detections`, read only on the detail-keeping restoration ([`detect_restoration`]).
     pub fine_reads: usize,
+    /// Whether the detail-keeping restoration was made and searched.
+    pub fine_searched: bool,
     /// Detections dropped: PnP failed, or the marker size is unknown.
     pub pose_failures: Vec<String>,
     pub restore_ms: f64,
@@ -218,6 +223,7 @@ impl CameraPipeline {
         let t2 = Instant::now();
         out.detections = detections.len();
         out.fine_reads = found.fine_reads;
+        out.fine_searched = found.fine_searched;
         out.corner_fits = detections.iter().collect();
         // The frame's figures; the marker's own contrast is added per
         // detection (and stays 0 on predictions, where no marker was seen).

@@ -58,6 +58,10 @@ struct Trial {
     live: BTreeMap<VehicleId, usize>,
     maps: usize,
     observations: usize,
+    /// Camera frames on which HOIRM's detail-keeping restoration was
+    /// searched, and the markers read only there (`pipeline::detect_restoration`).
+    fine_searches: usize,
+    fine_reads: usize,
 }
 
 fn relative(truth: &[VehicleTruth], a: VehicleId, b: VehicleId) -> Option<shoal_proto::Pose> {
@@ -193,6 +197,8 @@ fn run_trial(
         live: BTreeMap::new(),
         maps: 0,
         observations: 0,
+        fine_searches: 0,
+        fine_reads: 0,
     };
     let bar = opts.bar(frames, what);
     for k in 0..frames {
@@ -229,6 +235,8 @@ fn run_trial(
                 .process(&owned, stamp_ns, k as u64)
                 .map_err(|e| EvalError::Setup(e.to_string()))?;
             let ms = out.restore_ms + out.detect_ms + out.pose_ms;
+            trial.fine_searches += usize::from(out.fine_searched);
+            trial.fine_reads += out.fine_reads;
             trial.camera_ms.push(ms);
             *per_vehicle.entry(*v).or_insert(0.0) += ms;
             for obs in out.observations {
@@ -338,7 +346,16 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     let pairs = pair_errors(&main, &opts.out)?;
 
     // Range sweep: the largest spacing at which each vehicle is Live in at least half the maps.
-    let mut sweep_csv = Csv::new(&["spacing_m", "vehicle", "maps_live", "maps", "observations"]);
+    let mut sweep_csv = Csv::new(&[
+        "spacing_m",
+        "vehicle",
+        "maps_live",
+        "maps",
+        "observations",
+        "camera_frames",
+        "fine_searches",
+        "fine_reads",
+    ]);
     let mut largest: BTreeMap<VehicleId, f64> = BTreeMap::new();
     let mut live_frac: Vec<Vec<Option<f64>>> = vec![Vec::new(); fleet.vehicles.len()];
     for &s in &sweep {
@@ -358,6 +375,9 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
                 live.to_string(),
                 t.maps.to_string(),
                 t.observations.to_string(),
+                t.camera_ms.len().to_string(),
+                t.fine_searches.to_string(),
+                t.fine_reads.to_string(),
             ]);
             let frac = live as f64 / t.maps.max(1) as f64;
             live_frac[vi].push(Some(frac));
@@ -398,6 +418,11 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
             "build": if cfg!(debug_assertions) { "debug" } else { "release" },
         },
         "observations": main.observations,
+        "fine_pass": {
+            "camera_frames": main.camera_ms.len(),
+            "searched": main.fine_searches,
+            "reads": main.fine_reads,
+        },
         "maps": main.maps,
         "live_maps": main.live.iter().map(|(k, v)| (k.to_string(), json!(v))).collect::<Map<_, _>>(),
         "results": pairs,
