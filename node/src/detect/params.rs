@@ -91,14 +91,26 @@ pub struct DetectParams {
 /// `flat_below_dn`, the offset is `fraction` × range, at least `min_dn`
 /// and at most [`DetectParams::threshold_offset`]; so the offset is the
 /// fixed one wherever the contrast is high (range ≥ offset / fraction) and
-/// in flat regions (range < `flat_below_dn`), where a smaller one would
-/// only trace sensor noise. AprilTag 3 thresholds at the middle of the
-/// local extremes for the same reason.
+/// in flat regions, where a smaller one would only trace sensor noise.
+/// AprilTag 3 thresholds at the middle of the local extremes for the same
+/// reason.
+///
+/// A region is flat when its range is under `flat_below_dn` grey levels or
+/// under `flat_below_sigmas` times the image's noise σ (estimated from the
+/// image, [`super::quads::noise_sigma_dn`]): the range that noise alone
+/// spans over the ~20 x 20 px it is taken on is about 6σ. There the offset
+/// is also at least `flat_floor_sigmas`·σ. Without that, an empty frame's
+/// noise is thresholded at about one σ: a quarter or more of its pixels
+/// dark, in clusters that `findContours` traces by the ten thousand
+/// (`docs/detector.md`, *Flat is relative to the noise*). Where a marker
+/// raises the range above the noise's, nothing changes.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ContrastOffset {
     pub fraction: f64,
     pub min_dn: f64,
     pub flat_below_dn: f64,
+    pub flat_below_sigmas: f64,
+    pub flat_floor_sigmas: f64,
 }
 
 /// When [`super::pattern::fit_pattern`] replaces the per-side corner fits.
@@ -126,6 +138,8 @@ impl Default for DetectParams {
                 fraction: 0.1,
                 min_dn: 1.0,
                 flat_below_dn: 6.0,
+                flat_below_sigmas: 8.0,
+                flat_floor_sigmas: 2.0,
             }),
             full_res_max_width: 1000,
             // 36h11's 8-module black square at ~1.1 px per module: AprilTag 3

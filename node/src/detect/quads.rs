@@ -85,8 +85,8 @@ fn search_level(
     found: &mut Found,
 ) -> Result<(), DetectError> {
     match half_level(params, img)? {
-        Some(half) => quads_of_level(params, &half, 2.0, [0.0, 0.0], found),
-        None => quads_of_level(params, img, 1.0, [0.0, 0.0], found),
+        Some(half) => quads_of_level(params, &half, 2.0, [0.0, 0.0], None, found),
+        None => quads_of_level(params, img, 1.0, [0.0, 0.0], None, found),
     }
 }
 
@@ -206,14 +206,22 @@ fn quads_of_level(
     level: &(impl MatTraitConst + ToInputArray),
     scale: f64,
     offset: Px,
+    noise_dn: Option<f64>,
     found: &mut Found,
 ) -> Result<(), DetectError> {
     let mut bin = Mat::default();
     let mut approx: Vector<Point> = Vector::new();
-    let mut table = SumTable::new(GrayView::new(level)?);
+    let view = GrayView::new(level)?;
+    let noise_dn = match (params.contrast_offset, noise_dn) {
+        (None, _) => 0.0,
+        (Some(_), Some(n)) => n,
+        (Some(_), None) => noise_sigma_dn(&view),
+    };
+    let mut table = SumTable::new(view);
     for &win in &params.threshold_windows {
         let win = (win.max(3)) | 1;
-        binarize(params, level, win, &mut bin)?;
+        binarize(params, level, win, noise_dn, &mut bin)?;
+        drop_isolated(&mut bin)?;
         let mut contours: Vector<Vector<Point>> = Vector::new();
         imgproc::find_contours(
             &bin,
@@ -249,6 +257,100 @@ fn quads_of_level(
     Ok(())
 }
 
+/// Clears every dark pixel of `bin` (255 on 0) that has no dark pixel
+/// among its eight neighbours. Its contour would be a single point, never a
+/// quad or a blob, and no other contour changes: contours follow 8-connected
+/// dark regions, and an isolated pixel is its own region, next to none
+/// (so clearing one in place cannot make another isolated either). Sensor
+/// noise thresholded near its own level is mostly such pixels, tens of
+/// thousands of them on a 720x540 level, which `findContours` would
+/// otherwise trace one by one.
+fn drop_isolated(bin: &mut Mat) -> Result<(), DetectError> {
+    let (w, h) = (bin.cols() as usize, bin.rows() as usize);
+    if w < 3 || h < 3 || !bin.is_continuous() {
+        return Ok(());
+    }
+    let data = bin.data_bytes_mut()?;
+    // A row's pixels or'ed with their left and right neighbours (`or3`:
+    // the rows above and below, `above` and `next`), and the row's own
+    // left and right neighbours alone (`beside`).
+    let or3 = |row: &[u8], out: &mut [u8]| {
+        out[0] = row[0] | row[1];
+        for x in 1..w - 1 {
+            out[x] = row[x - 1] | row[x] | row[x + 1];
+        }
+        out[w - 1] = row[w - 2] | row[w - 1];
+    };
+    let (mut above, mut next) = (vec![0u8; w], vec![0u8; w]);
+    let mut beside = vec![0u8; w];
+    for y in 0..h {
+        if y + 1 < h {
+            or3(&data[(y + 1) * w..(y + 2) * w], &mut next);
+        } else {
+            next.fill(0);
+        }
+        let row = &mut data[y * w..(y + 1) * w];
+        beside[0] = row[1];
+        for x in 1..w - 1 {
+            beside[x] = row[x - 1] | row[x + 1];
+        }
+        beside[w - 1] = row[w - 2];
+        for (x, v) in row.iter_mut().enumerate() {
+            if above[x] | beside[x] | next[x] == 0 {
+                *v = 0;
+            }
+        }
+        // Clearing changed nothing the next row's test reads: a cleared
+        // pixel was next to no dark pixel of it.
+        or3(row, &mut above);
+    }
+    Ok(())
+}
+
+/// Rows of an image [`noise_sigma_dn`] reads at most (evenly spread).
+const NOISE_ROWS: usize = 96;
+
+/// The noise of a grey image (grey levels): the standard deviation a
+/// pixel has about its neighbours in flat regions, from the median of the
+/// absolute differences between horizontal neighbours (`1.4826·MAD/√2`,
+/// the median read between the integer levels). Edges are a small share of
+/// any frame's neighbour pairs, so the median is the flat regions'; at most
+/// [`NOISE_ROWS`] rows are read. 0 for an image narrower than 2 pixels.
+pub fn noise_sigma_dn(view: &GrayView<'_>) -> f64 {
+    let (w, h) = (view.width, view.height);
+    if w < 2 || h == 0 {
+        return 0.0;
+    }
+    let step = h.div_ceil(NOISE_ROWS).max(1);
+    let mut hist = [0u64; 256];
+    for y in (0..h).step_by(step) {
+        let row = view.row(y);
+        for p in row[..w].windows(2) {
+            hist[usize::from(p[0].abs_diff(p[1]))] += 1;
+        }
+    }
+    let n: u64 = hist.iter().sum();
+    let half = n as f64 / 2.0;
+    let mut below = 0.0;
+    let mut median = 0.0;
+    for (k, &c) in hist.iter().enumerate() {
+        let c = c as f64;
+        if below + c >= half && c > 0.0 {
+            // |d| = 0 stands for (−0.5, 0.5), half a level wide once folded;
+            // |d| = k for k ± 0.5.
+            let frac = (half - below) / c;
+            median = if k == 0 {
+                0.5 * frac
+            } else {
+                k as f64 - 0.5 + frac
+            };
+            break;
+        }
+        below += c;
+    }
+    1.4826 * median / std::f64::consts::SQRT_2
+}
+
 /// Side of the square tiles over which [`binarize`] takes the local range.
 const RANGE_TILE_PX: usize = 4;
 
@@ -258,11 +360,13 @@ const RANGE_TILE_PX: usize = 4;
 /// [`DetectParams::contrast_offset`], the one that follows the local
 /// contrast ([`ContrastOffset`](super::ContrastOffset)). The fixed offset
 /// is OpenCV's `adaptiveThreshold` (mean, inverted), bit for bit, and so is
-/// the relative one wherever it comes to the fixed value.
+/// the relative one wherever it comes to the fixed value. `noise_dn` is
+/// the level's noise σ (what is flat, and the floor there).
 fn binarize(
     params: &DetectParams,
     level: &(impl MatTraitConst + ToInputArray),
     win: i32,
+    noise_dn: f64,
     bin: &mut Mat,
 ) -> Result<(), DetectError> {
     let rel = params
@@ -304,7 +408,7 @@ fn binarize(
     };
     let (w, h) = (level.cols() as usize, level.rows() as usize);
     let tw = w.div_ceil(RANGE_TILE_PX);
-    let offsets = tile_offsets(params, rel, src_data, w, h, win as usize);
+    let offsets = tile_offsets(params, rel, noise_dn, src_data, w, h, win as usize);
     // Dark where src − mean ≤ −offset, as `adaptiveThreshold` decides it.
     let mut out = Mat::new_rows_cols_with_default(
         h as i32,
@@ -378,6 +482,7 @@ fn spread_tiles(
 fn tile_offsets(
     params: &DetectParams,
     rel: super::ContrastOffset,
+    noise_dn: f64,
     data: &[u8],
     w: usize,
     h: usize,
@@ -404,8 +509,22 @@ fn tile_offsets(
             hi[k0 + tx] = ch.iter().copied().max().unwrap_or(0);
         }
     }
-    // Tiles within `r` of a tile, separably: rows, then columns.
+    // Tiles within `r` of a tile, separably: rows, then columns. Whether
+    // a tile is flat is read over a wider neighbourhood (`r` plus
+    // FLAT_EXTRA_TILES): a faint, blurred marker's range over the window
+    // alone is within the noise's spread; over the wider one some part of
+    // its edges lifts it out.
     let r = ((win / 2 + t / 2) / t).max(1);
+    let wide = noise_dn > 0.0 && rel.flat_below_sigmas > 0.0;
+    let (lo_w, hi_w) = if wide {
+        let rw = r + FLAT_EXTRA_TILES;
+        (
+            spread_tiles(&lo, tw, th, rw, u8::min),
+            spread_tiles(&hi, tw, th, rw, u8::max),
+        )
+    } else {
+        (Vec::new(), Vec::new())
+    };
     let (lo, hi) = (
         spread_tiles(&lo, tw, th, r, u8::min),
         spread_tiles(&hi, tw, th, r, u8::max),
@@ -421,11 +540,32 @@ fn tile_offsets(
         };
         off.floor() as u8
     });
-    lo.iter()
+    let offsets = lo
+        .iter()
         .zip(&hi)
-        .map(|(&l, &u)| by_range[usize::from(u - l)])
+        .map(|(&l, &u)| by_range[usize::from(u - l)]);
+    if !wide {
+        return offsets.collect();
+    }
+    // Flat against the noise: the floor, where it is above the offset.
+    let below = rel.flat_below_sigmas * noise_dn;
+    let floor = (rel.flat_floor_sigmas * noise_dn).min(255.0).floor() as u8;
+    offsets
+        .zip(lo_w.iter().zip(&hi_w))
+        .map(|(o, (&l, &u))| {
+            if f64::from(u - l) < below {
+                o.max(floor)
+            } else {
+                o
+            }
+        })
         .collect()
 }
+
+/// How many tiles beyond the threshold window's the neighbourhood reaches
+/// over which [`tile_offsets`] decides that a region is flat against the
+/// noise.
+const FLAT_EXTRA_TILES: usize = 2;
 
 /// What a contour is: a quad, a blob ([`find_quads_and_blobs`]) or neither.
 enum Shape {
@@ -600,6 +740,7 @@ pub fn full_res_quads(
     let (cols, rows) = (view.width as i32, view.height as i32);
     let mut done: Vec<opencv::core::Rect> = Vec::new();
     let mut extra: Vec<Quad> = Vec::new();
+    let mut frame_noise: Option<f64> = None;
     for (side, q) in small.into_iter().take(params.max_full_res_regions) {
         let pad = 0.5 * side + 4.0;
         let x0 = q.pts.iter().map(|c| c[0]).fold(f64::INFINITY, f64::min) - pad;
@@ -627,11 +768,15 @@ pub fn full_res_quads(
             data,
         })?;
         let mut found = Found::default();
+        // The frame's noise, not the window's: a far marker's 2 px modules
+        // fill its window with edges a local estimate would take for noise.
+        let noise = *frame_noise.get_or_insert_with(|| noise_sigma_dn(view));
         quads_of_level(
             params,
             &roi,
             1.0,
             [f64::from(x0), f64::from(y0)],
+            Some(noise),
             &mut found,
         )?;
         for f in found.quads {
@@ -654,6 +799,207 @@ pub fn same_quad(a: &[Px; 4], b: &[Px; 4], tol: f64) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Every contour of `bin` with more than one point, in order.
+    fn contours_of(bin: &Mat) -> Vec<Vec<(i32, i32)>> {
+        let mut contours: Vector<Vector<Point>> = Vector::new();
+        imgproc::find_contours(
+            bin,
+            &mut contours,
+            imgproc::RETR_LIST,
+            imgproc::CHAIN_APPROX_SIMPLE,
+            Point::new(0, 0),
+        )
+        .unwrap();
+        contours
+            .iter()
+            .map(|c| c.iter().map(|p| (p.x, p.y)).collect::<Vec<_>>())
+            .filter(|c| c.len() > 1)
+            .collect()
+    }
+
+    /// A `w` x `h` grey image: a horizontal ramp from 60 to 80 (the
+    /// vignetting and haze of a frame), with Gaussian noise of `sigma` grey
+    /// levels, rounded.
+    fn noisy_ramp(w: i32, h: i32, sigma: f64, seed: u64) -> Mat {
+        use opencv::core::{Scalar, CV_8UC1};
+        let mut rng = shoal_proto::splitmix::SplitMix64::new(seed);
+        let mut img = Mat::new_rows_cols_with_default(h, w, CV_8UC1, Scalar::all(0.0)).unwrap();
+        for y in 0..h {
+            for x in 0..w {
+                let (u1, u2) = (rng.unit().max(1e-12), rng.unit());
+                let n = (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos();
+                let v = 60.0 + 20.0 * f64::from(x) / f64::from(w) + sigma * n;
+                *img.at_2d_mut::<u8>(y, x).unwrap() = v.round().clamp(0.0, 255.0) as u8;
+            }
+        }
+        img
+    }
+
+    #[test]
+    fn the_noise_estimate_is_the_pixel_noise_and_ignores_edges() {
+        use opencv::core::{Rect, Scalar};
+        for (sigma, seed) in [(0.7, 1), (1.2, 2), (2.5, 3), (6.0, 4)] {
+            let mut img = noisy_ramp(720, 540, sigma, seed);
+            let clean = noise_sigma_dn(&GrayView::new(&img).unwrap());
+            // Markers' edges over a tenth of the frame do not move it much.
+            for k in 0..12 {
+                imgproc::rectangle(
+                    &mut img,
+                    Rect::new(20 + 58 * k, 200, 30, 30),
+                    Scalar::all(20.0),
+                    2,
+                    imgproc::LINE_8,
+                    0,
+                )
+                .unwrap();
+            }
+            let edged = noise_sigma_dn(&GrayView::new(&img).unwrap());
+            // Rounding to integers adds 1/12 of a level² of variance.
+            let expected = (sigma * sigma + 1.0 / 12.0).sqrt();
+            for (what, got) in [("clean", clean), ("with edges", edged)] {
+                assert!(
+                    (got / expected - 1.0).abs() < 0.08,
+                    "σ {sigma} {what}: estimated {got:.3}, expected {expected:.3}"
+                );
+            }
+        }
+        assert_eq!(
+            noise_sigma_dn(&GrayView::new(&noisy_ramp(1, 10, 1.0, 1)).unwrap()),
+            0.0
+        );
+    }
+
+    /// An empty frame's noise is not traced: flat against the noise, its
+    /// pixels need the floor to be dark. With flat judged in grey levels
+    /// alone (the rule before), noise of 1.2 levels spans ~7 levels, the
+    /// offset drops to 1 and a quarter of the frame is dark. (The ramp here
+    /// adds ~1 level over the flat test's 36 px; one of 40 levels across
+    /// the level adds 2, the range reaches 8σ on half the tiles and the
+    /// rule before applies there: `docs/detector.md`, *Flat is relative to
+    /// the noise*.)
+    #[test]
+    fn an_empty_noisy_frame_is_flat_against_its_noise() {
+        let params = DetectParams::default();
+        let absolute = DetectParams {
+            contrast_offset: params
+                .contrast_offset
+                .map(|c| super::super::ContrastOffset {
+                    flat_below_sigmas: 0.0,
+                    ..c
+                }),
+            ..DetectParams::default()
+        };
+        let img = noisy_ramp(720, 540, 1.2, 9);
+        let noise = noise_sigma_dn(&GrayView::new(&img).unwrap());
+        // The dark share, and the contours long enough to be tried as a
+        // quad (perimeter of four minimum sides at half size).
+        let traced = |p: &DetectParams| {
+            let mut bin = Mat::default();
+            binarize(p, &img, 19, noise, &mut bin).unwrap();
+            let share = f64::from(opencv::core::count_non_zero(&bin).unwrap()) / (720.0 * 540.0);
+            let long = contours_of(&bin)
+                .iter()
+                .filter(|c| {
+                    let pts: Vector<Point> = c.iter().map(|&(x, y)| Point::new(x, y)).collect();
+                    imgproc::arc_length(&pts, true).unwrap() >= 2.0 * p.min_code_side_px
+                })
+                .count();
+            (share, long)
+        };
+        let (now, before) = (traced(&params), traced(&absolute));
+        // The floor, 2σ ≈ 2.4 levels, floored to 2: dark below −1.5 levels
+        // in integers, ~11 % of the pixels, in small clusters.
+        assert!(now.0 < 0.13, "dark share {:.3} with the noise rule", now.0);
+        assert!(
+            before.0 > 0.25,
+            "dark share {:.3} with flat in grey levels",
+            before.0
+        );
+        assert!(
+            now.1 * 10 < before.1,
+            "contours to try: {} with the noise rule, {} before",
+            now.1,
+            before.1
+        );
+    }
+
+    #[test]
+    fn dropping_isolated_pixels_leaves_every_other_contour_as_it_was() {
+        use opencv::core::{Scalar, CV_8UC1};
+        // Speckle at several densities (the sparse one mostly single
+        // pixels, the dense one near percolation, clusters everywhere),
+        // with squares and frames among it, touching the image border too.
+        let mut rng = shoal_proto::splitmix::SplitMix64::new(5);
+        for density in [0.02, 0.1, 0.3] {
+            let (w, h) = (97, 61);
+            let mut bin = Mat::new_rows_cols_with_default(h, w, CV_8UC1, Scalar::all(0.0)).unwrap();
+            for y in 0..h {
+                for x in 0..w {
+                    if rng.unit() < density {
+                        *bin.at_2d_mut::<u8>(y, x).unwrap() = 255;
+                    }
+                }
+            }
+            for (x, y, s, t) in [(10, 10, 20, -1), (50, 20, 25, 3), (80, 40, 30, -1)] {
+                imgproc::rectangle(
+                    &mut bin,
+                    opencv::core::Rect::new(x, y, s, s),
+                    Scalar::all(255.0),
+                    t,
+                    imgproc::LINE_8,
+                    0,
+                )
+                .unwrap();
+            }
+            let before = contours_of(&bin);
+            let dark_before = opencv::core::count_non_zero(&bin).unwrap();
+            drop_isolated(&mut bin).unwrap();
+            let dark_after = opencv::core::count_non_zero(&bin).unwrap();
+            assert_eq!(contours_of(&bin), before, "density {density}");
+            // What went were single-point contours, and there were some.
+            let mut all: Vector<Vector<Point>> = Vector::new();
+            imgproc::find_contours(
+                &bin,
+                &mut all,
+                imgproc::RETR_LIST,
+                imgproc::CHAIN_APPROX_SIMPLE,
+                Point::new(0, 0),
+            )
+            .unwrap();
+            assert!(
+                all.iter().all(|c| c.len() > 1 || {
+                    // A one-point contour left must be a hole, not a pixel.
+                    let p = c.get(0).unwrap();
+                    *bin.at_2d::<u8>(p.y, p.x).unwrap() == 255
+                        && [
+                            (-1, -1),
+                            (0, -1),
+                            (1, -1),
+                            (-1, 0),
+                            (1, 0),
+                            (-1, 1),
+                            (0, 1),
+                            (1, 1),
+                        ]
+                        .iter()
+                        .any(|(dx, dy)| {
+                            let (x, y) = (p.x + dx, p.y + dy);
+                            x >= 0
+                                && y >= 0
+                                && x < w
+                                && y < h
+                                && *bin.at_2d::<u8>(y, x).unwrap() == 255
+                        })
+                }),
+                "an isolated pixel survived at density {density}"
+            );
+            assert!(
+                dark_after < dark_before,
+                "density {density}: nothing dropped"
+            );
+        }
+    }
 
     #[test]
     fn a_square_side_at_the_minimum_is_kept_though_its_contour_is_a_pixel_shorter() {
@@ -732,7 +1078,7 @@ mod tests {
         );
         // Without the guard (the same search on the frame as it is).
         let mut unguarded = Found::default();
-        quads_of_level(&params, &img, 1.0, [0.0, 0.0], &mut unguarded).unwrap();
+        quads_of_level(&params, &img, 1.0, [0.0, 0.0], None, &mut unguarded).unwrap();
         assert!(
             !found(&unguarded.quads),
             "the line's dark band merges with the square"
@@ -816,7 +1162,7 @@ mod tests {
         .unwrap();
         let params = DetectParams::default();
         let mut ours = Mat::default();
-        binarize(&params, &img, 19, &mut ours).unwrap();
+        binarize(&params, &img, 19, 0.0, &mut ours).unwrap();
         let mut theirs = Mat::default();
         imgproc::adaptive_threshold(
             &img,
@@ -862,7 +1208,7 @@ mod tests {
         // black square would pass for an edge-line artefact here.
         let search = |params: &DetectParams, img: &Mat| {
             let mut found = Found::default();
-            quads_of_level(params, img, 1.0, [0.0, 0.0], &mut found).unwrap();
+            quads_of_level(params, img, 1.0, [0.0, 0.0], None, &mut found).unwrap();
             found.quads
         };
         let whole = frame(1);
