@@ -212,7 +212,9 @@ fn quads_of_level(
     let mut bin = Mat::default();
     let mut approx: Vector<Point> = Vector::new();
     let view = GrayView::new(level)?;
+    // The noise only matters to the flat test of the relative offset.
     let noise_dn = match (params.contrast_offset, noise_dn) {
+        (Some(rel), _) if rel.flat_below_sigmas <= 0.0 => 0.0,
         (None, _) => 0.0,
         (Some(_), Some(n)) => n,
         (Some(_), None) => noise_sigma_dn(&view),
@@ -271,15 +273,20 @@ fn drop_isolated(bin: &mut Mat) -> Result<(), DetectError> {
         return Ok(());
     }
     let data = bin.data_bytes_mut()?;
-    // A row's pixels or'ed with their left and right neighbours (`or3`:
-    // the rows above and below, `above` and `next`), and the row's own
-    // left and right neighbours alone (`beside`).
+    // Pixels are 0 or 255, so or-ing neighbours and and-ing the result
+    // into a pixel clears it exactly when none is dark. `or3`: a row's
+    // pixels or'ed with their left and right neighbours (for the rows above
+    // and below); `beside`: the left and right neighbours alone. Written as
+    // shifted slices, which the compiler vectorises.
     let or3 = |row: &[u8], out: &mut [u8]| {
         out[0] = row[0] | row[1];
-        for x in 1..w - 1 {
-            out[x] = row[x - 1] | row[x] | row[x + 1];
-        }
         out[w - 1] = row[w - 2] | row[w - 1];
+        for (o, ((&a, &b), &c)) in out[1..w - 1]
+            .iter_mut()
+            .zip(row[..w - 2].iter().zip(&row[1..w - 1]).zip(&row[2..]))
+        {
+            *o = a | b | c;
+        }
     };
     let (mut above, mut next) = (vec![0u8; w], vec![0u8; w]);
     let mut beside = vec![0u8; w];
@@ -291,14 +298,15 @@ fn drop_isolated(bin: &mut Mat) -> Result<(), DetectError> {
         }
         let row = &mut data[y * w..(y + 1) * w];
         beside[0] = row[1];
-        for x in 1..w - 1 {
-            beside[x] = row[x - 1] | row[x + 1];
-        }
         beside[w - 1] = row[w - 2];
-        for (x, v) in row.iter_mut().enumerate() {
-            if above[x] | beside[x] | next[x] == 0 {
-                *v = 0;
-            }
+        for (o, (&a, &c)) in beside[1..w - 1]
+            .iter_mut()
+            .zip(row[..w - 2].iter().zip(&row[2..]))
+        {
+            *o = a | c;
+        }
+        for (v, ((&a, &b), &n)) in row.iter_mut().zip(above.iter().zip(&beside).zip(&next)) {
+            *v &= a | b | n;
         }
         // Clearing changed nothing the next row's test reads: a cleared
         // pixel was next to no dark pixel of it.
@@ -308,7 +316,7 @@ fn drop_isolated(bin: &mut Mat) -> Result<(), DetectError> {
 }
 
 /// Rows of an image [`noise_sigma_dn`] reads at most (evenly spread).
-const NOISE_ROWS: usize = 96;
+const NOISE_ROWS: usize = 48;
 
 /// The noise of a grey image (grey levels): the standard deviation a
 /// pixel has about its neighbours in flat regions, from the median of the
@@ -515,20 +523,21 @@ fn tile_offsets(
     // alone is within the noise's spread; over the wider one some part of
     // its edges lifts it out.
     let r = ((win / 2 + t / 2) / t).max(1);
-    let wide = noise_dn > 0.0 && rel.flat_below_sigmas > 0.0;
-    let (lo_w, hi_w) = if wide {
-        let rw = r + FLAT_EXTRA_TILES;
-        (
-            spread_tiles(&lo, tw, th, rw, u8::min),
-            spread_tiles(&hi, tw, th, rw, u8::max),
-        )
-    } else {
-        (Vec::new(), Vec::new())
-    };
     let (lo, hi) = (
         spread_tiles(&lo, tw, th, r, u8::min),
         spread_tiles(&hi, tw, th, r, u8::max),
     );
+    // The wider neighbourhood's extremes are the extremes of the narrow
+    // ones within FLAT_EXTRA_TILES.
+    let wide = noise_dn > 0.0 && rel.flat_below_sigmas > 0.0;
+    let (lo_w, hi_w) = if wide {
+        (
+            spread_tiles(&lo, tw, th, FLAT_EXTRA_TILES, u8::min),
+            spread_tiles(&hi, tw, th, FLAT_EXTRA_TILES, u8::max),
+        )
+    } else {
+        (Vec::new(), Vec::new())
+    };
     // The offset of every possible range, looked up per tile.
     let fixed = params.threshold_offset;
     let by_range: [u8; 256] = std::array::from_fn(|range| {
