@@ -44,13 +44,16 @@ fn a_node_on_a_gstreamer_pipeline_reports_stamps_drops_and_reconnects() {
         .unwrap(),
     );
     let model = fleet.vehicle(15).unwrap().cameras[0].model;
-    // 30 frames a second of the camera's full size, 45 per stream (1.5 s):
-    // noise (`snow`) is full of contours, so restoring and searching it
-    // takes far longer than 33 ms a frame, and the queue of 2 drops frames;
-    // each end of stream is a reopening.
+    // 120 frames a second of the camera's full size, 45 per stream
+    // (0.375 s): a checkerboard of 4 px squares is ~48 000 contours at full
+    // contrast, so restoring and searching it takes ~27 ms a frame (release,
+    // idle 2-core machine; a debug build longer), well over the 8.3 ms
+    // between frames, and the queue of 2 drops frames; each end of stream
+    // is a reopening. (Noise, `snow`, no longer serves: the detector judges
+    // it flat against itself and searches it in ~1 ms.)
     let pipeline = format!(
-        "videotestsrc is-live=true num-buffers=45 pattern=snow \
-         ! video/x-raw,format=GRAY8,width={},height={},framerate=30/1 ! appsink",
+        "videotestsrc is-live=true num-buffers=45 pattern=checkers-4 \
+         ! video/x-raw,format=GRAY8,width={},height={},framerate=120/1 ! appsink",
         model.width, model.height
     );
     let port = free_port().unwrap();
