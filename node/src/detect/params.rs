@@ -95,15 +95,17 @@ pub struct DetectParams {
 /// AprilTag 3 thresholds at the middle of the local extremes for the same
 /// reason.
 ///
-/// A region is flat when its range is under `flat_below_dn` grey levels or
-/// under `flat_below_sigmas` times the image's noise σ (estimated from the
-/// image, [`super::quads::noise_sigma_dn`]): the range that noise alone
-/// spans over the ~20 x 20 px it is taken on is about 6σ. There the offset
-/// is also at least `flat_floor_sigmas`·σ. Without that, an empty frame's
-/// noise is thresholded at about one σ: a quarter or more of its pixels
-/// dark, in clusters that `findContours` traces by the ten thousand
-/// (`docs/detector.md`, *Flat is relative to the noise*). Where a marker
-/// raises the range above the noise's, nothing changes.
+/// A region is also flat *against the noise* when its range over a
+/// neighbourhood two tiles wider than the window's (36 x 36 px for the
+/// window of 19) is under `flat_below_sigmas` times the image's noise σ
+/// (estimated from the image, [`super::quads::noise_sigma_dn`]; noise alone
+/// spans about 6.5σ over those ~1 300 pixels): there the offset is at least
+/// `flat_floor_sigmas`·σ. Without that, an empty frame's noise of σ ≥ 1
+/// grey level passes for contrast and is thresholded at about one σ: a
+/// third of its pixels dark, in clusters that `findContours` traces by the
+/// ten thousand (`docs/detector.md`, *Flat is relative to the noise*).
+/// Where a marker lifts the range above the noise's, nothing changes.
+/// `flat_below_sigmas = 0` turns the test off.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ContrastOffset {
     pub fraction: f64,
