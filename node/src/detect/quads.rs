@@ -264,7 +264,7 @@ fn quads_of_level(
 /// quad or a blob, and no other contour changes: contours follow 8-connected
 /// dark regions, and an isolated pixel is its own region, next to none
 /// (so clearing one in place cannot make another isolated either). Sensor
-/// noise thresholded near its own level is mostly such pixels, tens of
+/// noise thresholded at twice its σ (the floor of a flat region) leaves
 /// thousands of them on a 720x540 level, which `findContours` would
 /// otherwise trace one by one.
 fn drop_isolated(bin: &mut Mat) -> Result<(), DetectError> {
@@ -486,7 +486,9 @@ fn spread_tiles(
 
 /// The integer offset (as `adaptiveThreshold` floors it) of every
 /// [`RANGE_TILE_PX`] tile of the `w` x `h` image `data`: from the grey-level
-/// range over the tiles within about half the window `win` of it.
+/// range over the tiles within about half the window `win` of it, and at
+/// least the noise floor where the range over [`FLAT_EXTRA_TILES`] more is
+/// flat against the image's noise `noise_dn` (0: no such test).
 fn tile_offsets(
     params: &DetectParams,
     rel: super::ContrastOffset,
