@@ -46,6 +46,14 @@ fn bad_numbers_are_refused_with_the_flag_named() {
             "--rate",
         ),
         (
+            &["fuse", "in.mcap", "--out", "o.mcap", "--window", "0"],
+            "--window",
+        ),
+        (
+            &["fuse", "in.mcap", "--out", "o.mcap", "--window", "inf"],
+            "--window",
+        ),
+        (
             &["sim", "render", "--out", out, "--spacing", "0"],
             "--spacing",
         ),

@@ -206,12 +206,19 @@ pub struct FuseArgs {
     /// format in `shoal_fusion::export`).
     #[arg(long, value_name = "FILE.g2o")]
     g2o: Option<PathBuf>,
+    /// Fusion's sliding window, seconds (default: the services', 2 s): how
+    /// the maps of a log change with a shorter or longer memory.
+    #[arg(long, value_name = "S", value_parser = super::args::positive)]
+    window: Option<f64>,
 }
 
 pub fn run_fuse(a: FuseArgs) -> anyhow::Result<()> {
     let mut params = FusionParams::default();
     params.nav.enabled = !a.no_nav;
     params.nav.propagate_live = a.propagate_live;
+    if let Some(w) = a.window {
+        params.window_s = w;
+    }
     let opts = FuseOptions {
         params,
         solve_at: a.rate.map_or(SolveAt::OriginalMaps, SolveAt::RateHz),
