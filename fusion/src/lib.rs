@@ -17,7 +17,10 @@
 //!    moved), and a group whose frames show a significant relative velocity
 //!    is brought to its newest frame's time ([`MotionModel`]), so that a
 //!    manoeuvring vehicle is followed rather than outvoted by where it has
-//!    been;
+//!    been. A pair seen to move (a significant fit, or a track of its
+//!    own whose confirmed present superseded its past) has every one of
+//!    its frames made as uncertain as that motion over its age, so its
+//!    other tracks' older frames cannot outvote its newest either;
 //! 3. **hypotheses**: one information-weighted candidate per group and
 //!    hypothesis; per vehicle pair the mutually consistent candidates,
 //!    between pairs the cycle-consistent ones, the planar-flip twins being

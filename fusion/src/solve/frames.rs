@@ -32,6 +32,14 @@ pub(crate) struct Frame {
     pub stamp_ns: u64,
     pub track: TrackKey,
     pub hyps: [Option<Candidate>; 2],
+    /// What the solve added to each hypothesis' covariance for the frame's
+    /// age at `now` (the random walk, and the motion of a moving pair):
+    /// variance per translation axis (m²) and per rotation axis (rad²).
+    /// Frames of one pair share the part of it since the newest of them was
+    /// taken, which [`super::groups::TrackGroups::candidate`] and the pose
+    /// graph's constraints ([`super::init::graph`]) count once, not once per
+    /// frame.
+    pub inflation: [f64; 2],
 }
 
 impl Frame {
@@ -88,6 +96,10 @@ pub(crate) fn measured(
                     Candidate::new(i, 1, alt.observer_from_target, inflate(&alt.covariance))
                 }),
             ],
+            inflation: [
+                age_s * inflation.translation_m2_per_s,
+                age_s * inflation.rotation_rad2_per_s,
+            ],
         }
     })
 }
@@ -99,7 +111,10 @@ const PER_THREAD: usize = 256;
 /// to move ([`super::motion::PairMotion`] not empty): a frame `age` seconds
 /// old of a pair moving at `v` m/s and `ω` rad/s says where it was, not
 /// where it is, to within `v·age` and `ω·age` in every direction (added to
-/// each axis' variance). A pair with no motion of its own in the window gets
+/// each axis' variance). A pair's own motion is its fastest significant
+/// velocity fit, or the rate at which one of its tracks' confirmed present
+/// left a superseded past ([`super::motion::PairMotion::displaced`]),
+/// whichever is faster. A pair with no motion of its own in the window gets
 /// the fastest seen (vehicles of one formation manoeuvre together) where its
 /// frames are too few or too spread to show a motion that fast; where they
 /// would have shown it, it holds still ([`super::motion::PairMotion::bound`]):
@@ -117,6 +132,8 @@ pub(crate) fn inflate_moving(
         let (speed, turn) = moving.bound(f.pair(), fastest);
         let age_s = now_ns.saturating_sub(f.stamp_ns) as f64 * 1e-9;
         let (dt2, dr2) = ((speed * age_s).powi(2), (turn * age_s).powi(2));
+        f.inflation[0] += dt2;
+        f.inflation[1] += dr2;
         for h in f.hyps.iter_mut() {
             if let Some(c) = h.as_ref() {
                 let mut cov = c.covariance;

@@ -35,6 +35,8 @@ impl TrackGroups {
     /// into one candidate `a_from_b` of the pair (a < b): the
     /// information-weighted mean in the observer's frame, then inverted once
     /// if the observer is `b`. `None` when no frame has the hypothesis.
+    /// The frames are weighed as of the newest of them
+    /// ([`fuse_sharing_inflation`]).
     pub fn candidate(
         &self,
         frames: &[Frame],
@@ -43,22 +45,25 @@ impl TrackGroups {
         without: &[usize],
     ) -> Option<Candidate> {
         let members = &self.members[g];
-        let hyp: Vec<&Candidate> = members
+        let used: Vec<(&Candidate, [f64; 2])> = members
             .iter()
             .filter(|i| !without.contains(i))
-            .filter_map(|&i| frames[i].hyps[usize::from(h)].as_ref())
+            .filter_map(|&i| {
+                let f = &frames[i];
+                f.hyps[usize::from(h)].as_ref().map(|c| (c, f.inflation))
+            })
             .collect();
-        let (pose, cov) = match hyp.as_slice() {
+        let (pose, cov) = match used.as_slice() {
             [] => return None,
-            [one] => (one.a_from_b, one.covariance),
+            [(one, _)] => (one.a_from_b, one.covariance),
             many => {
-                let items: Vec<(Pose, Cov6)> =
-                    many.iter().map(|c| (c.a_from_b, c.information)).collect();
-                consistency::fuse_close(&items)?
+                let items: Vec<(&Candidate, [f64; 2], bool)> =
+                    many.iter().map(|&(c, i)| (c, i, false)).collect();
+                fuse_sharing_inflation(&items, true)?
             }
         };
         let f = &frames[members[0]];
-        if let ([one], true) = (hyp.as_slice(), f.observer < f.target) {
+        if let ([(one, _)], true) = (used.as_slice(), f.observer < f.target) {
             // The frame itself (its information already computed).
             return Some(Candidate {
                 observation: g,
@@ -72,8 +77,80 @@ impl TrackGroups {
         } else {
             solver::invert(&measured)
         };
-        Candidate::new(g, h, a_from_b.pose, a_from_b.covariance).map(|c| c.with_weight(hyp.len()))
+        Candidate::new(g, h, a_from_b.pose, a_from_b.covariance).map(|c| c.with_weight(used.len()))
     }
+}
+
+/// Candidates of one vehicle pair fused as of the freshest of them. Each
+/// item is a candidate, the
+/// inflation its covariance carries for its age ([`Frame::inflation`],
+/// diagonal in the frame it was measured in) and whether it was inverted
+/// since (measured by the pair's `b`). What their ages added up to the
+/// freshest one's age is the pair's motion since that one was taken, common
+/// to all of them: it is taken out of every item before they are weighed
+/// against each other, and added once to the fused covariance. Weighed with
+/// it in, as independent errors, frames a second or two old count nearly as
+/// much as the newest (their ages dominate every covariance), so the mean
+/// trails a moving pair while the covariance shrinks as if the motion were
+/// noise that averages out. Where an item cannot be taken apart (a
+/// covariance that is not positive definite without it) the items are
+/// fused as they are. `close`: the items lie within a gate of each other
+/// (one Gauss–Newton pass).
+pub(crate) fn fuse_sharing_inflation(
+    items: &[(&Candidate, [f64; 2], bool)],
+    close: bool,
+) -> Option<(Pose, Cov6)> {
+    let fuse = |weighed: &[(Pose, Cov6)]| {
+        if close {
+            consistency::fuse_close(weighed)
+        } else {
+            consistency::fuse(weighed)
+        }
+    };
+    let as_they_are = || {
+        let weighed: Vec<(Pose, Cov6)> = items
+            .iter()
+            .map(|(c, _, _)| (c.a_from_b, c.information))
+            .collect();
+        fuse(&weighed)
+    };
+    let shared = items.iter().fold([f64::INFINITY; 2], |m, (_, i, _)| {
+        [m[0].min(i[0]), m[1].min(i[1])]
+    });
+    if !(shared[0] > 0.0 || shared[1] > 0.0) || !shared.iter().all(|s| s.is_finite()) {
+        return as_they_are();
+    }
+    // The shared inflation in the frame of a candidate at `pose`: diagonal
+    // where measured, carried through the inversion otherwise.
+    let in_frame = |pose: &Pose, inverted: bool| {
+        let mut d = Cov6::zeros();
+        for k in 0..3 {
+            d[(k, k)] = shared[0];
+            d[(k + 3, k + 3)] = shared[1];
+        }
+        if inverted {
+            solver::invert(&PoseWithCovariance::new(pose.inverse(), d)).covariance
+        } else {
+            d
+        }
+    };
+    let weighed = items
+        .iter()
+        .map(|(c, _, inverted)| {
+            let own = c.covariance - in_frame(&c.a_from_b, *inverted);
+            Some((c.a_from_b, crate::linalg::spd_inverse6(&own)?))
+        })
+        .collect::<Option<Vec<_>>>();
+    let Some(weighed) = weighed else {
+        return as_they_are();
+    };
+    let (pose, own) = fuse(&weighed)?;
+    // Added back in the frame of the item the shared part came from.
+    let (_, _, inverted) = items
+        .iter()
+        .min_by(|a, b| (a.1[0] + a.1[1]).total_cmp(&(b.1[0] + b.1[1])))?;
+    let cov = own + in_frame(&pose, *inverted);
+    Some((pose, (cov + cov.transpose()) * 0.5))
 }
 
 /// A group of a track being built: its index and its leader per hypothesis.
@@ -300,6 +377,96 @@ mod tests {
         let g = group_tracks(&back, GATE, true, 2);
         let c = g.candidate(&back, 0, 0, &[]).unwrap();
         assert!((c.a_from_b.translation.vector.x + 2.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_moving_pair_is_fused_as_of_its_freshest_frame_and_inversion_changes_nothing() {
+        // Frames 1.5, 1.0 and 0.5 s old (σ 1 mm each) of a pair moving 10
+        // cm/s along y, each inflated by its age at 2 cm/√s: weighed as
+        // independent errors the mean trails the freshest frame by ~2 cm;
+        // as of the freshest, the older frames (now 1 s and 0.5 s of motion
+        // away from it) hardly pull.
+        let q = 0.02f64 * 0.02;
+        let raw = 1e-6;
+        let cands: Vec<(Candidate, [f64; 2])> = [(1.5, 0.0), (1.0, 0.05), (0.5, 0.10)]
+            .iter()
+            .enumerate()
+            .map(|(k, &(age, y))| {
+                let mut cov = Cov6::identity() * raw;
+                for i in 0..6 {
+                    cov[(i, i)] += age * q;
+                }
+                (
+                    Candidate::new(k, 0, at(y), cov).unwrap(),
+                    [age * q, age * q],
+                )
+            })
+            .collect();
+        let items: Vec<(&Candidate, [f64; 2], bool)> =
+            cands.iter().map(|(c, i)| (c, *i, false)).collect();
+        let (pose, cov) = fuse_sharing_inflation(&items, false).unwrap();
+        let y = pose.translation.vector.y;
+        assert!((y - 0.10).abs() < 1e-3, "{y}");
+        // Its covariance: the freshest frame's own (nearly all the weight)
+        // plus the 0.5 s of motion since, counted once.
+        let want = raw + 0.5 * q;
+        assert!(
+            (cov[(1, 1)] - want).abs() < 0.05 * want,
+            "{} vs {want}",
+            cov[(1, 1)]
+        );
+        let plain: Vec<(Pose, Cov6)> = cands
+            .iter()
+            .map(|(c, _)| (c.a_from_b, c.information))
+            .collect();
+        let (trailing, _) = consistency::fuse(&plain).unwrap();
+        assert!(
+            (trailing.translation.vector.y - 0.10).abs() > 0.015,
+            "the old weighing trails"
+        );
+        // The same frames measured by the pair's other vehicle: the inverse
+        // of the same estimate.
+        let inverted: Vec<Candidate> = cands
+            .iter()
+            .map(|(c, _)| {
+                let m = solver::invert(&PoseWithCovariance::new(c.a_from_b, c.covariance));
+                Candidate::new(c.observation, 0, m.pose, m.covariance).unwrap()
+            })
+            .collect();
+        let items: Vec<(&Candidate, [f64; 2], bool)> = inverted
+            .iter()
+            .zip(&cands)
+            .map(|(c, (_, i))| (c, *i, true))
+            .collect();
+        let (back, back_cov) = fuse_sharing_inflation(&items, false).unwrap();
+        let e = proto::geometry::difference(&back.inverse(), &pose);
+        assert!(e.norm() < 1e-6, "{e}");
+        let again = solver::invert(&PoseWithCovariance::new(back, back_cov)).covariance;
+        assert!((again - cov).norm() < 1e-3 * cov.norm(), "{again} vs {cov}");
+        // Nothing shared (the freshest frame taken now): the weighing as before.
+        let fresh: Vec<(Candidate, [f64; 2])> = cands
+            .iter()
+            .map(|(c, i)| {
+                let mut cov = c.covariance;
+                for k in 0..6 {
+                    cov[(k, k)] -= 0.5 * q;
+                }
+                (
+                    Candidate::new(c.observation, 0, c.a_from_b, cov).unwrap(),
+                    [i[0] - 0.5 * q, i[1] - 0.5 * q],
+                )
+            })
+            .collect();
+        let items: Vec<(&Candidate, [f64; 2], bool)> =
+            fresh.iter().map(|(c, i)| (c, *i, false)).collect();
+        let plain: Vec<(Pose, Cov6)> = fresh
+            .iter()
+            .map(|(c, _)| (c.a_from_b, c.information))
+            .collect();
+        assert_eq!(
+            fuse_sharing_inflation(&items, false),
+            consistency::fuse(&plain)
+        );
     }
 
     #[test]

@@ -7,9 +7,9 @@
 use super::frames::Frame;
 use super::groups::TrackGroups;
 use super::hypotheses::Hypotheses;
-use crate::consistency;
+use crate::consistency::Candidate;
 use crate::solver::Constraint;
-use proto::geometry::{Cov6, Pose};
+use proto::geometry::Pose;
 use proto::VehicleId;
 use std::collections::{BTreeMap, BTreeSet};
 
@@ -40,8 +40,10 @@ pub(crate) fn graph(
         if !tree.contains(p.a) || !tree.contains(p.b) {
             return None;
         }
-        // The accepted groups of the pair, each without its gated frames.
-        let items: Vec<(Pose, Cov6)> = hyps.accepted_groups[pi]
+        // The accepted groups of the pair, each without its gated frames,
+        // with the inflation its candidate carries (its freshest frame's)
+        // and whether it was measured by `b`.
+        let items: Vec<(Candidate, [f64; 2], bool)> = hyps.accepted_groups[pi]
             .iter()
             .filter_map(|&(g, h, m)| {
                 let out: Vec<usize> = groups.members[g]
@@ -49,15 +51,25 @@ pub(crate) fn graph(
                     .copied()
                     .filter(|&i| gated.contains(&(i, h)))
                     .collect();
-                if out.is_empty() {
+                let cand = if out.is_empty() {
                     Some(p.candidates[m])
                 } else {
                     groups.candidate(frames, g, h, &out)
-                }
+                }?;
+                let used = groups.members[g]
+                    .iter()
+                    .filter(|&&i| !out.contains(&i) && frames[i].hyps[usize::from(h)].is_some());
+                let inflation = used.fold([f64::INFINITY; 2], |m, &i| {
+                    let f = frames[i].inflation;
+                    [m[0].min(f[0]), m[1].min(f[1])]
+                });
+                let inverted = frames[groups.members[g][0]].observer != p.a;
+                Some((cand, inflation, inverted))
             })
-            .map(|cand| (cand.a_from_b, cand.information))
             .collect();
-        let (pose, cov) = consistency::fuse(&items)?;
+        let refs: Vec<(&Candidate, [f64; 2], bool)> =
+            items.iter().map(|(c, i, inv)| (c, *i, *inv)).collect();
+        let (pose, cov) = super::groups::fuse_sharing_inflation(&refs, false)?;
         Some(Constraint {
             a: p.a,
             b: p.b,

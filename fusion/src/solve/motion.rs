@@ -159,11 +159,17 @@ pub(crate) struct PairMotion {
     pub moved: usize,
     /// The largest significance (`vᵀ·Σ_v⁻¹·v`) among the moving groups.
     pub strongest: f64,
+    /// Pairs one of whose tracks superseded an older group (its newest
+    /// frame no longer agrees with it, [`super::groups::group_tracks`]), with
+    /// the speed and turn rate that displacement took: the pair moved, even
+    /// where no velocity fit was significant. A pair's own evidence only:
+    /// never given to other pairs as [`Self::fastest`].
+    pub displaced: BTreeMap<(VehicleId, VehicleId), (f64, f64)>,
 }
 
 impl PairMotion {
     pub fn is_empty(&self) -> bool {
-        self.moving.is_empty()
+        self.moving.is_empty() && self.displaced.is_empty()
     }
 
     /// Whether the swarm as a whole is seen to move: more groups moving than
@@ -199,6 +205,10 @@ impl PairMotion {
     /// (`fastest`) unless the pair's own fits would have shown a motion that
     /// fast (its resolution times `√gate_chi2` at most) and showed none.
     pub fn bound(&self, pair: (VehicleId, VehicleId), fastest: (f64, f64)) -> (f64, f64) {
+        if let Some(&shown) = self.displaced.get(&pair) {
+            let own = self.moving.get(&pair).copied().unwrap_or((0.0, 0.0));
+            return (own.0.max(shown.0), own.1.max(shown.1));
+        }
         if let Some(&own) = self.moving.get(&pair) {
             return own;
         }
@@ -291,7 +301,88 @@ pub(crate) fn pair_motion(
         let e = out.moving.entry(pair).or_insert((0.0, 0.0));
         *e = (e.0.max(speed), e.1.max(turn));
     }
-    out.still.retain(|pair, _| !out.moving.contains_key(pair));
+    if model.enabled {
+        out.displaced = displacements(frames, groups, model);
+    }
+    out.still
+        .retain(|pair, _| !out.moving.contains_key(pair) && !out.displaced.contains_key(pair));
+    out
+}
+
+/// A displacement implying a speed or turn rate beyond this many standard
+/// deviations of [`MotionModel`]'s velocity prior (1.5 m/s, 0.9 rad/s by
+/// default) is not taken for motion.
+const PLAUSIBLE_PRIOR_SIGMAS: f64 = 3.0;
+
+/// [`PairMotion::displaced`]: per pair, the fastest speed and turn rate
+/// between a superseded group's newest frame and its track's newest frame
+/// (the closest pairing of their hypotheses), when faster than the rates
+/// worth inflating and within [`PLAUSIBLE_PRIOR_SIGMAS`] of the model's
+/// velocity prior: a jump faster than vehicles move is a wrong ID read
+/// twice, not a manoeuvre.
+fn displacements(
+    frames: &[Frame],
+    groups: &TrackGroups,
+    model: &MotionModel,
+) -> BTreeMap<(VehicleId, VehicleId), (f64, f64)> {
+    let mut out: BTreeMap<(VehicleId, VehicleId), (f64, f64)> = BTreeMap::new();
+    if !groups.superseded.iter().any(|&s| s) {
+        return out;
+    }
+    // Each track's newest frame (frames are in time order), where its group
+    // holds another frame agreeing with it: one frame that jumps (a misread,
+    // a bad fit) also supersedes the past, and is no evidence of motion.
+    let mut newest: BTreeMap<super::frames::TrackKey, usize> = BTreeMap::new();
+    for (i, f) in frames.iter().enumerate() {
+        newest.insert(f.track, i);
+    }
+    let mut confirmed = vec![false; frames.len()];
+    for members in groups.members.iter().filter(|m| m.len() >= 2) {
+        members.iter().for_each(|&i| confirmed[i] = true);
+    }
+    newest.retain(|_, i| confirmed[*i]);
+    for (members, _) in groups
+        .members
+        .iter()
+        .zip(&groups.superseded)
+        .filter(|(_, &gone)| gone)
+    {
+        let Some(&old) = members.last() else {
+            continue;
+        };
+        let Some(&new) = newest.get(&frames[old].track) else {
+            continue;
+        };
+        let dt = frames[new].stamp_ns.saturating_sub(frames[old].stamp_ns) as f64 * 1e-9;
+        if dt <= 0.0 {
+            continue;
+        }
+        let closest = frames[old]
+            .hyps
+            .iter()
+            .flatten()
+            .flat_map(|o| {
+                frames[new].hyps.iter().flatten().map(move |n| {
+                    let d = proto::geometry::difference(&n.a_from_b, &o.a_from_b);
+                    (d.fixed_rows::<3>(0).norm(), d.fixed_rows::<3>(3).norm())
+                })
+            })
+            .min_by(|a, b| a.0.total_cmp(&b.0));
+        let Some((moved, turned)) = closest else {
+            continue;
+        };
+        let (speed, turn) = (moved / dt, turned / dt);
+        if speed < MIN_SPEED_M_S && turn < MIN_TURN_RAD_S {
+            continue;
+        }
+        if speed > PLAUSIBLE_PRIOR_SIGMAS * model.velocity_prior_m_s
+            || turn > PLAUSIBLE_PRIOR_SIGMAS * model.angular_velocity_prior_rad_s
+        {
+            continue;
+        }
+        let e = out.entry(frames[new].pair()).or_insert((0.0, 0.0));
+        *e = (e.0.max(speed), e.1.max(turn));
+    }
     out
 }
 
@@ -453,6 +544,84 @@ mod tests {
             },
             0
         );
+    }
+
+    #[test]
+    fn a_track_that_supersedes_its_past_shows_its_pair_moving_unless_its_present_is_one_frame() {
+        let at = |y: f64| pose_from_xyz_rpy([2.0, y, 0.0], [0.0; 3]);
+        // Pair 1–2: two frames at y = 0, then two at 15 cm (15σ: it moved,
+        // and the present is confirmed by a second frame). Pair 1–3: three
+        // frames at y = 0, then one frame 30 cm off (a misread, a bad fit).
+        // Pair 1–4: two frames at 0, then two 1 m off, 5 m/s: faster than
+        // vehicles move (a wrong ID read twice).
+        let mut frames = Vec::new();
+        let tracks = [
+            (2, [0.0, 0.0, 0.15, 0.15]),
+            (3, [0.0, 0.0, 0.0, 0.3]),
+            (4, [0.0, 0.0, 1.0, 1.0]),
+        ];
+        for (target, ys) in tracks {
+            for (k, y) in ys.into_iter().enumerate() {
+                frames.push(frame(
+                    frames.len(),
+                    1,
+                    target,
+                    k as u64 * FRAME_NS,
+                    at(y),
+                    None,
+                ));
+            }
+        }
+        frames.sort_by_key(|f| f.stamp_ns);
+        let groups = group_tracks(&frames, 27.86, true, 2);
+        assert_eq!(groups.superseded.iter().filter(|&&s| s).count(), 3);
+        let model = MotionModel::default();
+        let fits = fit_groups(&frames, &groups, &model, 2);
+        let motion = pair_motion(&frames, &groups, &fits, &model);
+        // 15 cm between the superseded group's newest frame (0.1 s) and the
+        // track's newest (0.3 s).
+        assert_eq!(
+            motion.displaced.keys().copied().collect::<Vec<_>>(),
+            vec![(1, 2)]
+        );
+        let (speed, turn) = motion.displaced[&(1, 2)];
+        assert!((speed - 0.15 / 0.2).abs() < 1e-9, "{speed}");
+        assert!(turn < 1e-9, "{turn}");
+        assert!(!motion.still.contains_key(&(1, 2)));
+        // The pair's own motion, whatever the swarm's; none for 1–3 or 1–4.
+        assert_eq!(motion.bound((1, 2), (0.0, 0.0)), (speed, turn));
+        assert_eq!(motion.bound((1, 3), (0.0, 0.0)), (0.0, 0.0));
+        assert_eq!(motion.bound((1, 4), (0.0, 0.0)), (0.0, 0.0));
+        // So its older frames are inflated by it, and the others' are not.
+        let before = frames.clone();
+        crate::solve::frames::inflate_moving(&mut frames, &motion, 3 * FRAME_NS, 2);
+        for (a, b) in frames.iter().zip(&before) {
+            let age = (3 * FRAME_NS - a.stamp_ns) as f64 * 1e-9;
+            let grown =
+                a.hyps[0].unwrap().covariance[(1, 1)] - b.hyps[0].unwrap().covariance[(1, 1)];
+            let want = if a.pair() == (1, 2) {
+                (speed * age).powi(2)
+            } else {
+                0.0
+            };
+            assert!(
+                (grown - want).abs() < 1e-12,
+                "{:?} at {age} s: {grown}",
+                a.pair()
+            );
+        }
+        // A model switched off sees no motion at all.
+        let off = MotionModel {
+            enabled: false,
+            ..MotionModel::default()
+        };
+        assert!(pair_motion(
+            &before,
+            &groups,
+            &fit_groups(&before, &groups, &off, 2),
+            &off
+        )
+        .is_empty());
     }
 
     #[test]

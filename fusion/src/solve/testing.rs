@@ -99,5 +99,6 @@ pub fn frame(
             Candidate::new(index, 0, pose, cov),
             alt.and_then(|a| Candidate::new(index, 1, a, cov)),
         ],
+        inflation: [0.0; 2],
     }
 }
