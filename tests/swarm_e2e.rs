@@ -125,6 +125,7 @@ fn a_vehicle_hidden_for_10_s_is_carried_by_odometry_and_lost_without() {
     let run = |nav: bool| {
         let cfg = DemoConfig {
             duration_s: 18.0,
+            frame_rate_hz: 1.0,
             cameras: side_cameras(),
             // Half speed, as above: at full speed a loaded machine skips
             // ticks' rendering, and a skipped last frame before the

@@ -17,10 +17,12 @@ pub struct DemoArgs {
     #[arg(long, default_value_t = 20.0, value_parser = super::args::positive)]
     duration: f64,
     /// Camera frames per simulated second (each of the five cameras of each vehicle).
-    #[arg(long, default_value_t = 1.0, value_parser = super::args::positive)]
+    #[arg(long, default_value_t = 2.0, value_parser = super::args::positive)]
     rate: f64,
-    /// Simulated seconds per wall-clock second (below 1 lets rendering keep up on a small machine).
-    #[arg(long, default_value_t = 0.5, value_parser = super::args::positive)]
+    /// Simulated seconds per wall-clock second. At 1 (real time) the simulator
+    /// skips the ticks it cannot render in time and says how many; on a busy
+    /// machine `--time-scale 0.5` (or `--rate 1`) lets rendering keep up.
+    #[arg(long, default_value_t = 1.0, value_parser = super::args::positive)]
     time_scale: f64,
     /// Render only these cameras (comma-separated names, e.g. `port,starboard`).
     #[arg(long, value_delimiter = ',')]
