@@ -792,7 +792,12 @@ pub fn pair_errors(
             for view in &views {
                 let map = view.map();
                 let valid_at = map.valid_at_ns();
-                let Some(truth) = truths.iter().min_by_key(|t| t.stamp_ns.abs_diff(valid_at))
+                // The truth of that capture's tick; a map whose tick's truth
+                // was lost is not scored against a neighbouring tick's.
+                let Some(truth) = truths
+                    .iter()
+                    .min_by_key(|t| t.stamp_ns.abs_diff(valid_at))
+                    .filter(|t| t.stamp_ns.abs_diff(valid_at) <= 1_000_000)
                 else {
                     continue;
                 };

@@ -3,11 +3,15 @@
 //! simulator put it, whether a map put one on a planar-flip twin, and whether
 //! the reported covariance owns up to the error (NEES).
 //!
-//! A map is scored against the truth nearest to its newest accepted
-//! observation's capture (the freshest information it holds), as the demo
-//! scores its pairs. A log holds a tick's truth after that tick's frames'
-//! observations (the simulator publishes it once the frames are rendered),
-//! so a map waits for a truth at or after that capture before it is scored.
+//! A map is scored against the truth of its newest accepted observation's
+//! capture (the freshest information it holds), as the demo scores its
+//! pairs. A log holds a tick's truth after that tick's frames' observations
+//! (the simulator publishes it once the frames are rendered), so a map waits
+//! for a truth at or after that capture before it is scored. A log without
+//! that tick's truth (a message lost on the way) leaves the map unscored
+//! and counted: the nearest other tick's truth is where
+//! the vehicles were up to a tick earlier or later, and scoring against it
+//! reads their motion as error.
 
 use proto::geometry::difference;
 use proto::{FleetMap, SimTruth, VehicleState};
@@ -17,11 +21,16 @@ use std::collections::VecDeque;
 pub const FLIP_ERROR_DEG: f64 = 10.0;
 /// Truth messages kept to match maps with (a few seconds of ticks).
 const TRUTHS_KEPT: usize = 256;
+/// A truth this close to a map's capture is that capture's (the simulator
+/// stamps a tick's frames and its truth alike).
+const SAME_INSTANT_NS: u64 = 1_000_000;
 
 /// The re-fused maps against the log's ground truth.
 #[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
 pub struct TruthScore {
     pub maps_scored: u64,
+    /// Maps whose capture's truth is not in the log (not scored).
+    pub maps_without_truth: u64,
     /// Maps with a Live vehicle more than [`FLIP_ERROR_DEG`] off.
     pub maps_flipped: u64,
     /// Live non-reference vehicle estimates scored.
@@ -80,6 +89,10 @@ impl TruthAcc {
         else {
             return;
         };
+        if truth.stamp_ns.abs_diff(valid_at) > SAME_INSTANT_NS {
+            self.score.maps_without_truth += 1;
+            return;
+        }
         let pose = |v| {
             truth
                 .vehicles
@@ -117,7 +130,7 @@ impl TruthAcc {
         for (at, map) in std::mem::take(&mut self.pending) {
             self.score(at, &map);
         }
-        if self.score.maps_scored == 0 {
+        if self.score.maps_scored == 0 && self.score.maps_without_truth == 0 {
             return None;
         }
         let n = self.score.estimates_scored.max(1) as f64;
@@ -202,6 +215,16 @@ mod tests {
             (s.maps_scored, s.maps_flipped, s.estimates_scored),
             (2, 1, 2)
         );
+        assert!(s.max_position_error_m < 1e-9, "{s:?}");
+        // A tick whose truth the log lost: its map is counted, not scored
+        // against the next tick's truth (0.5 m away by then).
+        let mut lost = TruthAcc::default();
+        lost.add_truth(truth(0, 0.0));
+        lost.add_map(&map(S, at_1));
+        lost.add_truth(truth(2 * S, 1.0));
+        lost.add_map(&map(2 * S, pose_from_xyz_rpy([1.0, 2.0, 0.0], [0.0; 3])));
+        let s = lost.finish().expect("one map scored");
+        assert_eq!((s.maps_scored, s.maps_without_truth), (1, 1), "{s:?}");
         assert!(s.max_position_error_m < 1e-9, "{s:?}");
         // Without a truth, nothing is scored.
         let mut none = TruthAcc::default();

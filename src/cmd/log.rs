@@ -265,6 +265,12 @@ pub fn run_fuse(a: FuseArgs) -> anyhow::Result<()> {
             t.max_position_error_m * 1e3,
             t.mean_nees
         );
+        if t.maps_without_truth > 0 {
+            shoal::outln!(
+                "{} maps not scored: the log lost the truth of their capture's tick",
+                t.maps_without_truth
+            );
+        }
     }
     if s.undecodable > 0 {
         shoal::outln!(
