@@ -364,13 +364,22 @@ impl Bus {
         }
     }
 
-    /// A typed publisher on a concrete key.
+    /// A typed publisher on a concrete key. Camera frames go at Zenoh's
+    /// `DataLow` priority, everything else at the default `Data`: a
+    /// transport queues each priority apart, so a session whose queue is
+    /// full of megabyte frames (a simulator, a camera driver) still sends
+    /// the small messages it publishes beside them — truth, nav states,
+    /// observations, commands — instead of dropping them on congestion,
+    /// which Zenoh does without telling anyone.
     pub fn publisher<M: WireMessage>(&self, key: String) -> Result<Publisher<M>, BusError> {
-        let publisher = self
-            .session
-            .declare_publisher(key.clone())
-            .wait()
-            .map_err(declare_err("publisher", &key))?;
+        use zenoh::qos::Priority;
+        let builder = self.session.declare_publisher(key.clone());
+        let builder = if M::KIND == shoal_proto::MessageKind::CameraFrame {
+            builder.priority(Priority::DataLow)
+        } else {
+            builder
+        };
+        let publisher = builder.wait().map_err(declare_err("publisher", &key))?;
         Ok(Publisher {
             key,
             publisher,

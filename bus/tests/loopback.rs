@@ -134,3 +134,56 @@ fn peers_find_each_other_through_the_loopback_rendezvous() {
         sub.recv_timeout(Duration::from_millis(50)).is_some()
     }));
 }
+
+/// A session flooding megabyte camera frames still delivers the small
+/// messages it publishes between them: frames go at Zenoh's `DataLow`
+/// priority, in a transport queue of their own, so a queue full of frames
+/// does not make Zenoh drop (silently, by its default congestion control)
+/// the truth, nav or commands queued behind them.
+#[test]
+fn small_messages_between_a_flood_of_frames_all_arrive() {
+    let port = free_port().unwrap();
+    let _router = Bus::open(&Connect::Router { port }).unwrap();
+    let a = Bus::open(&client_of(port)).unwrap();
+    let b = Bus::open(&client_of(port)).unwrap();
+    let keys = Keys::new("bustest").unwrap();
+    let frames_sub = b
+        .subscribe::<shoal_proto::CameraFrame>(&keys.frame(17, 0), 4)
+        .unwrap();
+    let commands = b
+        .subscribe::<VehicleCommand>(&keys.all_commands(), 1024)
+        .unwrap();
+    let frames = a
+        .publisher::<shoal_proto::CameraFrame>(keys.frame(17, 0))
+        .unwrap();
+    let publ = a.publisher::<VehicleCommand>(keys.command(15)).unwrap();
+    std::thread::sleep(Duration::from_millis(300));
+    let mut frame = shoal_proto::samples::camera_frame();
+    frame.info.model.width = 1440;
+    frame.info.model.height = 1080;
+    frame.data = vec![7u8; 1440 * 1080];
+    const N: u64 = 200;
+    for k in 0..N {
+        // Four frames, then one command: a simulator tick's order.
+        for _ in 0..4 {
+            let _ = frames.put(&frame);
+        }
+        publ.put(&VehicleCommand {
+            vehicle: 15,
+            stamp_ns: k,
+            velocity_body: [0.0; 3],
+            yaw_rate: 0.0,
+        })
+        .unwrap();
+    }
+    let mut got = std::collections::BTreeSet::new();
+    assert!(
+        wait_until(|| {
+            got.extend(commands.drain().into_iter().map(|r| r.msg.stamp_ns));
+            got.len() as u64 == N
+        }),
+        "{} of {N} commands arrived between the frames",
+        got.len()
+    );
+    drop(frames_sub);
+}
