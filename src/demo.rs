@@ -797,7 +797,9 @@ pub fn pair_errors(
                 let Some(truth) = truths
                     .iter()
                     .min_by_key(|t| t.stamp_ns.abs_diff(valid_at))
-                    .filter(|t| t.stamp_ns.abs_diff(valid_at) <= 1_000_000)
+                    .filter(|t| {
+                        t.stamp_ns.abs_diff(valid_at) <= shoal_record::truth_score::SAME_INSTANT_NS
+                    })
                 else {
                     continue;
                 };

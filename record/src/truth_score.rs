@@ -23,7 +23,7 @@ pub const FLIP_ERROR_DEG: f64 = 10.0;
 const TRUTHS_KEPT: usize = 256;
 /// A truth this close to a map's capture is that capture's (the simulator
 /// stamps a tick's frames and its truth alike).
-const SAME_INSTANT_NS: u64 = 1_000_000;
+pub const SAME_INSTANT_NS: u64 = 1_000_000;
 
 /// The re-fused maps against the log's ground truth.
 #[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
