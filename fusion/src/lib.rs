@@ -156,10 +156,27 @@ pub struct FusionParams {
     /// thread gains nothing and costs a little (docs/results.md): use 1.
     #[serde(default)]
     pub threads: usize,
+    /// Observations one vehicle may hold in the window (default
+    /// [`DEFAULT_MAX_WINDOW_PER_OBSERVER`]); beyond, its oldest are dropped
+    /// and counted ([`FusionStats::crowded_out`]). Bounds fusion's memory and
+    /// solve time against a node that floods, whatever its stamps.
+    #[serde(default = "default_max_window_per_observer")]
+    pub max_window_per_observer: usize,
 }
+
+/// Default of [`FusionParams::max_window_per_observer`]: about twice what
+/// five cameras at 30 frames/s, each frame reading 7 markers, send in a 2 s
+/// window (2 100), so only a node sending far beyond any camera rig is
+/// capped. At ~1.4 kB an entry (`shoal eval fusion` at 1 000 vehicles, an
+/// upper bound: docs/results.md) that is under 6 MB per vehicle.
+pub const DEFAULT_MAX_WINDOW_PER_OBSERVER: usize = 4096;
 
 fn default_link_window_s() -> f64 {
     link::LINK_WINDOW_S
+}
+
+fn default_max_window_per_observer() -> usize {
+    DEFAULT_MAX_WINDOW_PER_OBSERVER
 }
 
 impl Default for FusionParams {
@@ -181,6 +198,7 @@ impl Default for FusionParams {
             nav: NavParams::default(),
             link_window_s: link::LINK_WINDOW_S,
             threads: 0,
+            max_window_per_observer: DEFAULT_MAX_WINDOW_PER_OBSERVER,
         }
     }
 }
@@ -270,6 +288,9 @@ pub struct FusionStats {
     pub expired: u64,
     /// Early rejections not reported because the pending list was full.
     pub reports_dropped: u64,
+    /// Admitted observations dropped again, oldest first, because their
+    /// observer held more than [`FusionParams::max_window_per_observer`].
+    pub crowded_out: u64,
     /// Nav states admitted, and refused (unknown vehicle, wrong key, invalid, stale, skewed).
     pub nav_ingested: u64,
     pub nav_rejected: u64,
@@ -336,6 +357,7 @@ impl Fusion {
             link_window_ns: seconds_to_ns(self.params.link_window_s),
             max_clock_skew_ns: seconds_to_ns(self.params.max_clock_skew_s),
             max_std: self.params.max_std,
+            max_per_observer: self.params.max_window_per_observer,
         }
     }
 
@@ -460,7 +482,10 @@ impl Fusion {
     }
 
     pub fn stats(&self) -> FusionStats {
-        self.stats.clone()
+        FusionStats {
+            crowded_out: self.window.crowded_out,
+            ..self.stats.clone()
+        }
     }
 
     /// Observations currently in the window.

@@ -121,6 +121,9 @@ pub(crate) struct Admission {
     pub link_window_ns: u64,
     pub max_clock_skew_ns: u64,
     pub max_std: f64,
+    /// Observations one observer may hold in the window; beyond, its
+    /// oldest are dropped and counted ([`Window::crowded_out`]).
+    pub max_per_observer: usize,
 }
 
 /// The sliding window.
@@ -128,6 +131,11 @@ pub(crate) struct Admission {
 pub(crate) struct Window {
     pub entries: BTreeMap<ObservationKey, Stored>,
     duplicates: BTreeSet<DuplicateKey>,
+    /// Each observer's entries, oldest first: what the per-observer cap drops.
+    by_observer: BTreeMap<VehicleId, BTreeSet<ObservationKey>>,
+    /// Observations dropped, oldest first, because their observer held
+    /// more than [`Admission::max_per_observer`] in the window.
+    pub crowded_out: u64,
 }
 
 impl Window {
@@ -197,6 +205,7 @@ impl Window {
         if !self.duplicates.insert(key.duplicate_key()) {
             return Err(RejectReason::Duplicate);
         }
+        let observer = obs.observer;
         self.entries.insert(
             key,
             Stored {
@@ -205,6 +214,18 @@ impl Window {
                 linked,
             },
         );
+        let mine = self.by_observer.entry(observer).or_default();
+        mine.insert(key);
+        // A node that floods (a bug, a replay, a compromised vehicle with its
+        // certificate) fills its own share, not the memory and the solve:
+        // its oldest go first, as in the node's drop-oldest queues.
+        while mine.len() > limits.max_per_observer.max(1) {
+            if let Some(oldest) = mine.pop_first() {
+                self.entries.remove(&oldest);
+                self.duplicates.remove(&oldest.duplicate_key());
+                self.crowded_out += 1;
+            }
+        }
         Ok(target)
     }
 
@@ -225,6 +246,12 @@ impl Window {
         for k in &expired {
             self.entries.remove(k);
             self.duplicates.remove(&k.duplicate_key());
+            if let Some(mine) = self.by_observer.get_mut(&k.observer) {
+                mine.remove(k);
+                if mine.is_empty() {
+                    self.by_observer.remove(&k.observer);
+                }
+            }
         }
         expired.len()
     }
@@ -350,5 +377,63 @@ mod tests {
             1
         );
         assert_eq!(w.entries.len(), 1);
+    }
+
+    #[test]
+    fn a_flooding_observer_keeps_only_its_newest_share_and_the_others_keep_theirs() {
+        let fleet = paper_fleet();
+        let limits = Admission {
+            max_per_observer: 8,
+            ..LIMITS
+        };
+        let mut w = Window::default();
+        let now = 100 * S;
+        // Vehicle 15 sends three frames; vehicle 10 floods 50, out of order.
+        for k in 0..3u64 {
+            let mut o = observation(
+                15,
+                0,
+                10,
+                now - k * S / 10,
+                pose_from_xyz_rpy([2.0, 0.0, 0.0], [0.0; 3]),
+            );
+            o.frame_seq = k;
+            w.admit(&fleet, o, 15, now, &limits).unwrap();
+        }
+        let order: Vec<u64> = (0..50).map(|k| (k * 37) % 50).collect();
+        for &k in &order {
+            let mut o = seen(now - S + k * S / 50);
+            o.frame_seq = k;
+            assert_eq!(w.admit(&fleet, o, 10, now, &limits), Ok(15));
+        }
+        assert_eq!(w.crowded_out, 42);
+        assert_eq!(w.entries.len(), 8 + 3);
+        let tens: Vec<u64> = w
+            .entries
+            .keys()
+            .filter(|k| k.observer == 10)
+            .map(|k| k.frame_seq)
+            .collect();
+        assert_eq!(
+            tens,
+            (42..50).collect::<Vec<_>>(),
+            "the newest eight by capture time"
+        );
+        assert_eq!(w.entries.keys().filter(|k| k.observer == 15).count(), 3);
+        // What was crowded out is forgotten as a duplicate too: it may come back (and go again).
+        let mut again = seen(now - S);
+        again.frame_seq = 0;
+        assert_eq!(w.admit(&fleet, again, 10, now, &limits), Ok(15));
+        assert_eq!(w.crowded_out, 43);
+        // Eviction keeps the per-observer index in step: after the window
+        // passes, vehicle 10 has its whole share again.
+        w.evict(now + 3 * S, limits.window_ns, limits.link_window_ns);
+        assert!(w.entries.is_empty() && w.by_observer.is_empty() && w.duplicates.is_empty());
+        for k in 0..8u64 {
+            let mut o = seen(now + 3 * S + k);
+            o.frame_seq = 100 + k;
+            w.admit(&fleet, o, 10, now + 3 * S, &limits).unwrap();
+        }
+        assert_eq!((w.entries.len(), w.crowded_out), (8, 43));
     }
 }

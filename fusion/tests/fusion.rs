@@ -334,6 +334,71 @@ fn duplicates_are_not_double_counted() {
     assert_eq!(twice.ingest(again, obs[0].obs.observer, now), Ok(()));
 }
 
+/// A node that floods (a bug, a replay, a compromised vehicle) is held to its
+/// share of the window: its oldest go, counted; the others keep theirs, and
+/// the map still holds every vehicle.
+#[test]
+fn a_flooding_node_is_held_to_its_window_share() {
+    let fleet = paper_fleet();
+    let truth = paper_line_abreast();
+    let (_, obs, now) = run_frames(
+        &fleet,
+        &truth,
+        ObsSynthParams::default(),
+        FusionParams::default(),
+        5,
+        10,
+    );
+    let share = 6;
+    let mut f = Fusion::new(
+        &fleet,
+        FusionParams {
+            max_window_per_observer: share,
+            record_solve_time: false,
+            ..FusionParams::default()
+        },
+        "central",
+    );
+    let mut per_observer: BTreeMap<u32, usize> = BTreeMap::new();
+    for s in &obs {
+        f.ingest(s.obs.clone(), s.obs.observer, now).unwrap();
+        *per_observer.entry(s.obs.observer).or_default() += 1;
+    }
+    assert!(
+        per_observer.len() == 3 && per_observer.values().all(|&n| n > share),
+        "every vehicle must have more than its share for the test to mean anything: {per_observer:?}"
+    );
+    // Vehicle 10 replays its newest detection 5 000 times under fresh frame numbers.
+    let flood = obs
+        .iter()
+        .rev()
+        .find(|s| s.obs.observer == 10)
+        .expect("vehicle 10 sees someone")
+        .obs
+        .clone();
+    for k in 0..5_000u64 {
+        let mut o = flood.clone();
+        o.frame_seq = 1_000_000 + k;
+        f.ingest(o, 10, now).unwrap();
+    }
+    let admitted = obs.len() as u64 + 5_000;
+    assert_eq!(f.window_len(), 3 * share);
+    let stats = f.stats();
+    assert_eq!(stats.ingested, admitted);
+    assert_eq!(stats.crowded_out, admitted - 3 * share as u64);
+    let map = f.solve(now);
+    for v in [10, 15, 17] {
+        assert_eq!(
+            map.vehicles
+                .iter()
+                .find(|s| s.vehicle == v)
+                .map(|s| s.state),
+            Some(VehicleState::Live),
+            "vehicle {v} after the flood"
+        );
+    }
+}
+
 #[test]
 fn a_misread_in_the_same_frame_as_the_marker_is_judged_not_dropped_as_a_duplicate() {
     let fleet = paper_fleet();

@@ -245,6 +245,7 @@ pub fn spawn(
     let worker = Worker::spawn(format!("fusion-{producer}"), move |stop2| {
         let _keep = (watch, queryable, bus);
         let mut next = Instant::now();
+        let mut crowded_warned = 0u64;
         let mut refused_total = 0u64;
         while !stop2.load(Ordering::Relaxed) {
             let now = clock.now_ns();
@@ -276,8 +277,19 @@ pub fn spawn(
                 if let Ok(mut g) = latest2.lock() {
                     *g = Some(map);
                 }
+                let now_stats = fusion.stats();
+                if now_stats.crowded_out > crowded_warned {
+                    tracing::warn!(
+                        "{} observations dropped so far because a vehicle sent more than its \
+                         window share ({} in the window; FusionParams::max_window_per_observer): \
+                         a node sending far beyond its cameras' rate",
+                        now_stats.crowded_out,
+                        fusion.params().max_window_per_observer
+                    );
+                    crowded_warned = now_stats.crowded_out;
+                }
                 if let Ok(mut g) = stats2.lock() {
-                    *g = fusion.stats();
+                    *g = now_stats;
                 }
                 // Don't try to catch up after a stall: one map per period at most.
                 if next < Instant::now() {

@@ -343,7 +343,17 @@ pub fn run_fusion(a: FusionArgs) -> anyhow::Result<()> {
     )?;
     tracing::info!("fusion running; Ctrl-C to stop");
     wait_for_ctrl_c(|| false);
+    let s = handle.stats();
     handle.stop();
+    shoal::outln!(
+        "fusion: {} observations received, {} admitted, {} rejected on arrival, {} aged out, {} dropped over a vehicle's window share, {} solves",
+        s.received,
+        s.ingested,
+        s.rejected_at_ingest.total(),
+        s.expired,
+        s.crowded_out,
+        s.solves
+    );
     if let Some(r) = ros2 {
         let s = r.stats();
         r.stop();

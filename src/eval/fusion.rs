@@ -56,6 +56,12 @@ struct Cell {
     /// Of the solve: the consistency checks and the LM solves (with gate rounds).
     consistency_ms: f64,
     lm_ms: f64,
+    /// Peak resident memory the cell added, MB, before the solves (both
+    /// fusions' windows, the labels) and to their end (and the solves):
+    /// upper bounds on one fusion's. Memory the process freed in earlier
+    /// cells is reused first, so a cell no larger than one before adds ~0.
+    window_growth_mb: Option<f64>,
+    peak_growth_mb: Option<f64>,
     /// Mean NEES of the localized vehicles' poses against their map
     /// covariance (6 = honest), and how many vehicles it is over.
     mean_nees: Option<f64>,
@@ -131,6 +137,10 @@ fn run_cell(
         ..*base
     };
     let mut synth = ObsSynth::new(&fleet, params, seed);
+    // Memory from here to the solves' end: the two fusions (their windows
+    // and solves), the outlier labels, each frame's synthesized observations.
+    let peak_since_here = super::reset_peak_resident();
+    let (rss_before_kb, _) = super::resident_kb();
     let mut fusion = Fusion::new(&fleet, FusionParams::default(), "eval");
     let one_thread = FusionParams {
         threads: 1,
@@ -154,8 +164,16 @@ fn run_cell(
             let _ = fusion.ingest(s.obs.clone(), s.obs.observer, stamp);
         }
     }
+    let window_growth_mb = match (peak_since_here, rss_before_kb, super::resident_kb().1) {
+        (true, Some(before), Some(peak)) => Some(peak.saturating_sub(before) as f64 / 1024.0),
+        _ => None,
+    };
     let (map, solve_ms, solve_1thread_ms) = solve_both(&mut serial, &mut fusion, last_stamp, n)?;
     let stats = fusion.stats().last_solve;
+    let peak_growth_mb = match (peak_since_here, rss_before_kb, super::resident_kb().1) {
+        (true, Some(before), Some(peak)) => Some(peak.saturating_sub(before) as f64 / 1024.0),
+        _ => None,
+    };
 
     let MapErrors {
         localized,
@@ -222,6 +240,8 @@ fn run_cell(
         mean_nees: (!nees.is_empty()).then(|| nees.iter().sum::<f64>() / nees.len() as f64),
         nees_vehicles: nees.len(),
         inlier_rejections,
+        window_growth_mb,
+        peak_growth_mb,
     })
 }
 
@@ -322,6 +342,12 @@ fn record(csv: &mut Csv, n: usize, r: f64, frames: usize, c: &Cell) -> Value {
         format!("{:.3}", c.consistency_ms),
         format!("{:.3}", c.lm_ms),
         f(c.mean_nees),
+        c.window_growth_mb
+            .map(|m| format!("{m:.1}"))
+            .unwrap_or_default(),
+        c.peak_growth_mb
+            .map(|m| format!("{m:.1}"))
+            .unwrap_or_default(),
     ]);
     json!({
         "localized": c.localized,
@@ -339,11 +365,13 @@ fn record(csv: &mut Csv, n: usize, r: f64, frames: usize, c: &Cell) -> Value {
         "mean_nees": c.mean_nees,
         "nees_band_95": super::nees::chi2_band(6, c.nees_vehicles).map(|(a, b)| [a, b]),
         "inlier_rejections": c.inlier_rejections,
+        "window_resident_growth_mb": c.window_growth_mb,
+        "peak_resident_growth_mb": c.peak_growth_mb,
     })
 }
 
 /// The columns of `fusion.csv`, one row per cell.
-const CSV_COLUMNS: [&str; 16] = [
+const CSV_COLUMNS: [&str; 18] = [
     "vehicles",
     "outlier_rate",
     "frames",
@@ -360,6 +388,8 @@ const CSV_COLUMNS: [&str; 16] = [
     "consistency_ms",
     "lm_ms",
     "mean_nees",
+    "window_resident_growth_mb",
+    "peak_resident_growth_mb",
 ];
 
 /// The observation model of `opts`' camera profile: the ideal camera's (the

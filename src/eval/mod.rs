@@ -390,6 +390,27 @@ pub fn run(experiment: Experiment, opts: &EvalOptions) -> Result<serde_json::Val
 }
 
 /// Write pretty JSON.
+/// `VmRSS` and `VmHWM` (the peak since the process started or since
+/// [`reset_peak_resident`]) of this process, kB.
+pub(crate) fn resident_kb() -> (Option<u64>, Option<u64>) {
+    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    let field = |name: &str| {
+        status
+            .lines()
+            .find(|l| l.starts_with(name))
+            .and_then(|l| l.split_whitespace().nth(1))
+            .and_then(|v| v.parse().ok())
+    };
+    (field("VmRSS:"), field("VmHWM:"))
+}
+
+/// Set this process's `VmHWM` back to its present resident size (Linux
+/// 4.0 on: `5` into `/proc/self/clear_refs`), so the next [`resident_kb`]
+/// gives the peak since now. False where the kernel does not allow it.
+pub(crate) fn reset_peak_resident() -> bool {
+    std::fs::write("/proc/self/clear_refs", "5").is_ok()
+}
+
 pub fn write_json(path: &Path, value: &serde_json::Value) -> Result<(), EvalError> {
     let text = serde_json::to_string_pretty(value)?;
     std::fs::write(path, text + "\n").map_err(|source| EvalError::Io {

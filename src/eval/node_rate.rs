@@ -67,19 +67,6 @@ fn process_cpu_s() -> Option<f64> {
     Some(ticks / USER_HZ)
 }
 
-/// `VmRSS` and `VmHWM` of this process, kB.
-fn resident_kb() -> (Option<u64>, Option<u64>) {
-    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
-    let field = |name: &str| {
-        status
-            .lines()
-            .find(|l| l.starts_with(name))
-            .and_then(|l| l.split_whitespace().nth(1))
-            .and_then(|v| v.parse().ok())
-    };
-    (field("VmRSS:"), field("VmHWM:"))
-}
-
 /// One water's run.
 #[derive(Debug, Clone)]
 pub struct RateRun {
@@ -191,7 +178,7 @@ pub fn run_rate(
     let stats = Arc::new(NodeStats::new(&v.cameras));
     let stop = Arc::new(AtomicBool::new(false));
     let observations = Arc::new(AtomicU64::new(0));
-    let (rss_before_kb, _) = resident_kb();
+    let (rss_before_kb, _) = super::resident_kb();
     let mut inputs = Vec::new();
     let mut threads = Vec::new();
     for i in 0..frames.len() {
@@ -238,7 +225,7 @@ pub fn run_rate(
             input.queue.push(f);
         }
         if k == ticks / 2 {
-            rss_running_kb = resident_kb().0;
+            rss_running_kb = super::resident_kb().0;
         }
     }
     // The last frames offered get their time to finish, as in a stream

@@ -16,6 +16,7 @@ pub const LIMITS: Admission = Admission {
     link_window_ns: 8 * S,
     max_clock_skew_ns: S / 4,
     max_std: 5.0,
+    max_per_observer: crate::DEFAULT_MAX_WINDOW_PER_OBSERVER,
 };
 
 /// `configs/fleets/paper.toml`: vehicles 10, 15 and 17.
