@@ -214,6 +214,9 @@ impl FusionHandle {
     }
 }
 
+/// How often the service repeats its warning while a node floods fusion.
+const CROWDED_WARN_EVERY: Duration = Duration::from_secs(10);
+
 /// Start fusion on `bus`, taking `now` from `clock`.
 pub fn spawn(
     bus: &Bus,
@@ -245,7 +248,7 @@ pub fn spawn(
     let worker = Worker::spawn(format!("fusion-{producer}"), move |stop2| {
         let _keep = (watch, queryable, bus);
         let mut next = Instant::now();
-        let mut crowded_warned = 0u64;
+        let (mut crowded_warned, mut warned_at) = (0u64, None::<Instant>);
         let mut refused_total = 0u64;
         while !stop2.load(Ordering::Relaxed) {
             let now = clock.now_ns();
@@ -278,7 +281,11 @@ pub fn spawn(
                     *g = Some(map);
                 }
                 let now_stats = fusion.stats();
-                if now_stats.crowded_out > crowded_warned {
+                // At most one warning per CROWDED_WARN_EVERY while a flood goes on.
+                if now_stats.crowded_out > crowded_warned
+                    && warned_at.is_none_or(|t| t.elapsed() >= CROWDED_WARN_EVERY)
+                {
+                    warned_at = Some(Instant::now());
                     tracing::warn!(
                         "{} observations dropped so far because a vehicle sent more than its \
                          window share ({} in the window; FusionParams::max_window_per_observer): \
