@@ -195,6 +195,63 @@ fn reads_every_frame_of_a_video_and_numbers_them() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// A folder is its image files, sorted by name, as the node's `images:`
+/// source plays them; a folder without images is one error line naming it.
+#[test]
+fn a_folder_is_read_as_its_images_in_name_order() {
+    let dir = scratch("folder");
+    let cam = CameraModel::vehicle_1440();
+    for (name, z) in [("b.png", 0.61), ("a.png", 0.8)] {
+        imgcodecs::imwrite(
+            dir.join(name).to_str().unwrap(),
+            &marker_frame(&cam, z),
+            &Vector::new(),
+        )
+        .unwrap();
+    }
+    std::fs::write(dir.join("notes.txt"), b"not an image, not listed").unwrap();
+    let empty = dir.join("empty");
+    std::fs::create_dir_all(&empty).unwrap();
+
+    let mut out = Vec::new();
+    let sum = detect_paths(
+        &[&dir, &empty],
+        CodeSet::Shoal,
+        Some(cam),
+        Some(0.1),
+        &mut out,
+    )
+    .unwrap();
+    assert_eq!(
+        (sum.files, sum.frames, sum.detections, sum.errors),
+        (3, 2, 2, 1)
+    );
+    let lines = json_lines(out);
+    let sources: Vec<&str> = lines
+        .iter()
+        .map(|l| l["source"].as_str().unwrap())
+        .collect();
+    assert!(
+        sources[0].ends_with("a.png") && sources[1].ends_with("b.png"),
+        "{sources:?}"
+    );
+    let zs: Vec<f64> = lines[..2]
+        .iter()
+        .map(|l| l["camera_from_marker"]["t_m"][2].as_f64().unwrap())
+        .collect();
+    assert!(
+        (zs[0] - 0.8).abs() < 0.005 && (zs[1] - 0.61).abs() < 0.005,
+        "{zs:?}"
+    );
+    let err = lines[2]["error"].as_str().unwrap();
+    assert!(
+        lines[2]["source"].as_str().unwrap().ends_with("empty") && err.contains("no image files"),
+        "{}",
+        lines[2]
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 /// A marker at `z` metres in front of `cam`, in clear water, as 8-bit grey.
 fn marker_frame(cam: &CameraModel, z: f64) -> opencv::core::Mat {
     let truth = Pose::from_parts(

@@ -64,7 +64,7 @@ pub struct DetectArgs {
     /// Marker side (outer black square), millimetres.
     #[arg(long, value_parser = super::args::positive)]
     size_mm: Option<f64>,
-    /// Images and/or videos.
+    /// Images, videos and/or folders (a folder: its images, sorted by name).
     #[arg(required = true)]
     inputs: Vec<PathBuf>,
 }

@@ -85,6 +85,25 @@ struct Run<'a> {
 }
 
 impl Run<'_> {
+    /// One image or video file; what cannot be read of it is an error line.
+    fn file(&mut self, path: &Path) -> Result<(), DetectError> {
+        self.sum.files += 1;
+        let source = path.display().to_string();
+        let result = if is_video(path) {
+            self.video(path, &source)
+        } else {
+            self.image(path, &source)
+        };
+        match result {
+            Ok(()) => Ok(()),
+            Err(FileFailure::Output(e)) => Err(e),
+            Err(FileFailure::Input(reason)) => {
+                self.sum.errors += 1;
+                Ok(self.line(&source, "error", &reason)?)
+            }
+        }
+    }
+
     fn line(&mut self, source: &str, key: &str, text: &str) -> std::io::Result<()> {
         writeln!(
             self.out,
@@ -208,6 +227,10 @@ impl Run<'_> {
 /// RMS, 6x6 covariance, and the flipped alternative) when `camera` and
 /// `side_m` are given.
 ///
+/// A folder stands for its image files, sorted by name (what the node's
+/// `images:` source plays, [`crate::source::image_files`]); a folder with
+/// none, or that cannot be listed, is one error line naming it.
+///
 /// Every image file goes through [`crate::image_file::read_gray`] (size,
 /// pixel and truncation checks, 16-bit scaling) and every video through
 /// [`crate::image_file::open_video`]. A file that cannot be used, or not
@@ -252,19 +275,20 @@ pub fn detect_paths(
     };
     for path in paths {
         let path = path.as_ref();
-        run.sum.files += 1;
-        let source = path.display().to_string();
-        let result = if is_video(path) {
-            run.video(path, &source)
-        } else {
-            run.image(path, &source)
-        };
-        match result {
-            Ok(()) => {}
-            Err(FileFailure::Output(e)) => return Err(e),
-            Err(FileFailure::Input(reason)) => {
+        if !path.is_dir() {
+            run.file(path)?;
+            continue;
+        }
+        match crate::source::image_files(path) {
+            Ok(files) => {
+                for file in &files {
+                    run.file(file)?;
+                }
+            }
+            Err(e) => {
+                run.sum.files += 1;
                 run.sum.errors += 1;
-                run.line(&source, "error", &reason)?;
+                run.line(&path.display().to_string(), "error", &e.to_string())?;
             }
         }
     }
