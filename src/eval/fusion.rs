@@ -141,6 +141,10 @@ fn run_cell(
     // and solves), the outlier labels, each frame's synthesized observations.
     let peak_since_here = super::reset_peak_resident();
     let (rss_before_kb, _) = super::resident_kb();
+    let growth_mb = || match (peak_since_here, rss_before_kb, super::resident_kb().1) {
+        (true, Some(before), Some(peak)) => Some(peak.saturating_sub(before) as f64 / 1024.0),
+        _ => None,
+    };
     let mut fusion = Fusion::new(&fleet, FusionParams::default(), "eval");
     let one_thread = FusionParams {
         threads: 1,
@@ -164,16 +168,10 @@ fn run_cell(
             let _ = fusion.ingest(s.obs.clone(), s.obs.observer, stamp);
         }
     }
-    let window_growth_mb = match (peak_since_here, rss_before_kb, super::resident_kb().1) {
-        (true, Some(before), Some(peak)) => Some(peak.saturating_sub(before) as f64 / 1024.0),
-        _ => None,
-    };
+    let window_growth_mb = growth_mb();
     let (map, solve_ms, solve_1thread_ms) = solve_both(&mut serial, &mut fusion, last_stamp, n)?;
     let stats = fusion.stats().last_solve;
-    let peak_growth_mb = match (peak_since_here, rss_before_kb, super::resident_kb().1) {
-        (true, Some(before), Some(peak)) => Some(peak.saturating_sub(before) as f64 / 1024.0),
-        _ => None,
-    };
+    let peak_growth_mb = growth_mb();
 
     let MapErrors {
         localized,
