@@ -35,6 +35,78 @@ fn scenario(n: usize) -> (shoal_proto::config::Fleet, Vec<shoal_proto::VehicleTr
     }
 }
 
+/// Nav on (every vehicle's depth, tilt, heading and velocity at every
+/// frame) against off, and with the odometry factors over time, 100
+/// vehicles: criterion for nav on, then the three timed on alternate calls
+/// so that the machine's load hits them alike. Returns the scenario and its
+/// fusion without nav.
+fn nav_costs(
+    c: &mut Criterion,
+    synth: ObsSynthParams,
+) -> (
+    shoal_proto::config::Fleet,
+    Vec<shoal_proto::VehicleTruth>,
+    shoal_fusion::Fusion,
+    u64,
+) {
+    let (fleet, truth) = scenario(100);
+    let (plain, _, now) = run_frames(&fleet, &truth, synth, FusionParams::default(), 1, 20);
+    let mut with_nav = plain.clone();
+    ingest_nav_frames(&mut with_nav, &truth, 20, 1, now);
+    let mut group = c.benchmark_group("fusion_solve_2s_window_nav");
+    group.sample_size(10);
+    group.bench_function("100", |b| {
+        b.iter_batched(
+            || with_nav.clone(),
+            |mut f| f.solve(now),
+            criterion::BatchSize::LargeInput,
+        )
+    });
+    group.finish();
+    // … and the window as a factor graph over time (odometry between-factors).
+    let mut factors_params = FusionParams::default();
+    factors_params.nav.odometry_factors = true;
+    let (mut with_factors, _, _) = run_frames(&fleet, &truth, synth, factors_params, 1, 20);
+    ingest_nav_frames(&mut with_factors, &truth, 20, 1, now);
+    {
+        let fastest = (0..5)
+            .map(|_| {
+                let mut once = with_factors.clone();
+                let map = once.solve(now);
+                (map.solve_time_us, once.stats().last_solve.smoothing)
+            })
+            .min_by_key(|(t, _)| *t)
+            .expect("five solves");
+        eprintln!(
+            "100 vehicles, nav with odometry factors, one solve (fastest of 5): {} us in all; {:?}",
+            fastest.0, fastest.1
+        );
+    }
+    let (mut off, mut on, mut factors) = (0.0, 0.0, 0.0);
+    for _ in 0..10 {
+        for (fusion, sum) in [
+            (&plain, &mut off),
+            (&with_nav, &mut on),
+            (&with_factors, &mut factors),
+        ] {
+            let mut f = fusion.clone();
+            let t0 = std::time::Instant::now();
+            f.solve(now);
+            *sum += t0.elapsed().as_secs_f64() * 1e3;
+        }
+    }
+    eprintln!(
+        "100 vehicles, alternate calls: nav off {:.1} ms, nav on {:.1} ms, nav + odometry factors {:.1} ms per solve; ratio on/off {:.3}, factors/on {:.3}",
+        off / 10.0,
+        on / 10.0,
+        factors / 10.0,
+        on / off,
+        factors / on
+    );
+
+    (fleet, truth, plain, now)
+}
+
 fn bench_fusion(c: &mut Criterion) {
     let synth = ObsSynthParams {
         outliers: OutlierModel {
@@ -72,39 +144,7 @@ fn bench_fusion(c: &mut Criterion) {
     }
     group.finish();
 
-    // Nav on (every vehicle's depth, tilt, heading and velocity at every
-    // frame) against off, 100 vehicles: criterion, then the two timed on
-    // alternate calls so that the machine's load hits both alike.
-    let (fleet, truth) = scenario(100);
-    let (plain, _, now) = run_frames(&fleet, &truth, synth, FusionParams::default(), 1, 20);
-    let mut with_nav = plain.clone();
-    ingest_nav_frames(&mut with_nav, &truth, 20, 1, now);
-    let mut group = c.benchmark_group("fusion_solve_2s_window_nav");
-    group.sample_size(10);
-    group.bench_function("100", |b| {
-        b.iter_batched(
-            || with_nav.clone(),
-            |mut f| f.solve(now),
-            criterion::BatchSize::LargeInput,
-        )
-    });
-    group.finish();
-    let (mut off, mut on) = (0.0, 0.0);
-    for _ in 0..10 {
-        for (fusion, sum) in [(&plain, &mut off), (&with_nav, &mut on)] {
-            let mut f = fusion.clone();
-            let t0 = std::time::Instant::now();
-            f.solve(now);
-            *sum += t0.elapsed().as_secs_f64() * 1e3;
-        }
-    }
-    eprintln!(
-        "100 vehicles, alternate calls: nav off {:.1} ms, nav on {:.1} ms per solve, ratio on/off {:.3}",
-        off / 10.0,
-        on / 10.0,
-        on / off
-    );
-
+    let (fleet, truth, plain, now) = nav_costs(c, synth);
     one_thread_against_all(&fleet, &truth, synth, &plain, now);
 
     // The LM solve alone: 100 vehicles, one fused constraint per neighbouring pair, noisy start.

@@ -1,6 +1,8 @@
-//! Issue #21, "Rate": the error of `Live` poses at the map's stamp, with the
-//! solved poses carried to it by odometry (`NavParams::propagate_live`) and
-//! without (as of their frames).
+//! Issue #21, "Rate" and the window over time: the error of `Live` poses at
+//! the map's stamp, with the solved poses carried to it by odometry
+//! (`NavParams::propagate_live`) or not (as of their frames), each with the
+//! per-vehicle graph and with the odometry factors over time
+//! (`NavParams::odometry_factors`).
 //!
 //! Three vehicles (the synthetic fleet, a jittered line 1.5 m apart)
 //! cruise at 0.5 m/s and weave sideways (±0.3 m, 12 s period, each in its own
@@ -8,7 +10,7 @@
 //! fused 0.1 s after capture, every vehicle's nav (the simulator's default
 //! sensors: DVL, tilt, compass, with their noise, biases and dropouts) at
 //! 10 Hz, the map solved at 10 Hz. The same observations and nav are fused
-//! twice, propagation on and off, and each map's `Live` vehicles (reference
+//! four times (`MODES`), and each map's `Live` vehicles (reference
 //! excluded) are scored against the truth at the map's stamp, from 5 s on.
 //! Deterministic: no clock is read.
 //!
@@ -111,14 +113,22 @@ fn score(map: &FleetMap, truth: &BTreeMap<VehicleId, Pose>, out: &mut Vec<Scored
     }
 }
 
-/// Per seed: the scored estimates with propagation off and on, and the maps
+/// The fusion settings compared: (name, `propagate_live`, `odometry_factors`).
+const MODES: [(&str, bool, bool); 4] = [
+    ("as of frames", false, false),
+    ("propagated", true, false),
+    ("factors over time", false, true),
+    ("factors + propagated", true, true),
+];
+
+/// Per seed: the scored estimates of every [`MODES`] entry, and the maps
 /// solved.
 fn run(
     seed: u64,
     duration_s: f64,
     weave_m: f64,
     nav: NavSensorParams,
-) -> Result<([Vec<Scored>; 2], usize), String> {
+) -> Result<(Vec<Vec<Scored>>, usize), String> {
     let fleet = synthetic_fleet(3, CodeSet::Aruco4x4_1000).map_err(|e| e.to_string())?;
     let ids: Vec<VehicleId> = fleet.vehicles.iter().map(|v| v.id).collect();
     let jitter = FormationJitter {
@@ -128,18 +138,19 @@ fn run(
     let start = grid_formation(&ids, ids.len(), 1.5, jitter, seed);
     let mut synth = ObsSynth::new(&fleet, ObsSynthParams::default(), seed);
     let mut sensors = NavSensors::new(nav, seed).map_err(|e| e.to_string())?;
-    let mut fusions: Vec<Fusion> = [false, true]
-        .into_iter()
-        .map(|propagate_live| {
+    let mut fusions: Vec<Fusion> = MODES
+        .iter()
+        .map(|&(_, propagate_live, odometry_factors)| {
             let mut p = FusionParams {
                 record_solve_time: false,
                 ..FusionParams::default()
             };
             p.nav.propagate_live = propagate_live;
+            p.nav.odometry_factors = odometry_factors;
             Fusion::new(&fleet, p, "central")
         })
         .collect();
-    let mut scored = [Vec::new(), Vec::new()];
+    let mut scored = vec![Vec::new(); MODES.len()];
     let mut in_flight = Vec::new();
     let ticks = (duration_s * 1e9 / TICK_NS as f64).round() as u64;
     let mut maps = 0;
@@ -174,9 +185,6 @@ fn run(
     }
     Ok((scored, maps))
 }
-
-/// One seed's [`summary`], propagation off and on.
-type SeedSummary = ([f64; 5], [f64; 5]);
 
 fn quantile(sorted: &[f64], q: f64) -> f64 {
     if sorted.is_empty() {
@@ -254,41 +262,51 @@ fn main() -> Result<(), String> {
             .map_err(|e| format!("heading noise {deg}°: {e}"))?;
     }
     println!(
-        "Live pose error at the map's stamp (mm; rotation deg), propagation off | on; \
+        "Live pose error at the map's stamp (mm; rotation deg); \
          {duration_s} s, weave ±{weave_m} m, compass noise {:.2}°, scored from {SCORE_FROM_S} s",
         nav.heading_noise_rad.to_degrees()
     );
-    println!("seed  maps  live-off live-on | median  p95  max  rot  3σ% (off) | median  p95  max  rot  3σ% (on)");
-    let mut pooled = [Vec::new(), Vec::new()];
-    let mut per_seed = Vec::new();
-    for &seed in &seeds {
-        let ([off, on], maps) = run(seed, duration_s, weave_m, nav)?;
-        let (a, b) = (summary(&off), summary(&on));
-        println!(
-            "{seed:4} {maps:5} {:8} {:7} | {:6.1} {:5.1} {:5.1} {:5.2} {:5.1} | {:6.1} {:5.1} {:5.1} {:5.2} {:5.1}",
-            off.len(), on.len(), a[0], a[1], a[2], a[3], a[4], b[0], b[1], b[2], b[3], b[4]
-        );
-        per_seed.push((a, b));
-        pooled[0].extend(off);
-        pooled[1].extend(on);
-    }
-    let (a, b) = (summary(&pooled[0]), summary(&pooled[1]));
     println!(
-        "all  {:>5} {:8} {:7} | {:6.1} {:5.1} {:5.1} {:5.2} {:5.1} | {:6.1} {:5.1} {:5.1} {:5.2} {:5.1}",
-        "", pooled[0].len(), pooled[1].len(), a[0], a[1], a[2], a[3], a[4], b[0], b[1], b[2], b[3], b[4]
+        "{:<22} seed  maps  poses | median    p95    max    rot  3σ%",
+        "mode"
     );
-    let range = |f: &dyn Fn(&SeedSummary) -> f64| {
-        let v: Vec<f64> = per_seed.iter().map(f).collect();
-        (
-            v.iter().copied().fold(f64::INFINITY, f64::min),
-            v.iter().copied().fold(f64::NEG_INFINITY, f64::max),
-        )
-    };
-    for (name, i) in [("median", 0), ("p95", 1), ("max", 2)] {
-        let (lo_off, hi_off) = range(&|s| s.0[i]);
-        let (lo_on, hi_on) = range(&|s| s.1[i]);
+    let mut pooled = vec![Vec::new(); MODES.len()];
+    let mut per_seed: Vec<Vec<[f64; 5]>> = vec![Vec::new(); MODES.len()];
+    for &seed in &seeds {
+        let (scored, maps) = run(seed, duration_s, weave_m, nav)?;
+        for (m, s) in scored.into_iter().enumerate() {
+            let a = summary(&s);
+            println!(
+                "{:<22} {seed:4} {maps:5} {:6} | {:6.1} {:6.1} {:6.1} {:6.2} {:5.1}",
+                MODES[m].0,
+                s.len(),
+                a[0],
+                a[1],
+                a[2],
+                a[3],
+                a[4]
+            );
+            per_seed[m].push(a);
+            pooled[m].extend(s);
+        }
+    }
+    for (m, s) in pooled.iter().enumerate() {
+        let a = summary(s);
+        let range = |i: usize| {
+            let v = per_seed[m].iter().map(|s| s[i]);
+            let lo = v.clone().fold(f64::INFINITY, f64::min);
+            (lo, v.fold(f64::NEG_INFINITY, f64::max))
+        };
+        let ((m_lo, m_hi), (p_lo, p_hi)) = (range(0), range(1));
         println!(
-            "per-seed {name} range (mm): off {lo_off:.1}–{hi_off:.1}, on {lo_on:.1}–{hi_on:.1}"
+            "{:<22}  all        {:6} | {:6.1} {:6.1} {:6.1} {:6.2} {:5.1}   per seed: median {m_lo:.1}–{m_hi:.1}, p95 {p_lo:.1}–{p_hi:.1}",
+            MODES[m].0,
+            s.len(),
+            a[0],
+            a[1],
+            a[2],
+            a[3],
+            a[4]
         );
     }
     Ok(())

@@ -33,6 +33,12 @@
 //!    robust kernel, the reference vehicle fixing the gauge ([`solver`]);
 //! 6. **gate**: every accepted observation's own residual against the
 //!    solution gated (chi-square), re-solving without the rejects;
+//!    with [`NavParams::odometry_factors`] (off by default) the window is
+//!    then solved again **over time**: a state per vehicle and 0.1 s slot,
+//!    each accepted frame a marker edge at its slot, each vehicle's own
+//!    odometry (DVL velocity, tilt, heading) a between-factor from slot to
+//!    slot, and the map the states at the newest accepted frame
+//!    (`solve/smooth.rs`; vehicles without odometry keep one state);
 //! 7. **map**: a [`FleetMap`](proto::FleetMap): every vehicle's
 //!    `reference_from_vehicle` with its marginal covariance and state, every
 //!    observation's verdict.
@@ -273,6 +279,27 @@ pub struct SolveStats {
     pub groups_us: u64,
     pub hypotheses_us: u64,
     pub map_us: u64,
+    /// The window over time ([`NavParams::odometry_factors`]); all zero when it did not run.
+    pub smoothing: SmoothingStats,
+}
+
+/// What the window over time ([`NavParams::odometry_factors`]) solved.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct SmoothingStats {
+    /// States (vehicle, time slot), and the vehicles with odometry over the window.
+    pub states: usize,
+    pub vehicles_over_time: usize,
+    pub marker_factors: usize,
+    pub odometry_factors: usize,
+    /// Accepted frames left out because an end's odometry did not reach their slot.
+    pub frames_left_out: usize,
+    /// Accepted frames left out because they are older than the slots an
+    /// end keeps ([`NavParams::odometry_max_states`]).
+    pub frames_too_old: usize,
+    pub iterations: usize,
+    /// Wall time of building and solving the graph over time, µs (0 unless
+    /// [`FusionParams::record_solve_time`]).
+    pub smooth_us: u64,
 }
 
 /// Running counters of a [`Fusion`].
@@ -308,6 +335,8 @@ pub struct Fusion {
     nav: nav::NavWindow,
     odometry: nav::Odometry,
     last_graph: Option<export::PoseGraph>,
+    /// The last solve's factor graph over time, and its nodes' (vehicle, slot).
+    last_time_graph: Option<(export::PoseGraph, Vec<(VehicleId, u32)>)>,
     pending: Vec<EdgeReport>,
     alive: BTreeMap<VehicleId, bool>,
     last_seen: BTreeMap<VehicleId, u64>,
@@ -338,6 +367,7 @@ impl Fusion {
             nav: nav::NavWindow::default(),
             odometry: nav::Odometry::default(),
             last_graph: None,
+            last_time_graph: None,
             pending: Vec::new(),
             alive: fleet.vehicles.iter().map(|v| (v.id, true)).collect(),
             last_seen: BTreeMap::new(),
@@ -467,6 +497,16 @@ impl Fusion {
     /// `None` before the first solve or when nothing was connected.
     pub fn last_graph(&self) -> Option<&export::PoseGraph> {
         self.last_graph.as_ref()
+    }
+
+    /// The last solve's factor graph over time ([`NavParams::odometry_factors`]):
+    /// its nodes are numbered, node `n` being vehicle `nodes[n].0` at time
+    /// slot `nodes[n].1` (0: the newest accepted frame). `None` when the
+    /// last solve did not smooth.
+    pub fn last_time_graph(&self) -> Option<(&export::PoseGraph, &[(VehicleId, u32)])> {
+        self.last_time_graph
+            .as_ref()
+            .map(|(g, n)| (g, n.as_slice()))
     }
 
     /// Nav samples currently held (all vehicles).

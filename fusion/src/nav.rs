@@ -73,6 +73,34 @@ pub struct NavParams {
     /// a manoeuvring fleet or a smooth (filtered) heading.
     #[serde(default = "default_propagate_live")]
     pub propagate_live: bool,
+    /// Solve the window as a factor graph over time: a state per vehicle
+    /// and time slot, odometry between-factors from each vehicle's own nav
+    /// (velocity and heading), the marker edges at their slots; the map is
+    /// the states at the newest accepted frame (`solve/smooth.rs`).
+    /// Vehicles without odometry keep one state. Default false.
+    #[serde(default)]
+    pub odometry_factors: bool,
+    /// The time slots' length, s (default 0.1): frames within half a slot of
+    /// its time share a state, moved to it by their vehicles' odometry.
+    #[serde(default = "default_odometry_slot_s")]
+    pub odometry_slot_s: f64,
+    /// The graph over time's budget of states (default 240): each vehicle
+    /// over time keeps its newest `max(1, budget / vehicles)` slots with a
+    /// frame, and older frames are left out of it (3 vehicles: 80 slots, the
+    /// whole window; 100 vehicles: 2). The solve's cost grows far faster
+    /// than the states (a vehicles × slots lattice: 100 vehicles, 2 s of
+    /// 10 Hz frames: ~20 ms at 200 states, ~100 ms at 400, ~0.7 s at 800;
+    /// docs/results.md, nav).
+    #[serde(default = "default_odometry_max_states")]
+    pub odometry_max_states: usize,
+}
+
+fn default_odometry_max_states() -> usize {
+    240
+}
+
+fn default_odometry_slot_s() -> f64 {
+    0.1
 }
 
 fn default_propagate_live() -> bool {
@@ -98,6 +126,9 @@ impl Default for NavParams {
             max_samples_per_vehicle: 512,
             max_predict_s: default_max_predict_s(),
             propagate_live: default_propagate_live(),
+            odometry_factors: false,
+            odometry_slot_s: default_odometry_slot_s(),
+            odometry_max_states: default_odometry_max_states(),
         }
     }
 }

@@ -2,11 +2,14 @@
 //! output types:
 //!
 //! ```text
-//! window ─▶ frames ─▶ nav ─▶ groups ─▶ motion ─▶ hypotheses ─▶ init ─▶ gate (LM ⇄ chi-square) ─▶ map
-//!          (age       (gravity, (tracks    (velocity  (PCM clusters,  (graph,   (solver.rs, re-solve     (verdicts,
-//!          inflation)  depth)    cut by     of each    triangle votes, spanning  without the rejects)     vehicle states)
-//!                      time)      group)     spanning tree)  tree init)
+//! window ─▶ frames ─▶ nav ─▶ groups ─▶ motion ─▶ hypotheses ─▶ init ─▶ gate (LM ⇄ chi-square) ─▶ [smooth] ─▶ map
+//!          (age       (gravity, (tracks    (velocity  (PCM clusters,  (graph,   (solver.rs, re-solve     (over time:  (verdicts,
+//!          inflation)  depth)    cut by     of each    triangle votes, spanning  without the rejects)     odometry     vehicle states)
+//!                      time)      group)     spanning tree)  tree init)                               factors)
 //! ```
+//!
+//! `smooth` runs only with [`NavParams::odometry_factors`](crate::NavParams::odometry_factors)
+//! and the vehicles' odometry; it replaces the poses, not the verdicts.
 
 mod frames;
 mod gate;
@@ -16,6 +19,7 @@ mod init;
 mod map;
 pub(crate) mod motion;
 mod nav;
+mod smooth;
 #[cfg(test)]
 pub(crate) mod testing;
 
@@ -28,6 +32,15 @@ use std::time::Instant;
 /// Wall time since `t`, µs (0 when not measured).
 fn elapsed_us(t: Option<Instant>) -> u64 {
     t.map_or(0, |t| t.elapsed().as_micros() as u64)
+}
+
+/// A solve's graph for export (none when it had no constraint).
+fn exported(reference: VehicleId, graph: init::Graph) -> Option<crate::export::PoseGraph> {
+    (!graph.constraints.is_empty()).then_some(crate::export::PoseGraph {
+        reference,
+        initial: graph.initial,
+        constraints: graph.constraints,
+    })
 }
 
 impl Fusion {
@@ -104,14 +117,11 @@ impl Fusion {
         };
         let mut gated = gate::solve_and_gate(&frames, &groups, &hyps, reference, &gate_params);
         let lm_us = elapsed_us(lm_started);
+        let (smoothed, smooth_us) =
+            self.over_time(&entries, &frames, &hyps, &gated, &gate_params.solver);
         let map_started = self.params.record_solve_time.then(Instant::now);
 
-        let graph = std::mem::take(&mut gated.graph);
-        self.last_graph = (!graph.constraints.is_empty()).then_some(crate::export::PoseGraph {
-            reference,
-            initial: graph.initial,
-            constraints: graph.constraints,
-        });
+        self.last_graph = exported(reference, std::mem::take(&mut gated.graph));
         let verdicts = map::verdicts(
             &entries,
             &frames,
@@ -144,9 +154,14 @@ impl Fusion {
             frames_us,
             groups_us,
             hypotheses_us,
-            map_us: 0,
+            ..SolveStats::default()
         };
-        let as_of = map::newest_accepted(&verdicts.edges);
+        let mut as_of = map::newest_accepted(&verdicts.edges);
+        // The map is the states at T; the verdicts above stay the
+        // per-vehicle graph's (its gate judged every frame).
+        let adopted = smoothed.map(|s| s.adopt(smooth_us, &mut as_of, &mut gated.solution));
+        let (smoothing, time_graph) = adopted.map_or_else(Default::default, |(s, g)| (s, Some(g)));
+        self.last_time_graph = time_graph;
         let edges = map::merge_pending(verdicts.edges, std::mem::take(&mut self.pending));
         let vehicles = self.estimates(now_ns, &in_window, &gated.solution, &as_of);
 
@@ -154,6 +169,7 @@ impl Fusion {
         self.stats.solves += 1;
         self.stats.last_solve = SolveStats {
             map_us: elapsed_us(map_started),
+            smoothing,
             ..solve_stats
         };
         FleetMap {
@@ -166,6 +182,40 @@ impl Fusion {
             edges,
             solve_time_us: elapsed_us(started),
         }
+    }
+
+    /// The window over time (`smooth.rs`), when [`crate::NavParams::odometry_factors`]
+    /// asks for it and the per-vehicle solve succeeded, and its wall time
+    /// (µs, 0 unless recorded).
+    fn over_time(
+        &self,
+        entries: &[(&ObservationKey, &Stored)],
+        frames: &[frames::Frame],
+        hyps: &hypotheses::Hypotheses,
+        gated: &gate::GatedSolution,
+        solver: &solver::SolverParams,
+    ) -> (Option<smooth::Smoothed>, u64) {
+        let nav = &self.params.nav;
+        if !nav.enabled || !nav.odometry_factors || gated.solver_failed {
+            return (None, 0);
+        }
+        let started = self.params.record_solve_time.then(Instant::now);
+        let smoothed = smooth::smooth(
+            &smooth::Inputs {
+                entries,
+                frames,
+                accepted: &hyps.accepted,
+                gated: &gated.gated,
+                solution: &gated.solution,
+                reference: self.fleet.reference_vehicle,
+                odometry: &self.odometry,
+                max_gap_ns: seconds_to_ns(nav.max_gap_s),
+                slot_ns: seconds_to_ns(nav.odometry_slot_s),
+                max_states: nav.odometry_max_states,
+            },
+            solver,
+        );
+        (smoothed, elapsed_us(started))
     }
 
     /// Every fleet vehicle's estimate and state from `solution` (step 7).

@@ -5,7 +5,7 @@
 //! why): the problem is at most a few hundred vehicles × 6 DoF with a sparse,
 //! sparse information matrix. The normal equations are kept in 6×6 blocks,
 //! ordered by minimum degree over the vehicle graph and factored by a
-//! block-sparse Cholesky ([`crate::sparse`]); the marginal covariances are
+//! block-sparse Cholesky (`sparse.rs`); the marginal covariances are
 //! the diagonal 6×6 blocks of the inverse Gauss–Newton information, from a
 //! selected inversion over the factor's pattern.
 //!

@@ -1025,8 +1025,6 @@ fn python_has_gtsam() -> bool {
 /// optimum: cost within 0.1 %, every pose within 1 mm and 0.01°.
 #[test]
 fn an_exported_graph_solved_by_gtsam_reaches_the_same_optimum() {
-    use shoal_fusion::solver::{self, RobustKernel, SolverParams};
-    use std::process::Command;
     let fleet = synthetic_fleet(10, CodeSet::Aruco4x4_1000).unwrap();
     let ids: Vec<u32> = (1..=10).collect();
     let truth = grid_formation(&ids, 4, 1.5, FormationJitter::default(), 8);
@@ -1045,6 +1043,16 @@ fn an_exported_graph_solved_by_gtsam_reaches_the_same_optimum() {
         "{} constraints",
         graph.constraints.len()
     );
+    same_optimum_in_gtsam(&graph, "vehicles", 1e-3);
+}
+
+/// `graph` solved by shoal's LM (no robust kernel) and, exported as g2o, by
+/// gtsam from the same start: the same optimum (gtsam's poses cost at most
+/// `cost_tolerance` more in shoal's objective, every pose within 1 mm and
+/// 0.01°). Skipped with a note when gtsam cannot be installed.
+fn same_optimum_in_gtsam(graph: &shoal_fusion::export::PoseGraph, what: &str, cost_tolerance: f64) {
+    use shoal_fusion::solver::{self, RobustKernel, SolverParams};
+    use std::process::Command;
     let plain = SolverParams {
         robust: RobustKernel::None,
         max_iterations: 100,
@@ -1056,7 +1064,7 @@ fn an_exported_graph_solved_by_gtsam_reaches_the_same_optimum() {
         eprintln!("SKIPPED: pip could not install gtsam");
         return;
     }
-    let dir = std::env::temp_dir().join(format!("shoal-g2o-{}", std::process::id()));
+    let dir = std::env::temp_dir().join(format!("shoal-g2o-{what}-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("window.g2o");
     let mut file = std::fs::File::create(&path).unwrap();
@@ -1102,7 +1110,7 @@ fn an_exported_graph_solved_by_gtsam_reaches_the_same_optimum() {
         dr = dr.max(e.fixed_rows::<3>(3).norm().to_degrees());
     }
     eprintln!(
-        "g2o/gtsam: {} vertices, {} edges; cost from {start:.3}: shoal {cost_ours:.6}, gtsam's poses {cost_theirs:.6}; poses differ ≤ {:.4} mm / {dr:.6}°",
+        "g2o/gtsam ({what}): {} vertices, {} edges; cost from {start:.3}: shoal {cost_ours:.6}, gtsam's poses {cost_theirs:.6}; poses differ ≤ {:.4} mm / {dr:.6}°",
         theirs.len(),
         graph.constraints.len(),
         dt * 1e3
@@ -1112,9 +1120,196 @@ fn an_exported_graph_solved_by_gtsam_reaches_the_same_optimum() {
         "the start must not already be the optimum"
     );
     assert!(
-        (cost_theirs - cost_ours).abs() <= 1e-3 * cost_ours,
+        (cost_theirs - cost_ours).abs() <= cost_tolerance * cost_ours,
         "{cost_theirs} vs {cost_ours}"
     );
     assert!(dt <= 1e-3 && dr <= 0.01, "{dt} m, {dr}°");
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Three vehicles cruising at 0.5 m/s, vehicle 3 weaving sideways ±0.3 m on a
+/// 6 s period (up to 0.31 m/s, accelerating: no constant velocity fits a
+/// 2 s window), cameras at 2 Hz, every vehicle's nav at 10 Hz; solved every
+/// 0.1 s from 5 s to 25 s. Returns per map vehicle 3's translation error
+/// against the truth at the map's newest accepted capture (what a map
+/// describes) and its NEES over translation, the number of maps whose
+/// window was smoothed over time with every vehicle that sends nav, and the
+/// fusion after `until_s`.
+fn weaving_run(
+    params: FusionParams,
+    until_s: f64,
+    no_nav_from: Option<u32>,
+) -> (Vec<(f64, f64)>, usize, Fusion) {
+    use shoal_proto::VehicleTruth;
+    let fleet = synthetic_fleet(3, CodeSet::Aruco4x4_1000).unwrap();
+    let ids = [1, 2, 3];
+    let jitter = FormationJitter {
+        position_m: 0.1,
+        attitude_deg: 3.0,
+    };
+    let start = grid_formation(&ids, 3, 1.5, jitter, 5);
+    let w = std::f64::consts::TAU / 6.0;
+    let truth_at = |t: f64| -> Vec<VehicleTruth> {
+        start
+            .iter()
+            .map(|s| {
+                let weave = if s.vehicle == 3 { 0.3 } else { 0.0 };
+                let mut pose = s.world_from_body;
+                pose.translation.vector +=
+                    nalgebra::Vector3::new(0.5 * t, weave * (w * t).sin(), 0.0);
+                let v = nalgebra::Vector3::new(0.5, weave * w * (w * t).cos(), 0.0);
+                VehicleTruth {
+                    vehicle: s.vehicle,
+                    world_from_body: pose,
+                    velocity_body: (pose.rotation.inverse() * v).into(),
+                }
+            })
+            .collect()
+    };
+    let mut synth =
+        shoal_sim_bridge::obs_synth::ObsSynth::new(&fleet, ObsSynthParams::default(), 5);
+    let mut sensors = shoal_sim_bridge::nav::NavSensors::new(
+        shoal_sim_bridge::nav::NavSensorParams::default(),
+        5,
+    )
+    .unwrap();
+    let budget = params.nav.odometry_max_states;
+    let mut fusion = Fusion::new(&fleet, params, "central");
+    let mut scored = Vec::new();
+    let mut smoothed = 0;
+    let mut truths = BTreeMap::new();
+    for k in 0..=(until_s * 10.0).round() as u64 {
+        let t = k as f64 * 0.1;
+        let now = T0_NS + k * FRAME_NS;
+        let truth = truth_at(t);
+        truths.insert(now, truth_poses(&fleet, &truth));
+        for v in truth.iter().filter(|v| Some(v.vehicle) != no_nav_from) {
+            fusion
+                .ingest_nav(sensors.measure(v, now), v.vehicle, now)
+                .unwrap();
+        }
+        if k % 5 == 0 {
+            for o in synth.observe(&truth, now) {
+                let _ = fusion.ingest(o.obs.clone(), o.obs.observer, now);
+            }
+        }
+        let map = fusion.solve(now);
+        let smoothing = fusion.stats().last_solve.smoothing;
+        if smoothing.states > 0 {
+            // Every vehicle with nav over time (one without keeps one state).
+            let expected = if no_nav_from.is_some() { 2 } else { 3 };
+            assert!(smoothing.vehicles_over_time <= expected, "{smoothing:?}");
+            assert!(smoothing.states <= budget.max(3), "{smoothing:?}");
+            if smoothing.vehicles_over_time == expected {
+                smoothed += 1;
+            }
+        }
+        if t < 5.0 {
+            continue;
+        }
+        let as_of = map
+            .edges
+            .iter()
+            .filter(|e| e.rejected.is_none())
+            .map(|e| e.stamp_ns)
+            .max()
+            .unwrap();
+        let v3 = map.vehicles.iter().find(|v| v.vehicle == 3).unwrap();
+        assert_eq!(v3.state, VehicleState::Live, "{v3:?}");
+        let e = difference(&v3.reference_from_vehicle, &truths[&as_of][&3]);
+        let et = e.fixed_rows::<3>(0).into_owned();
+        let cov = v3.covariance.fixed_view::<3, 3>(0, 0).into_owned();
+        let nees = (et.transpose() * cov.try_inverse().unwrap() * et)[0];
+        scored.push((et.norm(), nees));
+    }
+    (scored, smoothed, fusion)
+}
+
+/// Issue #21: the window as a factor graph over time, odometry between a
+/// vehicle's states, follows a vehicle whose relative motion no constant
+/// velocity fits, where the per-vehicle graph lags; its covariance owns up
+/// to the error; without nav it does not run and the map is the
+/// per-vehicle graph's.
+#[test]
+fn odometry_factors_follow_a_weaving_vehicle_the_velocity_fit_lags() {
+    let mean =
+        |s: &[(f64, f64)], f: fn(&(f64, f64)) -> f64| s.iter().map(f).sum::<f64>() / s.len() as f64;
+    let with = |nav: bool, factors: bool| {
+        let mut p = FusionParams::default();
+        p.nav.enabled = nav;
+        p.nav.odometry_factors = factors;
+        p
+    };
+    let (off, none, _) = weaving_run(with(true, false), 25.0, None);
+    let (on, smoothed, _) = weaving_run(with(true, true), 25.0, None);
+    assert_eq!(none, 0);
+    assert_eq!(smoothed, 251, "every solve with accepted frames smoothed");
+    let (e_off, e_on) = (mean(&off, |x| x.0), mean(&on, |x| x.0));
+    let (n_off, n_on) = (mean(&off, |x| x.1), mean(&on, |x| x.1));
+    let max_on = on.iter().map(|x| x.0).fold(0.0, f64::max);
+    eprintln!(
+        "weaving vehicle, {} maps: mean error {:.1} mm per-vehicle graph, {:.1} mm over time (max {:.1}); translation NEES {n_off:.1} / {n_on:.1} (3 honest)",
+        on.len(),
+        e_off * 1e3,
+        e_on * 1e3,
+        max_on * 1e3
+    );
+    assert!(e_on < 0.6 * e_off, "{e_on} m vs {e_off} m");
+    assert!(e_on < 0.01 && max_on < 0.06, "{e_on} m, max {max_on} m");
+    assert!(n_on < 9.0, "translation NEES {n_on}");
+    // Without nav the factors have nothing to run on: the same maps.
+    let (plain, _, _) = weaving_run(with(false, false), 25.0, None);
+    let (asked, smoothed, _) = weaving_run(with(false, true), 25.0, None);
+    assert_eq!(smoothed, 0);
+    assert_eq!(plain, asked);
+    // Vehicle 2 without nav keeps one state; 3 is still followed.
+    let (mixed, smoothed, _) = weaving_run(with(true, true), 25.0, Some(2));
+    let e_mixed = mean(&mixed, |x| x.0);
+    eprintln!(
+        "vehicle 2 without nav: mean error of 3 {:.1} mm",
+        e_mixed * 1e3
+    );
+    assert!(smoothed > 240, "{smoothed}");
+    assert!(e_mixed < 0.6 * e_off, "{e_mixed} m vs {e_off} m");
+    // A budget of one state per vehicle: the newest slot's frames alone,
+    // moved by nothing: worse than the whole window over time.
+    let mut tight = with(true, true);
+    tight.nav.odometry_max_states = 3;
+    let (newest_only, smoothed, fusion) = weaving_run(tight, 25.0, None);
+    let e_tight = mean(&newest_only, |x| x.0);
+    let last = fusion.stats().last_solve.smoothing;
+    eprintln!(
+        "one state per vehicle: mean error {:.1} mm; {last:?}",
+        e_tight * 1e3
+    );
+    assert!(
+        smoothed > 0 && last.states <= 3 && last.frames_too_old > 0,
+        "{last:?}"
+    );
+    assert!(e_tight > e_on, "{e_tight} m vs {e_on} m");
+}
+
+/// Issue #21: the window over time (states per vehicle and slot, odometry
+/// between them, the marker edges), exported as g2o, reaches the same optimum in gtsam.
+#[test]
+fn a_window_over_time_solved_by_gtsam_reaches_the_same_optimum() {
+    let mut params = FusionParams::default();
+    params.nav.odometry_factors = true;
+    let (_, smoothed, fusion) = weaving_run(params, 6.0, None);
+    assert!(smoothed > 0);
+    let (graph, nodes) = fusion.last_time_graph().expect("a graph over time");
+    let over_time = nodes.iter().filter(|(_, slot)| *slot > 0).count();
+    assert!(
+        over_time >= 6 && graph.constraints.len() > nodes.len(),
+        "{} states ({over_time} before the newest), {} factors",
+        nodes.len(),
+        graph.constraints.len()
+    );
+    // The two objectives differ at second order in residuals that are not
+    // small: shoal's translation residual is the plain difference in frame
+    // `a`, gtsam's the SE(3) logarithm's, coupled with the rotation residual,
+    // and odometry factors carry compass-noise rotation residuals (~0.5°)
+    // over 0.1–0.15 m steps. Measured: 0.11 % apart in shoal's objective,
+    // poses 0.03 mm / 0.0008° apart; the pose bounds are the issue's.
+    same_optimum_in_gtsam(graph, "window over time", 2e-3);
 }

@@ -223,7 +223,11 @@ pub fn refuse(input: &Path, output: &Path, opts: &FuseOptions) -> Result<FuseSum
     out.commit()?;
     summary.comparison = cmp.finish();
     summary.truth = truth.finish();
-    summary.last_graph = fusion.last_graph().cloned();
+    // With odometry factors the graph solved last is the one over time.
+    summary.last_graph = match fusion.last_time_graph() {
+        Some((g, _)) => Some(g.clone()),
+        None => fusion.last_graph().cloned(),
+    };
     Ok(summary)
 }
 

@@ -202,6 +202,11 @@ pub struct FuseArgs {
     /// (`NavParams::propagate_live`, as `shoal fusion --propagate-live`).
     #[arg(long)]
     propagate_live: bool,
+    /// Solve each window as a factor graph over time with the vehicles'
+    /// odometry between-factors (`NavParams::odometry_factors`, as `shoal
+    /// fusion --odometry-factors`); `--g2o` then writes that graph.
+    #[arg(long)]
+    odometry_factors: bool,
     /// Also write the last map's pose graph as g2o (for g2o, gtsam, Ceres;
     /// format in `shoal_fusion::export`).
     #[arg(long, value_name = "FILE.g2o")]
@@ -216,6 +221,7 @@ pub fn run_fuse(a: FuseArgs) -> anyhow::Result<()> {
     let mut params = FusionParams::default();
     params.nav.enabled = !a.no_nav;
     params.nav.propagate_live = a.propagate_live;
+    params.nav.odometry_factors = a.odometry_factors;
     if let Some(w) = a.window {
         params.window_s = w;
     }

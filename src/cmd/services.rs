@@ -199,6 +199,11 @@ pub struct FusionArgs {
     /// more than it gains (docs/results.md, nav).
     #[arg(long)]
     propagate_live: bool,
+    /// Solve each window as a factor graph over time: a state per vehicle
+    /// and 0.1 s slot joined by its own odometry (`NavParams::odometry_factors`;
+    /// docs/results.md, nav).
+    #[arg(long)]
+    odometry_factors: bool,
     #[command(flatten)]
     ros2: Ros2Args,
     #[command(flatten)]
@@ -332,6 +337,7 @@ pub fn run_fusion(a: FusionArgs) -> anyhow::Result<()> {
             params: {
                 let mut p = FusionParams::default();
                 p.nav.propagate_live = a.propagate_live;
+                p.nav.odometry_factors = a.odometry_factors;
                 p
             },
             placement,
