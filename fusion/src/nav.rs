@@ -80,8 +80,8 @@ pub struct NavParams {
     /// Vehicles without odometry keep one state. Default false.
     #[serde(default)]
     pub odometry_factors: bool,
-    /// The time slots' length, s (default 0.1): frames within half a slot of
-    /// its time share a state, moved to it by their vehicles' odometry.
+    /// The time slots' length, s (default 0.1; at least 1 ms): frames within
+    /// half a slot of its time share a state, moved to it by their vehicles' odometry.
     #[serde(default = "default_odometry_slot_s")]
     pub odometry_slot_s: f64,
     /// The graph over time's budget of states (default 240): each vehicle

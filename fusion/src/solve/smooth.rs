@@ -51,6 +51,10 @@ use std::collections::{BTreeMap, BTreeSet};
 const MIN_POSITION_VAR: f64 = 1e-8;
 const MIN_ATTITUDE_VAR: f64 = 1e-10;
 
+/// The shortest slot: a setting of 0 (or not a number) means this, so that
+/// slot numbers stay small whatever the window.
+const MIN_SLOT_NS: u64 = 1_000_000;
+
 /// What the smoother needs from the solve so far.
 pub(crate) struct Inputs<'a> {
     pub entries: &'a [(&'a ObservationKey, &'a Stored)],
@@ -338,7 +342,7 @@ pub(crate) fn smooth(inp: &Inputs<'_>, params: &SolverParams) -> Option<Smoothed
     let (oldest, newest) = (stamps.clone().min()?, stamps.max()?);
     let slots = Slots {
         newest,
-        slot_ns: inp.slot_ns.max(1),
+        slot_ns: inp.slot_ns.max(MIN_SLOT_NS),
         inp,
     };
     // A vehicle is over time when its odometry spans the window's slots.
