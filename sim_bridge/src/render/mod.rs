@@ -400,6 +400,8 @@ impl Renderer {
         par::run_tasks(tasks, self.threads, |(band, ((dn, img), cln))| {
             let mut veil_row = vec![0.0f32; gw];
             let mut vig_row = vec![0.0f32; gw];
+            // Per pixel of the row: the veil and the vignetting.
+            let (mut b_px, mut vg_px) = (vec![0.0f32; w], vec![0.0f32; w]);
             let mut spans: Vec<(usize, usize)> = Vec::new();
             let rows = dn.len() / w;
             for r in 0..rows {
@@ -413,17 +415,24 @@ impl Renderer {
                     vig_row[gx] =
                         vig_grid[gy * gw + gx] * (1.0 - ty) + vig_grid[(gy + 1) * gw + gx] * ty;
                 }
-                let at = |x: usize| {
-                    let gx = x / step;
-                    let tx = (x % step) as f32 * inv;
-                    let b = veil_row[gx] * (1.0 - tx) + veil_row[gx + 1] * tx;
-                    let vg = vig_row[gx] * (1.0 - tx) + vig_row[gx + 1] * tx;
-                    (b, vg)
-                };
+                // Interpolated along the row one grid cell at a time (the
+                // same weights as pixel by pixel, in loops that vectorize).
+                for (gx, (b_cell, vg_cell)) in b_px
+                    .chunks_mut(step)
+                    .zip(vg_px.chunks_mut(step))
+                    .enumerate()
+                {
+                    let (b0, b1) = (veil_row[gx], veil_row[gx + 1]);
+                    let (v0, v1) = (vig_row[gx], vig_row[gx + 1]);
+                    for (k, (b, vg)) in b_cell.iter_mut().zip(vg_cell.iter_mut()).enumerate() {
+                        let tx = k as f32 * inv;
+                        *b = b0 * (1.0 - tx) + b1 * tx;
+                        *vg = v0 * (1.0 - tx) + v1 * tx;
+                    }
+                }
                 let out = &mut dn[r * w..(r + 1) * w];
                 // The water alone everywhere, then the active spans over it.
-                for (x, o) in out.iter_mut().enumerate() {
-                    let (b, vg) = at(x);
+                for ((o, &b), &vg) in out.iter_mut().zip(&b_px).zip(&vg_px) {
                     *o = gain * vg * (b + lamp_veil);
                 }
                 let cln = &mut cln[r * w..(r + 1) * w];
@@ -432,7 +441,7 @@ impl Renderer {
                 let row = y * w;
                 for &(x0, x1) in &spans {
                     for x in x0..=x1 {
-                        let (b, vg) = at(x);
+                        let (b, vg) = (b_px[x], vg_px[x]);
                         let i = row + x;
                         out[x] = gain
                             * vg

@@ -411,9 +411,7 @@ pub fn quantize_row(row_in: &[f32], y: usize, water: &WaterParams, seed: u64, ro
     }
     let sensor = Sensor::new(water.gain_e_per_dn, water.read_noise_dn);
     let mut rng = RowRng::new(seed, y as u64);
-    for (o, &v) in row_out.iter_mut().zip(row_in) {
-        *o = round_to_u8(sensor.value(f64::from(v), &mut rng));
-    }
+    sensor.quantize(row_in, &mut rng, row_out);
 }
 
 /// `v.round().clamp(0.0, 255.0) as u8` (NaN gives 0), without the libm
