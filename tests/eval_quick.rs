@@ -19,11 +19,22 @@ fn run_quick(experiment: Experiment) -> (PathBuf, Value) {
 }
 
 fn run_quick_with(experiment: Experiment, restore: Method) -> (PathBuf, Value) {
+    run_quick_opts(experiment, restore, None)
+}
+
+/// The quick run of `experiment` with `frames` per condition instead of its
+/// quick count, where a claim needs more samples than that.
+fn run_quick_opts(
+    experiment: Experiment,
+    restore: Method,
+    frames: Option<usize>,
+) -> (PathBuf, Value) {
     let dir = out_dir(&format!("{}-{restore}", experiment.name()));
     let opts = EvalOptions {
         quick: true,
         progress: false,
         restore,
+        frames,
         ..EvalOptions::new(&dir)
     };
     let summary = eval::run(experiment, &opts).unwrap_or_else(|e| panic!("{experiment}: {e}"));
@@ -424,25 +435,32 @@ fn restoration_quick_hoirm_doubles_every_methods_marker_cnr_and_raises_ssim() {
 
 #[test]
 fn fit_noise_quick_agrees_with_the_synthesizers_noise_model() {
-    let (dir, s) = run_quick(Experiment::FitNoise);
+    // 12 frames per condition, not the quick 4: with 4, the 1.75 m tilt σ
+    // ranged 0.05–0.20° over seeds 1–10 (0.05–0.17° with the renderer's
+    // noise before session 29, which drew the same model in another order),
+    // too wide for the band below; with 12, 0.059–0.100° over seeds 1–8.
+    let (dir, s) = run_quick_opts(Experiment::FitNoise, Method::Hoirm, Some(12));
     assert_files(&dir, &["noise.csv", "noise-model.json"]);
-    // Two claims at the demo's 1.75 m spacing (few frames in --quick):
+    // Two claims at the demo's 1.75 m spacing:
     //
     // 1. The pipeline's precision: session 4's 60-frame fit reads depth σ
     //    0.23 mm and tilt σ 0.061° at 1.75 m (docs/results.md, "Observation
-    //    noise fitted to the image pipeline"); this 8-frame run 0.32 mm and
-    //    0.075°. An 8-frame σ has a sampling spread of ~25 %, so the band
-    //    is the 60-frame figure ÷2 … ×2: a pipeline twice as noisy fails.
+    //    noise fitted to the image pipeline"); 60-frame runs of session 29,
+    //    seeds 1–7: 0.20–0.28 mm and 0.072–0.094°. The band is the fit's
+    //    figure ÷2 … ×2: a pipeline twice as noisy fails.
     // 2. The observation-level synthesizer's defaults are never optimistic
-    //    (fresh σ below the shipped one: measured 0.13x depth, 0.17x tilt)
-    //    nor absurdly pessimistic (at least 0.1x). They are deliberately
-    //    conservative: adopting session 4's fit broke fusion tests tuned to
-    //    the old noise (same section of docs/results.md); refitting them
-    //    means revisiting this bound.
+    //    (fresh σ below the shipped one) nor absurdly pessimistic (at least
+    //    0.05x). Session 4's own 60-frame fit is 0.097x the shipped depth σ
+    //    (0.23 against 2.37 mm), so the 0.1x this bound was before passed
+    //    only on a lucky 4-frame draw (0.13x); seed 1 with 12 frames reads
+    //    0.09x depth and 0.15x tilt. They are deliberately conservative:
+    //    adopting session 4's fit broke fusion tests tuned to the old noise
+    //    (same section of docs/results.md); refitting them means revisiting
+    //    this bound.
     const PIPELINE_DEPTH_SIGMA_MM: f64 = 0.23;
     const PIPELINE_TILT_SIGMA_DEG: f64 = 0.061;
     const SAMPLING_BAND: f64 = 2.0;
-    const MIN_RATIO_TO_SHIPPED: f64 = 0.1;
+    const MIN_RATIO_TO_SHIPPED: f64 = 0.05;
     const MAX_RATIO_TO_SHIPPED: f64 = 1.0;
     let shipped = shoal_sim_bridge::obs_synth::NoiseModel::default().camera_covariance(1.75);
     let at = s["results"]["ranges"]

@@ -226,9 +226,11 @@ pub fn noisy_linear(dn: &[f32], w: usize, water: &WaterParams, g: f64, seed: u64
             continue;
         }
         let mut rng = RowRng::new(seed, y as u64);
-        for (o, &v) in row_out.iter_mut().zip(row_in) {
-            let value = sensor.value(f64::from(v) * pre, &mut rng);
-            *o = (value * post).clamp(0.0, 255.0) as f32;
+        sensor.noisy(row_in, pre as f32, &mut rng, row_out);
+        let post = post as f32;
+        for o in row_out.iter_mut() {
+            // NaN stays NaN, and rounds to 0 in `encode` as in the renderer.
+            *o = (*o * post).clamp(0.0, 255.0);
         }
     }
     out
@@ -237,9 +239,10 @@ pub fn noisy_linear(dn: &[f32], w: usize, water: &WaterParams, g: f64, seed: u64
 /// Encode linear DN (0..=255) with gamma `gamma` (`255·(v/255)^(1/γ)`) and round to 8 bits.
 pub fn encode(linear: &[f32], gamma: f64) -> Vec<u8> {
     if gamma == 1.0 {
+        // The renderer's own rounding, so that an unprofiled frame is its bytes.
         return linear
             .iter()
-            .map(|&v| f64::from(v).round().clamp(0.0, 255.0) as u8)
+            .map(|&v| super::noise::quantize_f32(v))
             .collect();
     }
     let lut: Vec<f64> = (0..=4096)

@@ -255,59 +255,83 @@ impl Sensor {
     }
 }
 
+/// Pixels per run of [`Sensor::noisy`]: the draws of a row go run by run.
+const RUN: usize = 256;
+
 impl Sensor {
-    /// Noise `mean` (DN, one row's run of pixels) and quantize it to 8 bits
-    /// in `out`, drawing from `rng`: first one standard normal per pixel,
-    /// then the Gaussian branch of [`Self::value`] for every pixel in `f32`
-    /// (a loop the compiler vectorizes), then, for the pixels under
-    /// [`EXACT_POISSON_BELOW`] electrons, an exact Poisson count from a
-    /// further uniform with that pixel's normal as the read noise. The same
-    /// model as [`Self::value`], drawn in another order: about twice as fast
-    /// as one pixel at a time, whose dependent steps (draw, square root,
-    /// rounding) left the processor waiting.
+    /// Noisy linear DN (not clipped) of the means `mean · pre` (one row, or
+    /// its first pixels), drawing from `rng`: run by run of [`RUN`] pixels,
+    /// first one standard normal per pixel, then the Gaussian branch of
+    /// [`Self::value`] for every pixel in `f32` (a loop the compiler
+    /// vectorizes), then, for the pixels under [`EXACT_POISSON_BELOW`]
+    /// electrons, an exact Poisson count from a further uniform with that
+    /// pixel's normal as the read noise. The same model as [`Self::value`],
+    /// drawn in another order: several times faster than one pixel at a
+    /// time, whose dependent steps (draw, square root, rounding) left the
+    /// processor waiting. [`Self::quantize`] draws the same.
+    pub fn noisy(&self, mean: &[f32], pre: f32, rng: &mut RowRng, out: &mut [f32]) {
+        let mut z = [0f32; RUN];
+        for (m_run, o_run) in mean.chunks(RUN).zip(out.chunks_mut(RUN)) {
+            self.noisy_run(m_run, pre, rng, &mut z[..m_run.len()], o_run);
+        }
+    }
+
+    /// [`Self::noisy`] of `mean` (`pre` = 1) rounded to 8 bits as the
+    /// renderer's frames are ([`quantize_f32`]).
     pub fn quantize(&self, mean: &[f32], rng: &mut RowRng, out: &mut [u8]) {
-        const CHUNK: usize = 256;
-        let mut z = [0f32; CHUNK];
+        let (mut z, mut v) = ([0f32; RUN], [0f32; RUN]);
+        for (m_run, o_run) in mean.chunks(RUN).zip(out.chunks_mut(RUN)) {
+            let n = m_run.len();
+            self.noisy_run(m_run, 1.0, rng, &mut z[..n], &mut v[..n]);
+            for (o, &x) in o_run.iter_mut().zip(&v[..n]) {
+                *o = quantize_f32(x);
+            }
+        }
+    }
+
+    /// One run of [`Self::noisy`] (`z`: scratch for its normals).
+    fn noisy_run(&self, mean: &[f32], pre: f32, rng: &mut RowRng, z: &mut [f32], out: &mut [f32]) {
         let (inv_gain, read, read_var) =
             (self.inv_gain as f32, self.read as f32, self.read_var as f32);
+        fill_standard_normal(rng, z);
+        for ((o, &m), &zi) in out.iter_mut().zip(mean).zip(z.iter()) {
+            let m = (m * pre).max(0.0);
+            *o = m + zi * (m * inv_gain + read_var).sqrt();
+        }
+        if !self.gain.is_finite() {
+            return;
+        }
         // A little above the limit in DN, so that rounding to f32 loses no pixel.
         let poisson_below_dn = (EXACT_POISSON_BELOW * self.inv_gain * 1.001) as f32;
-        for (m_run, o_run) in mean.chunks(CHUNK).zip(out.chunks_mut(CHUNK)) {
-            let z = &mut z[..m_run.len()];
-            fill_standard_normal(rng, z);
-            for ((o, &m), &zi) in o_run.iter_mut().zip(m_run).zip(z.iter()) {
-                let m = m.max(0.0);
-                let v = m + zi * (m * inv_gain + read_var).sqrt();
-                *o = quantize_f32(v);
-            }
-            if !self.gain.is_finite() {
+        for ((o, &m), &zi) in out.iter_mut().zip(mean).zip(z.iter()) {
+            // Most pixels are far above the limit: one f32 comparison each.
+            let m = m * pre;
+            if !(m > 0.0 && m < poisson_below_dn) {
                 continue;
             }
-            for ((o, &m), &zi) in o_run.iter_mut().zip(m_run).zip(z.iter()) {
-                // Most pixels are far above the limit: one f32 comparison each.
-                if !(m > 0.0 && m < poisson_below_dn) {
-                    continue;
-                }
-                let lambda = f64::from(m) * self.gain;
-                if lambda < EXACT_POISSON_BELOW {
-                    let shot = poisson_small(lambda, rng) as f32 * self.inv_gain as f32;
-                    *o = quantize_f32(shot + read * zi);
-                }
+            let lambda = f64::from(m) * self.gain;
+            if lambda < EXACT_POISSON_BELOW {
+                let shot = poisson_small(lambda, rng) as f32 * inv_gain;
+                *o = shot + read * zi;
             }
         }
     }
 }
 
-/// `v` clipped to 0–255 and rounded to the nearest integer (a half to the
-/// even one: the noise makes halves a null set); NaN gives 0. Branch-free
-/// and without a float-to-integer conversion (which does not vectorize on
-/// baseline x86-64 when it must saturate), so that a loop of it
-/// vectorizes: adding 1.5·2²³ leaves the rounded integer in the low
-/// mantissa bits.
+/// `v` clipped to 0–255 and rounded to the nearest integer, halves up
+/// (`v + 0.5` floored; within one `f32` step below a half, as that sum
+/// rounds); NaN gives 0. Branch-free and without a float-to-integer
+/// conversion (which does not vectorize on baseline x86-64 when it must
+/// saturate), so that a loop of it vectorizes: adding 1.5·2²³ leaves the
+/// nearest integer in the low mantissa bits, and one step back where it
+/// rounded up makes it the floor.
 #[inline]
-fn quantize_f32(v: f32) -> u8 {
+pub fn quantize_f32(v: f32) -> u8 {
     const SHIFT: f32 = 12_582_912.0;
-    ((v.clamp(0.0, 255.0) + SHIFT).to_bits() & 0xFF) as u8
+    let x = v.clamp(0.0, 255.0) + 0.5;
+    let nearest = (x + SHIFT) - SHIFT;
+    let floor = if nearest > x { nearest - 1.0 } else { nearest };
+    ((floor + SHIFT).to_bits() & 0xFF) as u8
 }
 
 #[cfg(test)]
@@ -588,6 +612,34 @@ mod tests {
             .map(|(i, &x)| (phi(x / 1.05) - (i as f64 + 0.5) / n as f64).abs())
             .fold(0.0, f64::max);
         assert!(d_wide > crit, "KS of a wider normal {d_wide:.5}");
+    }
+
+    #[test]
+    fn quantize_f32_rounds_halves_up_and_clips() {
+        let cases = [
+            (f32::NAN, 0),
+            (f32::INFINITY, 255),
+            (f32::NEG_INFINITY, 0),
+            (-0.3, 0),
+            (0.49, 0),
+            (0.5, 1),
+            (1.5, 2),
+            (2.5, 3),
+            (127.5, 128),
+            (254.49, 254),
+            (254.5, 255),
+            (255.0, 255),
+            (1e9, 255),
+        ];
+        for (v, want) in cases {
+            assert_eq!(quantize_f32(v), want, "{v}");
+        }
+        let mut rng = RowRng::new(5, 5);
+        for _ in 0..200_000 {
+            let v = (rng.uniform() * 270.0 - 7.0) as f32;
+            let want = (f64::from(v) + 0.5).floor().clamp(0.0, 255.0) as u8;
+            assert_eq!(quantize_f32(v), want, "{v}");
+        }
     }
 
     #[test]

@@ -405,7 +405,7 @@ pub fn quantize_with_noise(dn: &[f32], w: usize, water: &WaterParams, seed: u64,
 pub fn quantize_row(row_in: &[f32], y: usize, water: &WaterParams, seed: u64, row_out: &mut [u8]) {
     if water.is_noiseless() {
         for (o, &v) in row_out.iter_mut().zip(row_in) {
-            *o = round_to_u8_f32(v);
+            *o = super::noise::quantize_f32(v);
         }
         return;
     }
