@@ -85,9 +85,10 @@ pub struct NavParams {
     #[serde(default = "default_odometry_slot_s")]
     pub odometry_slot_s: f64,
     /// The graph over time's budget of states (default 240): each vehicle
-    /// over time keeps its newest `max(1, budget / vehicles)` slots with a
-    /// frame, and older frames are left out of it (3 vehicles: 80 slots, the
-    /// whole window; 100 vehicles: 2). The solve's cost grows far faster
+    /// over time keeps `max(1, budget / vehicles)` states, its state at the
+    /// newest accepted frame and its newest slots with a frame; older frames
+    /// are left out of it (3 vehicles: 80 states, the whole window; 100
+    /// vehicles: 2). The solve's cost grows far faster
     /// than the states (a vehicles × slots lattice: 100 vehicles, 2 s of
     /// 10 Hz frames: ~20 ms at 200 states, ~100 ms at 400, ~0.7 s at 800;
     /// docs/results.md, nav).

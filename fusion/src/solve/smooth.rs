@@ -70,8 +70,9 @@ pub(crate) struct Inputs<'a> {
     pub odometry: &'a Odometry,
     pub max_gap_ns: u64,
     pub slot_ns: u64,
-    /// States in all at most: each vehicle over time keeps its newest
-    /// `max(1, max_states / vehicles over time)` slots with a frame.
+    /// States of the vehicles over time at most: each keeps
+    /// `max(1, max_states / vehicles over time)` states, its state at T and
+    /// its newest slots with a frame.
     pub max_states: usize,
 }
 
@@ -232,7 +233,13 @@ fn marker_factors(
         }
     }
     for s in kept.values_mut() {
-        while s.len() > max_slots {
+        // The state at T counts too: every vehicle over time has one.
+        let room = if s.contains(&0) {
+            max_slots
+        } else {
+            max_slots - 1
+        };
+        while s.len() > room {
             s.pop_last();
         }
     }
