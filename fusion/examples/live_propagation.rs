@@ -211,6 +211,14 @@ fn summary(s: &[Scored]) -> [f64; 5] {
     ]
 }
 
+/// A [`summary`] as the table's columns.
+fn columns(a: &[f64; 5]) -> String {
+    format!(
+        "{:6.1} {:6.1} {:6.1} {:6.2} {:5.1}",
+        a[0], a[1], a[2], a[3], a[4]
+    )
+}
+
 fn parse_seeds(arg: &str) -> Result<Vec<u64>, String> {
     let bad = |e: std::num::ParseIntError| format!("seeds {arg:?}: {e} (e.g. 1-5 or 3)");
     match arg.split_once('-') {
@@ -277,14 +285,10 @@ fn main() -> Result<(), String> {
         for (m, s) in scored.into_iter().enumerate() {
             let a = summary(&s);
             println!(
-                "{:<22} {seed:4} {maps:5} {:6} | {:6.1} {:6.1} {:6.1} {:6.2} {:5.1}",
+                "{:<22} {seed:4} {maps:5} {:6} | {}",
                 MODES[m].0,
                 s.len(),
-                a[0],
-                a[1],
-                a[2],
-                a[3],
-                a[4]
+                columns(&a)
             );
             per_seed[m].push(a);
             pooled[m].extend(s);
@@ -299,14 +303,10 @@ fn main() -> Result<(), String> {
         };
         let ((m_lo, m_hi), (p_lo, p_hi)) = (range(0), range(1));
         println!(
-            "{:<22}  all        {:6} | {:6.1} {:6.1} {:6.1} {:6.2} {:5.1}   per seed: median {m_lo:.1}–{m_hi:.1}, p95 {p_lo:.1}–{p_hi:.1}",
+            "{:<22}  all        {:6} | {}   per seed: median {m_lo:.1}–{m_hi:.1}, p95 {p_lo:.1}–{p_hi:.1}",
             MODES[m].0,
             s.len(),
-            a[0],
-            a[1],
-            a[2],
-            a[3],
-            a[4]
+            columns(&a)
         );
     }
     Ok(())

@@ -586,24 +586,31 @@ mod tests {
         }
     }
 
+    /// Kolmogorov–Smirnov's D of the sorted sample `sorted` against `cdf`.
+    fn ks_distance(sorted: &[f64], cdf: impl Fn(f64) -> f64) -> f64 {
+        let n = sorted.len() as f64;
+        sorted
+            .iter()
+            .enumerate()
+            .map(|(i, &x)| {
+                let f = cdf(x);
+                (f - i as f64 / n).abs().max(((i + 1) as f64 / n - f).abs())
+            })
+            .fold(0.0, f64::max)
+    }
+
+    /// D's 99.99 % critical value for `n` draws: √(ln(2/α)/2)/√n.
+    fn ks_critical(n: usize) -> f64 {
+        ((2.0f64 / 1e-4).ln() / 2.0).sqrt() / (n as f64).sqrt()
+    }
+
     #[test]
     fn standard_normal_draws_pass_kolmogorov_smirnov() {
         let mut rng = RowRng::new(21, 4);
         let n = 200_000;
         let mut z: Vec<f64> = (0..n).map(|_| StandardNormal.sample(&mut rng)).collect();
         z.sort_by(f64::total_cmp);
-        let d = z
-            .iter()
-            .enumerate()
-            .map(|(i, &x)| {
-                let f = phi(x);
-                (f - i as f64 / n as f64)
-                    .abs()
-                    .max(((i + 1) as f64 / n as f64 - f).abs())
-            })
-            .fold(0.0, f64::max);
-        // 99.99 % critical value: √(ln(2/α)/2)/√n.
-        let crit = ((2.0f64 / 1e-4).ln() / 2.0).sqrt() / (n as f64).sqrt();
+        let (d, crit) = (ks_distance(&z, phi), ks_critical(n));
         assert!(d < crit, "KS D {d:.5} vs {crit:.5}");
         // And a 5 % wider normal fails it.
         let d_wide = z
@@ -651,17 +658,7 @@ mod tests {
         fill_standard_normal(&mut rng, &mut z[n - 1..]);
         let mut z: Vec<f64> = z.iter().map(|&v| f64::from(v)).collect();
         z.sort_by(f64::total_cmp);
-        let d = z
-            .iter()
-            .enumerate()
-            .map(|(i, &x)| {
-                let f = phi(x);
-                (f - i as f64 / n as f64)
-                    .abs()
-                    .max(((i + 1) as f64 / n as f64 - f).abs())
-            })
-            .fold(0.0, f64::max);
-        let crit = ((2.0f64 / 1e-4).ln() / 2.0).sqrt() / (n as f64).sqrt();
+        let (d, crit) = (ks_distance(&z, phi), ks_critical(n));
         assert!(d < crit, "KS D {d:.5} vs {crit:.5}");
         // The tails, which KS hardly sees: counts beyond 2.5, 3.0, 3.44 (the
         // ziggurat's own tail), 4.0 on both sides against their expectation.
@@ -706,17 +703,8 @@ mod tests {
         tail.sort_by(f64::total_cmp);
         let q = |x: f64| 1.0 - phi(x);
         let nt = tail.len();
-        let d_tail = tail
-            .iter()
-            .enumerate()
-            .map(|(i, &x)| {
-                let f = 1.0 - q(x) / q(r);
-                (f - i as f64 / nt as f64)
-                    .abs()
-                    .max(((i + 1) as f64 / nt as f64 - f).abs())
-            })
-            .fold(0.0, f64::max);
-        let crit_tail = ((2.0f64 / 1e-4).ln() / 2.0).sqrt() / (nt as f64).sqrt();
+        let d_tail = ks_distance(&tail, |x| 1.0 - q(x) / q(r));
+        let crit_tail = ks_critical(nt);
         assert!(
             nt > 1200 && d_tail < crit_tail,
             "{nt} tail draws, KS D {d_tail:.4} vs {crit_tail:.4}"
