@@ -13,7 +13,6 @@
 //! the small Poisson counts an exact inversion of the distribution function.
 
 use rand::RngCore;
-use rand_distr::{Distribution, StandardNormal};
 
 /// Below this many photo-electrons the shot noise is drawn as an exact
 /// Poisson count; above, as a Gaussian of the same variance.
@@ -226,6 +225,9 @@ pub struct Sensor {
     read_var: f64,
 }
 
+/// Pixels per run of [`Sensor::noisy`]: the draws of a row go run by run.
+const RUN: usize = 256;
+
 impl Sensor {
     /// `gain` electrons per DN (∞: no shot noise), `read` DN of read noise.
     pub fn new(gain: f64, read: f64) -> Sensor {
@@ -237,38 +239,15 @@ impl Sensor {
         }
     }
 
-    /// One pixel's reading in DN (before rounding and clipping) at a mean
-    /// of `mean` DN (negative is 0).
-    #[inline]
-    pub fn value(&self, mean: f64, rng: &mut RowRng) -> f64 {
-        let mean = mean.max(0.0);
-        let lambda = mean * self.gain;
-        if lambda < EXACT_POISSON_BELOW && lambda > 0.0 {
-            let shot = f64::from(poisson_small(lambda, rng)) * self.inv_gain;
-            let z: f64 = StandardNormal.sample(rng);
-            shot + self.read * z
-        } else {
-            let var = mean * self.inv_gain + self.read_var;
-            let z: f64 = StandardNormal.sample(rng);
-            mean + z * var.sqrt()
-        }
-    }
-}
-
-/// Pixels per run of [`Sensor::noisy`]: the draws of a row go run by run.
-const RUN: usize = 256;
-
-impl Sensor {
     /// Noisy linear DN (not clipped) of the means `mean · pre` (one row, or
-    /// its first pixels), drawing from `rng`: run by run of [`RUN`] pixels,
-    /// first one standard normal per pixel, then the Gaussian branch of
-    /// [`Self::value`] for every pixel in `f32` (a loop the compiler
+    /// its first pixels; a negative mean is 0), drawing from `rng`: run by
+    /// run of [`RUN`] pixels, first one standard normal `z` per pixel, then
+    /// `m + z·√(m/g + σ_r²)` for every pixel in `f32` (a loop the compiler
     /// vectorizes), then, for the pixels under [`EXACT_POISSON_BELOW`]
-    /// electrons, an exact Poisson count from a further uniform with that
-    /// pixel's normal as the read noise. The same model as [`Self::value`],
-    /// drawn in another order: several times faster than one pixel at a
-    /// time, whose dependent steps (draw, square root, rounding) left the
-    /// processor waiting. [`Self::quantize`] draws the same.
+    /// electrons, `Poisson(m·g)/g + σ_r·z`, the count exact from a further
+    /// uniform. Several times faster than drawing one pixel at a time, whose
+    /// dependent steps (draw, square root, rounding) left the processor
+    /// waiting. [`Self::quantize`] draws the same.
     pub fn noisy(&self, mean: &[f32], pre: f32, rng: &mut RowRng, out: &mut [f32]) {
         let mut z = [0f32; RUN];
         for (m_run, o_run) in mean.chunks(RUN).zip(out.chunks_mut(RUN)) {
@@ -339,6 +318,7 @@ mod tests {
     use super::*;
     use crate::render::optics::quantize_row;
     use crate::water::WaterParams;
+    use rand_distr::{Distribution, StandardNormal};
 
     /// Pearson's χ² of `counts` against probabilities `p` (bins with an
     /// expected count under 5 pooled into their neighbour), and its degrees
