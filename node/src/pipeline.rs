@@ -8,9 +8,7 @@
 use crate::detect::{
     CornerFitCounts, DetectError, DetectParams, Detection, MarkerDetector, ShoalDetector,
 };
-use crate::pose::{
-    calibration_covariance, corner_covariance, estimate_pose_with, Hypothesis, PoseError,
-};
+use crate::pose::{estimate_pose_with, stated_covariance, Hypothesis, PoseError};
 use crate::restore::{restorer, Method, RestoreError, RestoreParams, Restored, Restorer};
 use crate::track::{Track, TrackParams};
 use opencv::core::{Mat, Rect};
@@ -302,56 +300,22 @@ impl CameraPipeline {
             self.params.corner_sigma_px,
         )
         .map_err(|e: PoseError| format!("{}#{}: {e}", det.codes, det.id))?;
-        // The error an uncertain calibration causes, at each hypothesis
-        // (systematic over the corners: the residuals cannot show it).
-        let calibration = |h: &Hypothesis| -> Result<Cov6, String> {
-            let Some(sigma) = &self.camera.calibration_sigma else {
-                return Ok(Cov6::zeros());
-            };
-            calibration_covariance(
+        // PnP's covariance, plus what the calibration's stated uncertainty
+        // and correlated corner errors add (the residuals show neither).
+        let stated = |h: &Hypothesis| -> Result<Cov6, String> {
+            stated_covariance(
                 &self.camera.model,
                 self.camera.port.as_ref(),
                 &object_points,
-                &h.camera_from_marker,
-                sigma,
+                h,
+                self.camera.calibration_sigma.as_ref(),
+                det.corner_covariance.as_ref(),
             )
-            .ok_or_else(|| {
-                format!(
-                    "{}#{}: no calibration covariance (degenerate geometry)",
-                    det.codes, det.id
-                )
-            })
-        };
-        // The error correlated corners cause (one whole-pattern fit moves
-        // them together: the residuals cannot show it either).
-        let corners = |h: &Hypothesis| -> Result<Cov6, String> {
-            let Some(cov) = &det.corner_covariance else {
-                return Ok(Cov6::zeros());
-            };
-            corner_covariance(
-                &self.camera.model,
-                self.camera.port.as_ref(),
-                &object_points,
-                &h.camera_from_marker,
-                cov,
-            )
-            .ok_or_else(|| {
-                format!(
-                    "{}#{}: no corner covariance ({} corners, a {}x{} covariance)",
-                    det.codes,
-                    det.id,
-                    object_points.len(),
-                    cov.nrows(),
-                    cov.ncols()
-                )
-            })
+            .map_err(|e| format!("{}#{}: {e}", det.codes, det.id))
         };
         let to_body = |h: &Hypothesis| -> Result<PoseWithCovariance, String> {
             let fixed = |p: Pose| PoseWithCovariance::new(p, Cov6::zeros());
-            let camera_from_marker = PoseWithCovariance::new(
-                h.camera_from_marker,
-                h.covariance + calibration(h)? + corners(h)?,
-            );
+            let camera_from_marker = PoseWithCovariance::new(h.camera_from_marker, stated(h)?);
             let marker_from_target = owner
                 .map(|(_, body_from_marker)| body_from_marker.inverse())
                 .unwrap_or_else(Pose::identity);

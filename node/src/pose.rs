@@ -377,6 +377,53 @@ fn linearized(lens: Lens<'_>, object_pts: &[Point3<f64>], pose: &Pose) -> Option
     Some(Linearized { img, j, inv })
 }
 
+/// Why a hypothesis' stated covariance ([`stated_covariance`]) could not be formed.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum StatedCovarianceError {
+    #[error("no calibration covariance (degenerate geometry)")]
+    Calibration,
+    #[error("no corner covariance ({corners} corners, a {rows}x{cols} covariance)")]
+    Corners {
+        corners: usize,
+        rows: usize,
+        cols: usize,
+    },
+}
+
+/// The covariance the node states for hypothesis `h`: PnP's own (from its
+/// residuals), plus what an uncertain calibration adds ([`calibration_covariance`],
+/// when the camera states its `calibration_sigma`) and what correlated
+/// corner errors add ([`corner_covariance`], when the detector gave the
+/// corners' covariance). Both are systematic over the corners, so the
+/// residuals cannot show them. `cam`, `port` and `object_pts` as in
+/// [`estimate_pose_with`].
+pub fn stated_covariance(
+    cam: &CameraModel,
+    port: Option<&FlatPort>,
+    object_pts: &[Point3<f64>],
+    h: &Hypothesis,
+    calibration_sigma: Option<&CalibrationSigma>,
+    corners_cov: Option<&DMatrix<f64>>,
+) -> Result<Cov6, StatedCovarianceError> {
+    let pose = &h.camera_from_marker;
+    let calibration = match calibration_sigma {
+        None => Cov6::zeros(),
+        Some(sigma) => calibration_covariance(cam, port, object_pts, pose, sigma)
+            .ok_or(StatedCovarianceError::Calibration)?,
+    };
+    let corners = match corners_cov {
+        None => Cov6::zeros(),
+        Some(cov) => corner_covariance(cam, port, object_pts, pose, cov).ok_or(
+            StatedCovarianceError::Corners {
+                corners: object_pts.len(),
+                rows: cov.nrows(),
+                cols: cov.ncols(),
+            },
+        )?,
+    };
+    Ok(h.covariance + calibration + corners)
+}
+
 /// The pose covariance that correlated corner errors add at `pose`: the
 /// least-squares pose moves by `−(JᵀJ)⁻¹ Jᵀ δu` for an error `δu` of the
 /// image corners, so a covariance `Σ_u` of the corners (px², x then y of

@@ -48,7 +48,7 @@ use shoal_node::baseline::{AprilTag, OpenCvAruco};
 use shoal_node::detect::{DetectParams, MarkerDetector, ShoalDetector};
 use shoal_node::image_file;
 use shoal_node::pipeline::detect_restoration;
-use shoal_node::pose::estimate_pose;
+use shoal_node::pose::{estimate_pose, stated_covariance};
 use shoal_node::restore::{restorer, Method, RestoreParams, Restorer};
 use shoal_proto::camera::CameraModel;
 use shoal_proto::marker::CodeSet;
@@ -207,16 +207,33 @@ fn reads_of(
                 .filter(|(cid, _)| **cid < 4)
                 .map(|(_, c)| *c)
                 .collect();
+            let object_points = d.object_points(side_m);
             let solution = camera.and_then(|cam| {
-                estimate_pose(cam, &d.object_points(side_m), &d.corners_px, None).ok()
+                estimate_pose(cam, &object_points, &d.corners_px, None)
+                    .ok()
+                    .map(|s| (cam, s))
+            });
+            // As the node states it (no calibration σ: the recordings' cameras state none).
+            let position_cov = solution.and_then(|(cam, s)| {
+                stated_covariance(
+                    cam,
+                    None,
+                    &object_points,
+                    &s.best,
+                    None,
+                    d.corner_covariance.as_ref(),
+                )
+                .ok()
+                .map(|c| c.fixed_view::<3, 3>(0, 0).into_owned())
             });
             Read {
                 id: d.id,
                 outer_px,
-                camera_from_marker: solution.map(|s| s.best.camera_from_marker),
+                camera_from_marker: solution.map(|(_, s)| s.best.camera_from_marker),
                 alternative: solution
-                    .and_then(|s| s.alternative)
+                    .and_then(|(_, s)| s.alternative)
                     .map(|h| h.camera_from_marker),
+                position_cov,
             }
         })
         .collect()
@@ -337,7 +354,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     ]);
     let mut results = serde_json::Map::new();
     let mut table = String::from(
-        "| recording / split | method | read / present | recall | false | unconfirmed | corner px | pairs | ratio IQR | jitter mm (common) | rot err ° (flip-resolved) | ms/frame |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n",
+        "| recording / split | method | read / present | recall | false | unconfirmed | corner px | pairs | ratio IQR | jitter mm (common) | jitter NEES mean (median; steps) | rot err ° (flip-resolved) | ms/frame |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     let mut categories = Vec::new();
     let mut recall: BTreeMap<String, Vec<Option<f64>>> = BTreeMap::new();
@@ -354,7 +371,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
             let cat = format!("{}/{split}", m.name);
             for (method, sc) in &s {
                 table += &format!(
-                    "| {cat} | {method} | {} / {} | {} | {} | {} | {} | {} | {} | {} ({}) | {} ({}) | {} |\n",
+                    "| {cat} | {method} | {} / {} | {} | {} | {} | {} | {} | {} | {} ({}) | {} ({}; {}) | {} ({}) | {} |\n",
                     sc.read,
                     sc.present,
                     opt(sc.recall, 3),
@@ -365,6 +382,9 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
                     opt(sc.distance_ratio_iqr, 4),
                     opt(sc.jitter_mm_median, 2),
                     opt(sc.jitter_mm_median_common, 2),
+                    opt(sc.jitter_nees_mean, 2),
+                    opt(sc.jitter_nees_median, 2),
+                    sc.jitter_nees_steps,
                     opt(sc.rotation_err_deg_median, 2),
                     opt(sc.rotation_err_deg_median_flip_resolved, 2),
                     opt(sc.detect_ms_mean, 2),

@@ -4,6 +4,7 @@
 
 use super::manifest::{Manifest, Truth};
 use crate::eval::table::{median, quantile};
+use nalgebra::Matrix3;
 use shoal_proto::geometry::Pose;
 use std::collections::{BTreeMap, BTreeSet};
 
@@ -20,6 +21,9 @@ pub(super) struct Read {
     pub(super) camera_from_marker: Option<Pose>,
     /// PnP's other planar hypothesis (the flip), when it has one.
     pub(super) alternative: Option<Pose>,
+    /// The covariance of the marker's position in the camera frame (m²) as
+    /// the node states it for `camera_from_marker` (`shoal_node::pose::stated_covariance`).
+    pub(super) position_cov: Option<Matrix3<f64>>,
 }
 
 /// What one method read over one split.
@@ -82,6 +86,15 @@ pub(super) struct Scores {
     pub(super) jitter_mm_median: Option<f64>,
     /// Jitter over the (frame, pair)s every method read.
     pub(super) jitter_mm_median_common: Option<f64>,
+    /// The stated covariance against the jitter: the mean over consecutive
+    /// frames of `(Δd)² / (σ²_d(t) + σ²_d(t−1))` for each pair's distance `d`,
+    /// 1 when honest (a χ²₁ mean; below 1 also when the errors of
+    /// consecutive frames are correlated, as the same view's are).
+    pub(super) jitter_nees_mean: Option<f64>,
+    /// Its median (χ²₁'s is 0.455): less moved by a few gross steps.
+    pub(super) jitter_nees_median: Option<f64>,
+    /// The steps it is taken over.
+    pub(super) jitter_nees_steps: usize,
     pub(super) rotation_err_deg_median: Option<f64>,
     /// The same with each image's planar flip chosen to agree best.
     pub(super) rotation_err_deg_median_flip_resolved: Option<f64>,
@@ -133,55 +146,92 @@ fn tally(m: &Manifest, run: &MethodRun) -> Tally {
     (good, false_reads, corner_errs)
 }
 
-/// Pair distances per (frame, pair) for a layout truth: (measured, known), metres.
+/// A pair's distance in one frame: measured and known (m), and the variance
+/// of the measured one the stated covariances give (m²; `None` without them).
+#[derive(Debug, Clone, Copy)]
+struct PairDistance {
+    measured: f64,
+    known: f64,
+    variance: Option<f64>,
+}
+
+/// Pair distances per (frame, pair) for a layout truth.
 fn pair_distances(
     centres: &BTreeMap<u32, [f64; 3]>,
     run: &MethodRun,
-) -> BTreeMap<(usize, u32, u32), (f64, f64)> {
+) -> BTreeMap<(usize, u32, u32), PairDistance> {
     let mut out = BTreeMap::new();
     for (idx, _, reads) in &run.frames {
-        let posed: Vec<(u32, Pose)> = reads
+        let posed: Vec<(u32, Pose, Option<Matrix3<f64>>)> = reads
             .iter()
             .filter(|r| centres.contains_key(&r.id))
-            .filter_map(|r| r.camera_from_marker.map(|p| (r.id, p)))
+            .filter_map(|r| r.camera_from_marker.map(|p| (r.id, p, r.position_cov)))
             .collect();
-        for (i, (a, pa)) in posed.iter().enumerate() {
-            for (b, pb) in &posed[i + 1..] {
-                let (a, b, pa, pb) = if a < b {
-                    (*a, *b, pa, pb)
-                } else {
-                    (*b, *a, pb, pa)
-                };
-                let measured = (pa.translation.vector - pb.translation.vector).norm();
-                let (ca, cb) = (centres[&a], centres[&b]);
+        for (i, (a, pa, ca)) in posed.iter().enumerate() {
+            for (b, pb, cb) in &posed[i + 1..] {
+                let (a, b) = (*a.min(b), *a.max(b));
+                let between = pa.translation.vector - pb.translation.vector;
+                let measured = between.norm();
+                // Along the line between the two: the two tags' errors are
+                // independent (separate corners), their sum's variance the sum.
+                let variance = ca.zip(*cb).and_then(|(ca, cb)| {
+                    let u = between / measured;
+                    let v = (u.transpose() * (ca + cb) * u)[0];
+                    (measured > 0.0 && v.is_finite() && v > 0.0).then_some(v)
+                });
+                let (ka, kb) = (centres[&a], centres[&b]);
                 let known =
-                    ((ca[0] - cb[0]).powi(2) + (ca[1] - cb[1]).powi(2) + (ca[2] - cb[2]).powi(2))
+                    ((ka[0] - kb[0]).powi(2) + (ka[1] - kb[1]).powi(2) + (ka[2] - kb[2]).powi(2))
                         .sqrt();
-                out.insert((*idx, a, b), (measured, known));
+                out.insert(
+                    (*idx, a, b),
+                    PairDistance {
+                        measured,
+                        known,
+                        variance,
+                    },
+                );
             }
         }
     }
     out
 }
 
+/// Each pair's consecutive frames: the two distances, over the (frame,
+/// pair)s in `keep` (all when `None`).
+fn steps<'a>(
+    d: &'a BTreeMap<(usize, u32, u32), PairDistance>,
+    keep: Option<&'a BTreeSet<(usize, u32, u32)>>,
+) -> impl Iterator<Item = (&'a PairDistance, &'a PairDistance)> + 'a {
+    let kept = move |k: &(usize, u32, u32)| keep.is_none_or(|keep| keep.contains(k));
+    d.iter().filter_map(move |(&(idx, a, b), now)| {
+        let before = (idx.checked_sub(1)?, a, b);
+        (kept(&(idx, a, b)) && kept(&before)).then_some(())?;
+        d.get(&before).map(|prev| (prev, now))
+    })
+}
+
 /// Median |change| of each pair's distance between consecutive frames, mm,
 /// over the (frame, pair)s in `keep` (all when `None`).
 fn jitter_mm(
-    d: &BTreeMap<(usize, u32, u32), (f64, f64)>,
+    d: &BTreeMap<(usize, u32, u32), PairDistance>,
     keep: Option<&BTreeSet<(usize, u32, u32)>>,
 ) -> Option<f64> {
-    let mut steps = Vec::new();
-    for (&(idx, a, b), &(measured, _)) in d {
-        if idx == 0 || keep.is_some_and(|k| !k.contains(&(idx, a, b))) {
-            continue;
-        }
-        if let Some(&(prev, _)) = d.get(&(idx - 1, a, b)) {
-            if keep.is_none_or(|k| k.contains(&(idx - 1, a, b))) {
-                steps.push((measured - prev).abs() * 1e3);
-            }
-        }
-    }
-    median(&steps)
+    let changes: Vec<f64> = steps(d, keep)
+        .map(|(prev, now)| (now.measured - prev.measured).abs() * 1e3)
+        .collect();
+    median(&changes)
+}
+
+/// `(Δd)² / (σ²_d(t) + σ²_d(t−1))` of every consecutive step both of whose
+/// distances have a stated variance ([`Scores::jitter_nees_mean`]).
+fn jitter_nees(d: &BTreeMap<(usize, u32, u32), PairDistance>) -> Vec<f64> {
+    steps(d, None)
+        .filter_map(|(prev, now)| {
+            let var = prev.variance? + now.variance?;
+            Some((now.measured - prev.measured).powi(2) / var)
+        })
+        .collect()
 }
 
 /// |measured − nominal| rotation between consecutive steps, degrees: with
@@ -289,7 +339,7 @@ pub(super) fn scores(m: &Manifest, runs: &BTreeMap<String, MethodRun>) -> BTreeM
             };
             s.recall = (s.present > 0).then(|| s.read as f64 / s.present as f64);
             if let Some(d) = distances.get(name) {
-                let ratios: Vec<f64> = d.values().map(|(me, kn)| me / kn).collect();
+                let ratios: Vec<f64> = d.values().map(|p| p.measured / p.known).collect();
                 s.pairs = ratios.len();
                 s.distance_ratio_median = median(&ratios);
                 s.distance_ratio_iqr = quantile(&ratios, 0.75)
@@ -298,6 +348,11 @@ pub(super) fn scores(m: &Manifest, runs: &BTreeMap<String, MethodRun>) -> BTreeM
                 if m.video.is_some() {
                     s.jitter_mm_median = jitter_mm(d, None);
                     s.jitter_mm_median_common = jitter_mm(d, common.as_ref());
+                    let nees = jitter_nees(d);
+                    s.jitter_nees_steps = nees.len();
+                    s.jitter_nees_mean =
+                        (!nees.is_empty()).then(|| nees.iter().sum::<f64>() / nees.len() as f64);
+                    s.jitter_nees_median = median(&nees);
                 }
             }
             if let Truth::RotationSteps { id, angle_deg } = &m.truth {
@@ -308,4 +363,62 @@ pub(super) fn scores(m: &Manifest, runs: &BTreeMap<String, MethodRun>) -> BTreeM
             (name.clone(), s)
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+
+    fn read(id: u32, x: f64, sigma_m: Option<f64>) -> Read {
+        Read {
+            id,
+            outer_px: Vec::new(),
+            camera_from_marker: Some(Isometry3::from_parts(
+                Translation3::new(x, 0.0, 1.0),
+                UnitQuaternion::identity(),
+            )),
+            alternative: None,
+            // Stretched across the line between the tags, which must not count.
+            position_cov: sigma_m.map(|s| Matrix3::from_diagonal(&[s * s, 9.0, 9.0].into())),
+        }
+    }
+
+    #[test]
+    fn the_jitter_nees_weighs_each_step_by_the_stated_variance_along_the_pair() {
+        let centres: BTreeMap<u32, [f64; 3]> = [(1, [0.0, 0.0, 0.0]), (2, [0.5, 0.0, 0.0])].into();
+        let frame = |idx: usize, d: f64, sigma: [Option<f64>; 2]| {
+            (
+                idx,
+                format!("{idx}"),
+                vec![read(2, d, sigma[1]), read(1, 0.0, sigma[0])],
+            )
+        };
+        let s = Some(0.001);
+        let run = MethodRun {
+            frames: vec![
+                frame(0, 0.500, [s, s]),
+                // 2 mm against σ_d² = 2·(1 mm)² each frame: NEES 4e-6 / 4e-6 = 1.
+                frame(1, 0.502, [s, s]),
+                // 4 mm: 16e-6 / 4e-6 = 4.
+                frame(2, 0.498, [s, s]),
+                // No stated covariance on one tag: the steps on either side of it are left out.
+                frame(3, 0.498, [s, None]),
+                frame(4, 0.530, [s, s]),
+            ],
+            detect_ms: Vec::new(),
+        };
+        let d = pair_distances(&centres, &run);
+        assert_eq!(d.len(), 5);
+        assert!((d[&(1, 1, 2)].variance.unwrap() - 2e-6).abs() < 1e-15);
+        assert!(d[&(3, 1, 2)].variance.is_none());
+        let nees = jitter_nees(&d);
+        assert_eq!(nees.len(), 2, "{nees:?}");
+        assert!(
+            (nees[0] - 1.0).abs() < 1e-6 && (nees[1] - 4.0).abs() < 1e-6,
+            "{nees:?}"
+        );
+        // The jitter itself still takes every step: 2, 4, 0 and 32 mm.
+        assert!((jitter_mm(&d, None).unwrap() - 3.0).abs() < 1e-6);
+    }
 }
