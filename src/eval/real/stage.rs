@@ -63,7 +63,10 @@ pub fn verify_staged(m: &Manifest, dir: &Path) -> Result<(), EvalError> {
 
 /// Stage every manifest of `manifests` that has a `fetch` block into
 /// `root/<folder>/`, taking the repositories from `mirrors` when given.
-/// `progress` hears one line per recording.
+/// `progress` hears one line per recording. A recording that cannot be
+/// staged (no mirror, a failed clone, a hash that does not match) does not
+/// stop the others: they are staged, and the error then names every one
+/// that was not, and why.
 pub fn stage_all(
     root: &Path,
     manifests: &Path,
@@ -79,7 +82,7 @@ pub fn stage_all(
         .filter(|p| p.extension().is_some_and(|x| x == "json"))
         .collect();
     paths.sort();
-    let mut done = Vec::new();
+    let (mut done, mut failed) = (Vec::new(), Vec::new());
     for path in paths {
         let m = load_manifest(&path)?;
         let Some(fetch) = &m.fetch else {
@@ -88,18 +91,42 @@ pub fn stage_all(
         };
         let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned());
         let folder = m.folder.clone().or(stem).unwrap_or_default();
-        let staged = stage_one(&m.name, fetch, &root.join(folder), root, mirrors)?;
-        progress(&format!(
-            "{}: {} written, {} already staged ({}@{})",
-            staged.recording,
-            staged.written,
-            staged.present,
-            fetch.repo,
-            &fetch.commit[..12]
-        ));
-        done.push(staged);
+        let dir = root.join(folder);
+        match stage_one(&m.name, fetch, &dir, root, mirrors) {
+            Ok(staged) => {
+                progress(&format!(
+                    "{}: {} written, {} already staged ({}@{})",
+                    staged.recording,
+                    staged.written,
+                    staged.present,
+                    fetch.repo,
+                    &fetch.commit[..12]
+                ));
+                done.push(staged);
+            }
+            Err(e) => {
+                // An empty folder left behind would read as a staged recording.
+                let _ = std::fs::remove_dir(&dir);
+                let why = match e {
+                    EvalError::Setup(why) => why,
+                    other => other.to_string(),
+                };
+                progress(&format!("{}: NOT staged: {why}", m.name));
+                failed.push(format!("{}: {why}", m.name));
+            }
+        }
     }
-    Ok(done)
+    if failed.is_empty() {
+        Ok(done)
+    } else {
+        Err(EvalError::Setup(format!(
+            "{} of {} recordings not staged (the {} others are): {}",
+            failed.len(),
+            failed.len() + done.len(),
+            done.len(),
+            failed.join("; ")
+        )))
+    }
 }
 
 /// The default manifests folder, for the CLI.
@@ -323,6 +350,39 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(err.contains("no mirror of someone/frames"), "{err}");
+
+        // A recording whose source is missing does not stop the others
+        // (the manifests are taken in name order: the missing one first).
+        std::fs::write(manifests.join("rec.json"), manifest(&good)).unwrap();
+        std::fs::write(
+            manifests.join("a-missing.json"),
+            manifest(&good)
+                .replace("\"rec\"", "\"gone\"")
+                .replace("someone/frames", "someone/elsewhere"),
+        )
+        .unwrap();
+        std::fs::remove_dir_all(&data).unwrap();
+        let mut lines = Vec::new();
+        let err = run(&mut lines).unwrap_err().to_string();
+        assert!(
+            err.contains("1 of 2 recordings not staged")
+                && err.contains("gone: ")
+                && err.contains("no mirror of someone/elsewhere"),
+            "{err}"
+        );
+        assert_eq!(
+            std::fs::read(data.join("rec/a.jpg")).unwrap(),
+            b"frame bytes"
+        );
+        assert!(
+            !data.join("a-missing").exists(),
+            "no empty folder left behind"
+        );
+        assert!(
+            lines.iter().any(|l| l.starts_with("gone: NOT staged"))
+                && lines.iter().any(|l| l.starts_with("rec: 1 written")),
+            "{lines:?}"
+        );
         let _ = std::fs::remove_dir_all(&tmp);
     }
 
