@@ -240,12 +240,27 @@ fn the_twin_of_a_known_recording_finds_its_geometry_and_conditions_and_predicts_
     }
     for file in [
         "twin.csv",
+        "twin-reads.csv",
         "twin.md",
         "twin-recall.png",
         "twin-floor-frames.png",
         "summary.json",
     ] {
         assert!(out.join(file).is_file(), "{file} written");
+    }
+    // Every simulated read is written, with its pose: shoal's on both splits.
+    let reads = std::fs::read_to_string(out.join("twin-reads.csv")).unwrap();
+    for split in ["dev", "holdout"] {
+        let n = reads
+            .lines()
+            .filter(|l| l.starts_with(&format!("floor,{split},")) && l.contains(",shoal,"))
+            .filter(|l| {
+                l.split(',')
+                    .nth(7)
+                    .is_some_and(|tx| tx.parse::<f64>().is_ok())
+            })
+            .count();
+        assert!(n > 0, "{split}: no posed shoal read in twin-reads.csv");
     }
     let _ = std::fs::remove_dir_all(&data);
     let _ = std::fs::remove_dir_all(&out);

@@ -85,6 +85,23 @@ impl Runner {
     }
 }
 
+/// The columns `id, tx_m, ty_m, tz_m, rx_rad, ry_rad, rz_rad` of a read
+/// (the pose's translation and rotation vector; empty without a pose).
+fn read_fields(r: &Read) -> [String; 7] {
+    let t = r.camera_from_marker.map(|p| p.translation.vector);
+    let rv = r.camera_from_marker.map(|p| p.rotation.scaled_axis());
+    let num = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v:.5}"));
+    [
+        r.id.to_string(),
+        num(t.map(|t| t.x)),
+        num(t.map(|t| t.y)),
+        num(t.map(|t| t.z)),
+        num(rv.map(|r| r.x)),
+        num(rv.map(|r| r.y)),
+        num(rv.map(|r| r.z)),
+    ]
+}
+
 fn runners(
     m: &Manifest,
     codes: CodeSet,
@@ -282,23 +299,15 @@ fn run_split(
                 let Some(csv) = csv.as_deref_mut() else {
                     break;
                 };
-                let t = r.camera_from_marker.map(|p| p.translation.vector);
-                let rv = r.camera_from_marker.map(|p| p.rotation.scaled_axis());
-                let num = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v:.5}"));
-                csv.row(vec![
+                let mut row = vec![
                     m.name.clone(),
                     split.to_string(),
                     idx.to_string(),
                     name.to_string(),
                     method.name.clone(),
-                    r.id.to_string(),
-                    num(t.map(|t| t.x)),
-                    num(t.map(|t| t.y)),
-                    num(t.map(|t| t.z)),
-                    num(rv.map(|r| r.x)),
-                    num(rv.map(|r| r.y)),
-                    num(rv.map(|r| r.z)),
-                ]);
+                ];
+                row.extend(read_fields(r));
+                csv.row(row);
             }
             let run = runs.get_mut(&method.name).expect("a run per method");
             run.frames.push((idx, name.to_string(), reads));
