@@ -85,8 +85,11 @@ impl Runner {
     }
 }
 
-/// The columns `id, tx_m, ty_m, tz_m, rx_rad, ry_rad, rz_rad` of a read
-/// (the pose's translation and rotation vector; empty without a pose).
+/// The columns of a read in `real.csv` and `twin-reads.csv` ([`read_fields`]).
+const READ_COLUMNS: [&str; 7] = ["id", "tx_m", "ty_m", "tz_m", "rx_rad", "ry_rad", "rz_rad"];
+
+/// The [`READ_COLUMNS`] of a read (the pose's translation and rotation
+/// vector; empty without a pose).
 fn read_fields(r: &Read) -> [String; 7] {
     let t = r.camera_from_marker.map(|p| p.translation.vector);
     let rv = r.camera_from_marker.map(|p| p.rotation.scaled_axis());
@@ -347,20 +350,13 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
             root.display()
         )));
     }
-    let mut csv = Csv::new(&[
-        "recording",
-        "split",
-        "frame",
-        "name",
-        "method",
-        "id",
-        "tx_m",
-        "ty_m",
-        "tz_m",
-        "rx_rad",
-        "ry_rad",
-        "rz_rad",
-    ]);
+    let mut csv = Csv::new(
+        &[
+            &["recording", "split", "frame", "name", "method"],
+            &READ_COLUMNS[..],
+        ]
+        .concat(),
+    );
     let mut results = serde_json::Map::new();
     let mut table = String::from(
         "| recording / split | method | read / present | recall | false | unconfirmed | corner px | pairs | ratio IQR | jitter mm (common) | jitter NEES mean (median; steps) | rot err ° (flip-resolved) | ms/frame |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",

@@ -52,7 +52,7 @@
 use super::score::{scores, MethodRun, Scores};
 use super::{
     data_root, find_recordings, for_frames, load_manifest, read_fields, reads_of, run_split,
-    runners, verify_staged, Manifest, Truth, MANIFEST_DIR,
+    runners, verify_staged, Manifest, Truth, MANIFEST_DIR, READ_COLUMNS,
 };
 use crate::eval::plot::{self, Grouped};
 use crate::eval::profiles::{mean_ci, node_camera, POSITIVE};
@@ -1599,21 +1599,13 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
         "sim",
     ]);
     // Every simulated read, as `eval real`'s real.csv (plus the seed).
-    let mut reads_csv = Csv::new(&[
-        "recording",
-        "split",
-        "seed",
-        "frame",
-        "name",
-        "method",
-        "id",
-        "tx_m",
-        "ty_m",
-        "tz_m",
-        "rx_rad",
-        "ry_rad",
-        "rz_rad",
-    ]);
+    let mut reads_csv = Csv::new(
+        &[
+            &["recording", "split", "seed", "frame", "name", "method"],
+            &READ_COLUMNS[..],
+        ]
+        .concat(),
+    );
     let mut table = String::from(
         "| recording / split | method | recall: real · sim (95 % CI) · sim/real | miss | jitter mm | distance IQR |\n|---|---|---|---|---|---|\n",
     );
