@@ -243,6 +243,8 @@ fn the_twin_of_a_known_recording_finds_its_geometry_and_conditions_and_predicts_
         "twin-reads.csv",
         "twin.md",
         "twin-recall.png",
+        "twin-jitter_mm.png",
+        "twin-distance_iqr.png",
         "twin-floor-frames.png",
         "summary.json",
     ] {

@@ -1235,7 +1235,7 @@ fn simulate(
     Ok(sim_scores)
 }
 
-/// Per plot (`recall`, `jitter_mm`): the methods, and per series (real or
+/// Per plot (`recall`, `jitter_mm`, `distance_iqr`): the methods, and per series (real or
 /// simulated, per split) a value per method.
 type Plots = BTreeMap<&'static str, (Vec<String>, BTreeMap<String, Vec<Option<f64>>>)>;
 
@@ -1295,13 +1295,9 @@ fn report_split(
                     None => "",
                 }
             ));
-            if name == "recall" || name == "jitter_mm" {
-                let key = if name == "recall" {
-                    "recall"
-                } else {
-                    "jitter_mm"
-                };
-                let entry = plots.entry(key).or_default();
+            // The miss rate is the recall's complement: no plot of its own.
+            if name != "miss" {
+                let entry = plots.entry(name).or_default();
                 let cat = method.to_string();
                 if !entry.0.contains(&cat) {
                     entry.0.push(cat.clone());
@@ -1645,6 +1641,10 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     for (key, (categories, cols)) in plots {
         let (title, y) = match key {
             "recall" => ("Real recording and its simulated twin: recall", "recall"),
+            "distance_iqr" => (
+                "Real recording and its simulated twin: spread (IQR) of measured / surveyed pair distance",
+                "IQR of distance ratio",
+            ),
             _ => (
                 "Real recording and its simulated twin: jitter of a pair's distance",
                 "jitter (mm)",
