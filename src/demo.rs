@@ -73,6 +73,12 @@ pub struct DemoConfig {
     pub router_port: Option<u16>,
     /// Publish in ROS 2 over `rmw_zenoh` in this domain (`shoal_services::ros2`).
     pub ros2: Option<u32>,
+    /// The camera the simulator renders through (issue #16; `None`: the
+    /// ideal renderer). With one, every node holds the calibration a lab
+    /// would have for its camera behind that camera's port, off by the
+    /// profile's calibration error, and states that lab's uncertainty
+    /// ([`crate::eval::profiles::lab_fleet`], drawn from [`DemoConfig::seed`]).
+    pub profile: Option<shoal_sim_bridge::profile::CameraProfile>,
 }
 
 impl Default for DemoConfig {
@@ -95,6 +101,7 @@ impl Default for DemoConfig {
             occlude: None,
             router_port: None,
             ros2: None,
+            profile: None,
         }
     }
 }
@@ -173,6 +180,9 @@ pub fn load_fleet(cfg: &DemoConfig) -> anyhow::Result<Fleet> {
 /// per vehicle and the simulator, each on its own session over loopback TCP.
 pub struct SimulatedSwarm {
     pub fleet: Arc<Fleet>,
+    /// The fleet as the nodes hold it: [`SimulatedSwarm::fleet`], but for
+    /// the cameras' calibrations with [`DemoConfig::profile`].
+    node_fleet: Arc<Fleet>,
     pub clock: Arc<ManualClock>,
     port: u16,
     /// The port asked for, when another process held it.
@@ -207,6 +217,22 @@ impl SimulatedSwarm {
         before_sim: impl FnOnce(&SimulatedSwarm) -> anyhow::Result<()>,
     ) -> anyhow::Result<SimulatedSwarm> {
         let fleet = Arc::new(load_fleet(cfg)?);
+        let profile = cfg.profile.clone().map(|p| p.with_seed(cfg.seed));
+        let node_fleet = match &profile {
+            Some(p) => {
+                let t0 = Instant::now();
+                let held = crate::eval::profiles::lab_fleet(&fleet, p, cfg.seed, true)
+                    .map_err(|e| anyhow!("the camera profile's calibrations: {e}"))?;
+                tracing::info!(
+                    "camera profile {}: the nodes' calibrations of {} cameras as a lab would have them, {:.1} s",
+                    p.name,
+                    held.vehicles.iter().map(|v| v.cameras.len()).sum::<usize>(),
+                    t0.elapsed().as_secs_f64()
+                );
+                Arc::new(held)
+            }
+            None => fleet.clone(),
+        };
         let water = WaterPresets::builtin()
             .get(cfg.water_c_per_m)
             .with_context(|| format!("water {} /m", cfg.water_c_per_m))?;
@@ -214,6 +240,7 @@ impl SimulatedSwarm {
         let clock = Arc::new(ManualClock::new(0));
         let mut swarm = SimulatedSwarm {
             fleet: fleet.clone(),
+            node_fleet,
             clock: clock.clone(),
             port,
             port_taken,
@@ -275,6 +302,7 @@ impl SimulatedSwarm {
                     .nav
                     .then(shoal_sim_bridge::nav::NavSensorParams::default),
                 hidden: cfg.occlude.into_iter().collect(),
+                profile,
             },
             clock,
         )?);
@@ -306,7 +334,7 @@ impl SimulatedSwarm {
         let node = shoal_services::node::spawn(
             &self.session()?,
             NodeConfig {
-                fleet: self.fleet.clone(),
+                fleet: self.node_fleet.clone(),
                 vehicle: v,
                 params: PipelineParams::default(),
                 source: Source::Zenoh,

@@ -59,6 +59,51 @@ fn demo_swarm_fuses_within_a_few_centimetres_at_half_per_metre() {
     }
 }
 
+/// Issue #16: the demo through the realistic camera (blur, rolling shutter,
+/// the port, lamps, snow, other PSFs, exposure, JPEG) with every node holding
+/// a lab's calibration of its camera, not the renderer's. The pair 10–15 is
+/// localized within centimetres, and not to the ideal camera's fractions of
+/// a millimetre (`docs/results.md`, *swarm demo*: 7–10 mm over seeds 1–5; the
+/// pairs with vehicle 17 vary from seed to seed, its marker half outside the
+/// one view that has it behind the port).
+#[test]
+fn demo_swarm_through_the_realistic_camera_localizes_its_near_pair_within_centimetres() {
+    let cfg = DemoConfig {
+        duration_s: 4.0,
+        frame_rate_hz: 1.0,
+        cameras: side_cameras(),
+        // A realistic frame takes ~0.3 s to render: six a tick within 5 s of wall time.
+        time_scale: 0.2,
+        progress: false,
+        log: None,
+        profile: Some(shoal_sim_bridge::profile::CameraProfile::realistic()),
+        ..DemoConfig::default()
+    };
+    let s = shoal::demo::run(&cfg, |_, _, _| {}).unwrap();
+    assert!(s.frames_processed > 0 && s.observations_sent > 0, "{s:?}");
+    let p = s
+        .pairs
+        .iter()
+        .find(|p| (p.a, p.b) == (10, 15))
+        .expect("the pair 10-15");
+    eprintln!("through the realistic camera: {:?}", s.pairs);
+    assert!(
+        p.maps_localized * 2 >= p.maps_evaluated && p.maps_evaluated > 0,
+        "pair 10-15 localized in only {}/{} maps",
+        p.maps_localized,
+        p.maps_evaluated
+    );
+    // A node that took the renderer's lens in air for its camera would be
+    // ~34 % off in range (0.6 m at 1.75 m); the ideal camera reads the pair
+    // to ~0.1 mm (the test above, the demo).
+    assert!(
+        p.position_error_m < 0.03 && p.angle_error_deg < 1.0 && p.position_error_m > 0.002,
+        "pair 10-15: {:.4} m, {:.2}°",
+        p.position_error_m,
+        p.angle_error_deg
+    );
+}
+
 fn state_of(map: &FleetMap, v: u32) -> Option<VehicleState> {
     map.vehicles
         .iter()

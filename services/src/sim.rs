@@ -19,15 +19,20 @@
 use shoal_bus::{Bus, BusError, Publisher, Subscription};
 use shoal_proto::clock::ManualClock;
 use shoal_proto::config::Fleet;
+use shoal_proto::geometry::Pose;
 use shoal_proto::messages::{
     CameraFrame, CameraInfo, PixelFormat, SimTruth, VehicleCommand, VehicleId,
 };
 use shoal_proto::NavState;
 use shoal_proto::{KeyKind, Keys};
 use shoal_sim_bridge::nav::{NavSensorParams, NavSensors};
-use shoal_sim_bridge::render::{render_fleet_view, Renderer};
+use shoal_sim_bridge::profile::CameraProfile;
+use shoal_sim_bridge::render::motion::Timeline;
+use shoal_sim_bridge::render::realistic::render_profiled;
+use shoal_sim_bridge::render::{fleet_camera, render_fleet_view, RenderOutput, Renderer, Scene};
 use shoal_sim_bridge::water::WaterParams;
 use shoal_sim_bridge::world::{Formation, Mode, SwarmWorld};
+use shoal_sim_bridge::SimError;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::thread::JoinHandle;
@@ -56,6 +61,87 @@ pub struct SimConfig {
     /// Vehicles hidden for a while: no other camera sees them and their own
     /// cameras publish nothing (murk, a rock, a blinded rig); their nav goes on.
     pub hidden: Vec<Occlusion>,
+    /// The camera every frame is rendered through (issue #16: motion blur
+    /// and rolling shutter over the swarm's own motion, the port, lamps,
+    /// marine snow, PSF, exposure, compression; `docs/water-model.md`), its
+    /// seed drawn already; `None`: the ideal renderer. A frame through a
+    /// profile is stamped, as a camera driver stamps it, at the tick that
+    /// triggered it: the start of its exposure (its middle row's mid-exposure
+    /// comes a few to tens of ms later, part of the error measured). The nodes should
+    /// hold the calibration a lab would have for such a camera, not the
+    /// renderer's (the demo's `--profile`).
+    pub profile: Option<CameraProfile>,
+}
+
+/// Vehicle `vehicle`'s camera in the swarm world over a frame's exposure,
+/// the vehicles hidden at each instant left out of the scene (the
+/// profile's renderer steps a copy of the world through the exposure).
+struct SimTimeline<'a> {
+    fleet: &'a Fleet,
+    world: SwarmWorld,
+    vehicle: VehicleId,
+    camera_index: u8,
+    hidden: &'a [Occlusion],
+}
+
+impl Timeline for SimTimeline<'_> {
+    fn at(&self, dt_s: f64) -> Result<(Pose, Scene), SimError> {
+        let mut world = self.world.clone();
+        world.step(dt_s);
+        let t_s = world.time_s();
+        let truth = world.truth();
+        let (_, world_from_camera) =
+            fleet_camera(self.fleet, &truth, self.vehicle, self.camera_index)?;
+        let seen: Vec<_> = truth
+            .into_iter()
+            .filter(|t| !self.hidden.iter().any(|o| o.covers(t.vehicle, t_s)))
+            .collect();
+        Ok((world_from_camera, Scene::from_fleet(self.fleet, &seen)))
+    }
+}
+
+/// One camera's frame triggered at the world's present (through
+/// `cfg.profile` when set), its visible markers labelled.
+fn render_camera(
+    renderer: &mut Renderer,
+    cfg: &SimConfig,
+    world: &SwarmWorld,
+    seen: &[shoal_proto::VehicleTruth],
+    (v, k): (VehicleId, u8),
+    tick: u64,
+    seed: u64,
+) -> Result<RenderOutput, SimError> {
+    let t_s = world.time_s();
+    let Some(profile) = &cfg.profile else {
+        return render_fleet_view(
+            renderer, &cfg.fleet, seen, v, k, &cfg.water, t_s, tick, seed,
+        );
+    };
+    let (camera, _) = fleet_camera(&cfg.fleet, seen, v, k)?;
+    let timeline = SimTimeline {
+        fleet: &cfg.fleet,
+        world: world.clone(),
+        vehicle: v,
+        camera_index: k,
+        hidden: &cfg.hidden,
+    };
+    let f = render_profiled(
+        renderer,
+        profile,
+        &camera.model,
+        camera.port.as_ref(),
+        &timeline,
+        &cfg.water,
+        t_s,
+        seed,
+    )?;
+    let mut out = f.output;
+    for vm in &mut out.visible {
+        vm.observer = v;
+        vm.camera = k;
+        vm.frame_seq = tick;
+    }
+    Ok(out)
 }
 
 /// One vehicle out of every camera's sight from `from_s` to `to_s` of simulated time.
@@ -304,7 +390,7 @@ pub fn spawn(bus: &Bus, cfg: SimConfig, clock: Arc<ManualClock>) -> Result<SimHa
                         }
                         let seed = cfg.seed ^ (tick << 20) ^ ((*v as u64) << 8) ^ *k as u64;
                         let t0 = Instant::now();
-                        let out = render_fleet_view(&mut renderer, &cfg.fleet, &seen, *v, *k, &cfg.water, t_s, tick, seed)
+                        let out = render_camera(&mut renderer, &cfg, &world, &seen, (*v, *k), tick, seed)
                             .map_err(|e| format!("rendering vehicle {v} camera {k}: {e}"))?;
                         stats2.render_us.fetch_add(t0.elapsed().as_micros() as u64, Ordering::Relaxed);
                         let frame = CameraFrame {
@@ -354,4 +440,54 @@ pub fn spawn(bus: &Bus, cfg: SimConfig, clock: Arc<ManualClock>) -> Result<SimHa
         stats,
         finished,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::collections::BTreeSet;
+
+    fn paper_fleet() -> Fleet {
+        let path =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/fleets/paper.toml");
+        Fleet::load(&path).expect("the paper fleet")
+    }
+
+    #[test]
+    fn a_vehicle_hidden_during_part_of_an_exposure_is_left_out_of_those_instants_only() {
+        let fleet = paper_fleet();
+        let world = SwarmWorld::new(&fleet, Formation::Line, 1.75, 1).expect("world");
+        let hidden = [Occlusion {
+            vehicle: 15,
+            from_s: 0.0,
+            to_s: 0.02,
+        }];
+        let timeline = SimTimeline {
+            fleet: &fleet,
+            world,
+            vehicle: 10,
+            camera_index: 0,
+            hidden: &hidden,
+        };
+        let in_scene = |dt_s: f64| {
+            let (_, scene) = timeline.at(dt_s).expect("an instant of the exposure");
+            let markers: BTreeSet<VehicleId> = scene.markers.iter().map(|m| m.owner).collect();
+            let hulls: BTreeSet<VehicleId> = scene.hulls.iter().map(|h| h.vehicle).collect();
+            (markers, hulls)
+        };
+        let (markers, hulls) = in_scene(0.01);
+        assert!(
+            !markers.contains(&15) && !hulls.contains(&15),
+            "{markers:?} {hulls:?}"
+        );
+        assert!(
+            markers.contains(&17) && hulls.contains(&10),
+            "{markers:?} {hulls:?}"
+        );
+        let (markers, hulls) = in_scene(0.03);
+        assert!(
+            markers.contains(&15) && hulls.contains(&15),
+            "{markers:?} {hulls:?}"
+        );
+    }
 }

@@ -1,3 +1,4 @@
+use anyhow::Context;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use shoal::demo::{run_until, DemoConfig};
@@ -22,8 +23,10 @@ pub struct DemoArgs {
     /// Simulated seconds per wall-clock second. At 1 (real time) the simulator
     /// skips the ticks it cannot render in time and says how many; on a busy
     /// machine `--time-scale 0.5` (or `--rate 1`) lets rendering keep up.
-    #[arg(long, default_value_t = 1.0, value_parser = super::args::positive)]
-    time_scale: f64,
+    /// Default: 1, or 0.1 through a camera profile (each of its frames takes
+    /// ~0.3 s to render on two cores).
+    #[arg(long, value_parser = super::args::positive)]
+    time_scale: Option<f64>,
     /// Render only these cameras (comma-separated names, e.g. `port,starboard`).
     #[arg(long, value_delimiter = ',')]
     cameras: Option<Vec<String>>,
@@ -71,7 +74,26 @@ pub struct DemoArgs {
     port: u16,
     #[command(flatten)]
     ros2: super::net::Ros2Args,
+    /// Camera profile the simulator renders through: `ideal` (the renderer as
+    /// it is) or `realistic` (motion blur, rolling shutter, flat port, lamps,
+    /// marine snow, other PSFs, exposure, JPEG, calibration error;
+    /// docs/water-model.md). Through a profile every node holds a lab's
+    /// calibration of its camera, not the renderer's. Rendering is ~10x
+    /// slower, so the time scale defaults to 0.1 through a profile.
+    #[arg(long, default_value = "ideal")]
+    profile: String,
+    /// Only these camera effects (repeatable; replaces --profile), as `shoal sim render --effect`.
+    #[arg(long = "effect", value_name = "NAME")]
+    effects: Vec<String>,
+    /// A camera profile file (TOML, as `shoal sim render --profile-file`; replaces --profile and --effect).
+    #[arg(long)]
+    profile_file: Option<PathBuf>,
 }
+
+/// The default time scale through a camera profile: its frames (motion
+/// blur's sub-frames, marine snow, the port's rays, the codec) take ~0.3 s
+/// each to render here, 15 of them a tick.
+const PROFILE_TIME_SCALE: f64 = 0.1;
 
 pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
     let mut cfg = DemoConfig {
@@ -82,7 +104,7 @@ pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
         cameras: a.cameras,
         spacing_m: a.spacing,
         seed: a.seed,
-        time_scale: a.time_scale,
+        time_scale: a.time_scale.unwrap_or(1.0),
         progress: true,
         closed_loop: !a.open_loop,
         log: (!a.no_mcap).then_some(a.mcap),
@@ -96,7 +118,15 @@ pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
         occlude: a.occlude,
         router_port: Some(a.port),
         ros2: None,
+        profile: None,
     };
+    let profile =
+        super::sim_render::profile_of(&a.profile, &a.effects, a.profile_file.as_deref(), None)
+            .context("the camera profile (--profile, --effect, --profile-file)")?;
+    cfg.profile = (!profile.is_ideal()).then_some(profile);
+    if cfg.profile.is_some() && a.time_scale.is_none() {
+        cfg.time_scale = PROFILE_TIME_SCALE;
+    }
     cfg.ros2 = a.ros2.domain(&shoal::demo::load_fleet(&cfg)?)?;
     let bar = ProgressBar::new((cfg.duration_s * 10.0) as u64);
     bar.set_style(
@@ -104,10 +134,12 @@ pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     shoal::errln!(
-        "shoal demo: 3 vehicles, water {} /m, {} s simulated at {} frames/s per camera",
+        "shoal demo: 3 vehicles, water {} /m, {} s simulated at {} frames/s per camera, time scale {}, camera profile {}",
         cfg.water_c_per_m,
         cfg.duration_s,
-        cfg.frame_rate_hz
+        cfg.frame_rate_hz,
+        cfg.time_scale,
+        cfg.profile.as_ref().map_or("ideal", |p| p.name.as_str())
     );
     if let Some(st) = &cfg.station {
         shoal::errln!(

@@ -460,6 +460,7 @@ pub fn run_sim(a: SimArgs) -> anyhow::Result<()> {
             commanded: vec![],
             nav: (!a.no_nav).then(shoal_sim_bridge::nav::NavSensorParams::default),
             hidden: a.occlude.into_iter().collect(),
+            profile: None,
         },
         clock,
     )?;

@@ -114,6 +114,81 @@ pub(super) fn node_camera(
     })
 }
 
+/// The seed of vehicle `v`'s camera `cam` in frame `k` (its noise; with
+/// `k = 0` its calibration draw too).
+pub fn camera_seed(seed: u64, v: shoal_proto::VehicleId, cam: u8, k: u64) -> u64 {
+    seed ^ ((v as u64) << 40) ^ ((cam as u64) << 32) ^ k
+}
+
+/// `fleet`'s cameras as its nodes would hold them behind `profile`'s
+/// camera: each one's calibration as a lab would have it ([`node_camera`],
+/// drawn per camera from `seed`), and with `state_sigma` the uncertainty
+/// that lab's report would state ([`super::nees::stated_sigma`]). An error
+/// when the fleet gives a camera a flat port of its own (the profile adds
+/// its own port: the fleet must give in-water cameras).
+pub fn lab_fleet(
+    fleet: &shoal_proto::config::Fleet,
+    profile: &CameraProfile,
+    seed: u64,
+    state_sigma: bool,
+) -> Result<shoal_proto::config::Fleet, EvalError> {
+    for v in &fleet.vehicles {
+        if let Some(cam) = v.cameras.iter().find(|c| c.port.is_some()) {
+            return Err(EvalError::Setup(format!(
+                "vehicle {} camera {}: the fleet gives a flat port and the profile adds \
+                 its own; a camera profile takes in-water cameras",
+                v.id, cam.name
+            )));
+        }
+    }
+    let sigma = state_sigma
+        .then(|| super::nees::stated_sigma(profile))
+        .flatten();
+    let mut held = fleet.clone();
+    // Each camera's lab calibration is its own (OpenCV's calibration over
+    // the lab's views, ~0.5 s each): over the cores.
+    let cams: Vec<(u64, &mut shoal_proto::config::Camera)> = held
+        .vehicles
+        .iter_mut()
+        .flat_map(|v| {
+            let id = v.id;
+            v.cameras
+                .iter_mut()
+                .enumerate()
+                .map(move |(c, cam)| (camera_seed(seed, id, c as u8, 0), cam))
+        })
+        .collect();
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let per_thread = cams.len().div_ceil(threads.max(1)).max(1);
+    let mut chunks: Vec<Vec<(u64, &mut shoal_proto::config::Camera)>> = Vec::new();
+    let mut it = cams.into_iter().peekable();
+    while it.peek().is_some() {
+        chunks.push(it.by_ref().take(per_thread).collect());
+    }
+    std::thread::scope(|scope| {
+        let workers: Vec<_> = chunks
+            .into_iter()
+            .map(|chunk| {
+                scope.spawn(move || -> Result<(), EvalError> {
+                    for (cam_seed, cam) in chunk {
+                        cam.model = node_camera(profile, &cam.model, cam_seed)?;
+                        if sigma.is_some() {
+                            cam.calibration_sigma = sigma;
+                        }
+                    }
+                    Ok(())
+                })
+            })
+            .collect();
+        workers.into_iter().try_for_each(|w| {
+            w.join().unwrap_or_else(|_| {
+                Err(EvalError::Setup("a lab calibration thread panicked".into()))
+            })
+        })
+    })?;
+    Ok(held)
+}
+
 /// Run `profile` on `frames` frames of each seed at one condition.
 fn run_profile(
     opts: &EvalOptions,
@@ -408,4 +483,72 @@ fn write_csv<'a>(opts: &EvalOptions, rows: impl Iterator<Item = &'a Row>) -> Res
         ]);
     }
     csv.write(&opts.out.join("frames.csv"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use shoal_proto::config::Fleet;
+
+    /// The paper fleet's first vehicle with two of its cameras.
+    fn small_fleet() -> Fleet {
+        let path =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/fleets/paper.toml");
+        let mut fleet = Fleet::load(&path).expect("the paper fleet");
+        fleet.vehicles.truncate(1);
+        fleet.vehicles[0].cameras.truncate(2);
+        fleet
+    }
+
+    #[test]
+    fn a_lab_fleet_holds_each_camera_as_a_lab_calibrated_it_and_states_the_sigma_when_asked() {
+        let fleet = small_fleet();
+        let profile = CameraProfile::realistic().with_seed(3);
+        let held = lab_fleet(&fleet, &profile, 3, true).expect("lab calibrations");
+        let (truth, cams) = (&fleet.vehicles[0].cameras, &held.vehicles[0].cameras);
+        for (t, c) in truth.iter().zip(cams) {
+            // Near the renderer's in-water camera (a port's pinhole, the
+            // calibration error), not it, and not the lens in air (fx / 1.34).
+            assert_ne!(t.model, c.model);
+            assert!(
+                (c.model.fx / t.model.fx - 1.0).abs() < 0.01,
+                "{} vs {}",
+                c.model.fx,
+                t.model.fx
+            );
+            assert!(
+                (c.model.cx - t.model.cx).abs() < 10.0,
+                "{} vs {}",
+                c.model.cx,
+                t.model.cx
+            );
+            assert_eq!(
+                c.calibration_sigma,
+                super::super::nees::stated_sigma(&profile)
+            );
+            assert!(c.calibration_sigma.is_some());
+            assert_eq!(
+                (c.name.as_str(), c.body_from_camera),
+                (t.name.as_str(), t.body_from_camera)
+            );
+        }
+        // Each camera its own calibration; the same seed the same fleet.
+        assert_ne!(cams[0].model, cams[1].model);
+        let again = lab_fleet(&fleet, &profile, 3, false).expect("lab calibrations");
+        for (a, b) in cams.iter().zip(&again.vehicles[0].cameras) {
+            assert_eq!(a.model, b.model);
+            assert_eq!(b.calibration_sigma, None);
+        }
+        // A fleet whose camera has a port of its own is refused, naming it.
+        let mut ported = fleet.clone();
+        ported.vehicles[0].cameras[1].port = Some(profile.port().expect("the profile's port"));
+        let err = lab_fleet(&ported, &profile, 3, true)
+            .expect_err("a camera with a port")
+            .to_string();
+        let (id, name) = (ported.vehicles[0].id, &ported.vehicles[0].cameras[1].name);
+        assert!(
+            err.contains(&format!("vehicle {id} camera {name}")),
+            "{err}"
+        );
+    }
 }

@@ -70,15 +70,9 @@ fn relative(truth: &[VehicleTruth], a: VehicleId, b: VehicleId) -> Option<shoal_
     Some(wa.inverse() * wb)
 }
 
-/// The seed of vehicle `v`'s camera `cam` in frame `k` (its noise; with
-/// `k = 0` its calibration draw too).
-fn camera_seed(seed: u64, v: VehicleId, cam: u8, k: u64) -> u64 {
-    seed ^ ((v as u64) << 40) ^ ((cam as u64) << 32) ^ k
-}
-
 /// The cameras as the fleet's nodes hold them: through `profile`, each
-/// camera's calibration as a lab would have it ([`super::profiles::node_camera`],
-/// drawn per camera); without one, `fleet` itself.
+/// camera's calibration as a lab would have it ([`super::profiles::lab_fleet`],
+/// no calibration σ stated); without one, `fleet` itself.
 fn node_fleet(
     fleet: &Arc<Fleet>,
     profile: Option<&CameraProfile>,
@@ -87,25 +81,7 @@ fn node_fleet(
     let Some(profile) = profile else {
         return Ok(fleet.clone());
     };
-    for v in &fleet.vehicles {
-        if let Some(cam) = v.cameras.iter().find(|c| c.port.is_some()) {
-            return Err(EvalError::Setup(format!(
-                "vehicle {} camera {}: the fleet gives a flat port and the profile adds \
-                 its own; the swarm through a profile takes in-water cameras",
-                v.id, cam.name
-            )));
-        }
-    }
-    let mut held = (**fleet).clone();
-    for v in &mut held.vehicles {
-        for (c, cam) in v.cameras.iter_mut().enumerate() {
-            cam.model = super::profiles::node_camera(
-                profile,
-                &cam.model,
-                camera_seed(seed, v.id, c as u8, 0),
-            )?;
-        }
-    }
+    let held = super::profiles::lab_fleet(fleet, profile, seed, false)?;
     Ok(Arc::new(held))
 }
 
@@ -207,7 +183,7 @@ fn run_trial(
         let mut reference_s = 0.0;
         let mut rendered = Vec::with_capacity(pipelines.len());
         for (v, cam, _) in &pipelines {
-            let seed = camera_seed(opts.seed, *v, *cam, k as u64);
+            let seed = super::profiles::camera_seed(opts.seed, *v, *cam, k as u64);
             let (frame, r) = render_camera(
                 &mut renderer,
                 profile,
