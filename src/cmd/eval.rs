@@ -45,7 +45,7 @@ pub struct EvalArgs {
     restore_param: Vec<String>,
     /// Camera profile the frames are rendered through: `ideal` (the default: the renderer
     /// every figure used so far) or `realistic` (every camera effect, issue #16). Taken by
-    /// `detection`, `restoration`, `accuracy`, `accuracy-yaw`, `accuracy-rmse`, `fit-noise` and `swarm`; `fusion`,
+    /// `detection`, `restoration`, `accuracy`, `accuracy-yaw`, `accuracy-rmse`, `fit-noise`, `swarm` and `node-rate`; `fusion`,
     /// `links` and `nav` take `realistic` as the observation model fitted to that camera;
     /// the other experiments refuse it.
     #[arg(long)]

@@ -182,7 +182,7 @@ pub struct EvalOptions {
 
 /// The experiments that render through `--profile` (the rest refuse it
 /// rather than ignore it).
-pub const PROFILE_EXPERIMENTS: [Experiment; 10] = [
+pub const PROFILE_EXPERIMENTS: [Experiment; 11] = [
     Experiment::Detection,
     Experiment::Restoration,
     Experiment::Accuracy,
@@ -190,6 +190,7 @@ pub const PROFILE_EXPERIMENTS: [Experiment; 10] = [
     Experiment::AccuracyRmse,
     Experiment::FitNoise,
     Experiment::Swarm,
+    Experiment::NodeRate,
     // No images: their observation model fitted to `realistic` (`ObsSynthParams::realistic`).
     Experiment::Fusion,
     Experiment::Links,

@@ -18,6 +18,10 @@
 //! the allocator kept from the first, so its growth is the lower bound and
 //! the first's the figure.
 //!
+//! With `--profile` (issue #16) the frames are rendered through that
+//! camera profile (JPEG, marine snow, blur: what the detector then traces
+//! costs differently) and the node holds a lab's calibration of each camera.
+//!
 //! Targets (issue #18): at 0.5 /m every frame processed within one core; at
 //! 8.22 /m within two. On a shared 2-core machine drops also depend on the
 //! other load: the CPU figure is the one that carries over.
@@ -30,6 +34,9 @@ use shoal_node::vehicle::{spawn_camera, LocalInput, NodeStats};
 use shoal_proto::config::Fleet;
 use shoal_proto::messages::{CameraFrame, CameraInfo, PixelFormat};
 use shoal_proto::{Observation, VehicleId};
+use shoal_sim_bridge::profile::CameraProfile;
+use shoal_sim_bridge::render::motion::FleetTimeline;
+use shoal_sim_bridge::render::realistic::render_profiled;
 use shoal_sim_bridge::render::{render_fleet_view, Renderer};
 use shoal_sim_bridge::world::{Formation, SwarmWorld};
 use std::path::Path;
@@ -109,11 +116,13 @@ impl RateRun {
     }
 }
 
-/// Render `FRAMES_PER_CAMERA` frames of each of `vehicle`'s cameras.
+/// Render `FRAMES_PER_CAMERA` frames of each of `vehicle`'s cameras
+/// (through `profile` over the swarm's motion when given).
 fn render_frames(
     fleet: &Fleet,
     (water_c, formation, spacing_m): (f64, Formation, f64),
     opts: &EvalOptions,
+    profile: Option<&CameraProfile>,
 ) -> Result<Vec<Vec<CameraFrame>>, EvalError> {
     let water = opts.presets()?.get(water_c)?;
     let v = fleet
@@ -132,17 +141,39 @@ fn render_frames(
         let truth = world.truth();
         for (i, cam) in v.cameras.iter().enumerate() {
             let seed = opts.seed ^ ((i as u64) << 32) ^ k as u64;
-            let out = render_fleet_view(
-                &mut renderer,
-                fleet,
-                &truth,
-                VEHICLE,
-                cam.index,
-                &water,
-                world.time_ns() as f64 * 1e-9,
-                k as u64,
-                seed,
-            )?;
+            let time_s = world.time_ns() as f64 * 1e-9;
+            let out = match profile {
+                None => render_fleet_view(
+                    &mut renderer,
+                    fleet,
+                    &truth,
+                    VEHICLE,
+                    cam.index,
+                    &water,
+                    time_s,
+                    k as u64,
+                    seed,
+                )?,
+                Some(profile) => {
+                    let timeline = FleetTimeline {
+                        fleet,
+                        world: world.clone(),
+                        vehicle: VEHICLE,
+                        camera_index: cam.index,
+                    };
+                    render_profiled(
+                        &mut renderer,
+                        profile,
+                        &cam.model,
+                        cam.port.as_ref(),
+                        &timeline,
+                        &water,
+                        time_s,
+                        seed,
+                    )?
+                    .output
+                }
+            };
             frames[i].push(CameraFrame {
                 vehicle: VEHICLE,
                 camera: i as u8,
@@ -270,6 +301,13 @@ fn opt(v: Option<f64>, digits: usize) -> String {
 pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/fleets/paper.toml");
     let fleet = Arc::new(Fleet::load(&path).map_err(|e| EvalError::Setup(e.to_string()))?);
+    // Through a profile the frames are rendered through it and the node
+    // holds a lab's calibration of each camera (as `shoal demo --profile`).
+    let profile = opts.profile.clone().map(|p| p.with_seed(opts.seed));
+    let node_fleet = match &profile {
+        Some(p) => Arc::new(super::profiles::lab_fleet(&fleet, p, opts.seed, true)?),
+        None => fleet.clone(),
+    };
     let seconds = opts
         .frames
         .map_or(if opts.quick { 2.0 } else { 20.0 }, |f| f as f64 / RATE_HZ);
@@ -279,12 +317,19 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     let mut rows = Vec::new();
     for scene in SCENES {
         let c = scene.0;
-        let frames = render_frames(&fleet, scene, opts)?;
+        let frames = render_frames(&fleet, scene, opts, profile.as_ref())?;
         crate::errln!(
             "node-rate: {c} /m, {} cameras at {RATE_HZ} frames/s for {seconds} s",
             frames.len()
         );
-        let r = run_rate(&fleet, &opts.restore_params, &frames, c, RATE_HZ, seconds)?;
+        let r = run_rate(
+            &node_fleet,
+            &opts.restore_params,
+            &frames,
+            c,
+            RATE_HZ,
+            seconds,
+        )?;
         table.push_str(&format!(
             "| {c} | {:?} {} m | {} | {:.0} | {:.2} | {} ({:.1} %) | {} | {} | {} | {} | {} | {} / {} |\n",
             scene.1,
@@ -328,5 +373,5 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     crate::outln!("{table}");
     let md = opts.out.join("node-rate.md");
     std::fs::write(&md, &table).map_err(|source| EvalError::Io { path: md, source })?;
-    Ok(json!({ "runs": rows, "seconds": seconds }))
+    Ok(json!({ "runs": rows, "seconds": seconds, "camera_profile": opts.profile_name() }))
 }
