@@ -147,7 +147,7 @@ pub fn lab_fleet(
     let mut held = fleet.clone();
     // Each camera's lab calibration is its own (OpenCV's calibration over
     // the lab's views, ~0.5 s each): over the cores.
-    let cams: Vec<(u64, &mut shoal_proto::config::Camera)> = held
+    let mut cams: Vec<(u64, &mut shoal_proto::config::Camera)> = held
         .vehicles
         .iter_mut()
         .flat_map(|v| {
@@ -159,19 +159,14 @@ pub fn lab_fleet(
         })
         .collect();
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-    let per_thread = cams.len().div_ceil(threads.max(1)).max(1);
-    let mut chunks: Vec<Vec<(u64, &mut shoal_proto::config::Camera)>> = Vec::new();
-    let mut it = cams.into_iter().peekable();
-    while it.peek().is_some() {
-        chunks.push(it.by_ref().take(per_thread).collect());
-    }
+    let per_thread = cams.len().div_ceil(threads).max(1);
     std::thread::scope(|scope| {
-        let workers: Vec<_> = chunks
-            .into_iter()
+        let workers: Vec<_> = cams
+            .chunks_mut(per_thread)
             .map(|chunk| {
                 scope.spawn(move || -> Result<(), EvalError> {
                     for (cam_seed, cam) in chunk {
-                        cam.model = node_camera(profile, &cam.model, cam_seed)?;
+                        cam.model = node_camera(profile, &cam.model, *cam_seed)?;
                         if sigma.is_some() {
                             cam.calibration_sigma = sigma;
                         }
