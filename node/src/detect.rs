@@ -132,6 +132,18 @@ pub trait MarkerDetector: Send {
         let _ = raw;
         self.detect(restored)
     }
+    /// [`MarkerDetector::detect_restored`] for markers inside `windows`
+    /// (full-resolution rectangles): a detector may skip what lies wholly
+    /// outside them, and may return more; by default it searches everything.
+    fn detect_restored_within(
+        &mut self,
+        restored: &Mat,
+        raw: &Mat,
+        windows: &[opencv::core::Rect],
+    ) -> Result<Vec<Detection>, DetectError> {
+        let _ = windows;
+        self.detect_restored(restored, raw)
+    }
 }
 
 /// The images one detection works on.
@@ -195,7 +207,7 @@ impl ShoalDetector {
             view: GrayView::new(gray)?,
             raw: None,
         };
-        self.detect_images(&images)
+        self.detect_images(&images, None)
     }
 
     /// Detect in `restored` and fit the corners' step-edge model
@@ -211,6 +223,19 @@ impl ShoalDetector {
         restored: &(impl MatTraitConst + ToInputArray),
         raw: &(impl MatTraitConst + ToInputArray),
     ) -> Result<Vec<Detection>, DetectError> {
+        self.detect_with_raw_fit_within(restored, raw, None)
+    }
+
+    /// [`Self::detect_with_raw_fit`], with `windows` only the markers whose
+    /// dark regions lie wholly inside one of them
+    /// ([`quads::find_quads_and_blobs_within`]): the rest of the frame is
+    /// thresholded but not traced, read or fitted.
+    pub fn detect_with_raw_fit_within(
+        &mut self,
+        restored: &(impl MatTraitConst + ToInputArray),
+        raw: &(impl MatTraitConst + ToInputArray),
+        windows: Option<&[opencv::core::Rect]>,
+    ) -> Result<Vec<Detection>, DetectError> {
         let view = GrayView::new(restored)?;
         let fit_view = GrayView::new(raw)?;
         if (fit_view.width, fit_view.height) != (view.width, view.height) {
@@ -224,13 +249,14 @@ impl ShoalDetector {
             view,
             raw: Some(fit_view),
         };
-        self.detect_images(&images)
+        self.detect_images(&images, windows)
     }
 
     /// The four stages on `images`.
     fn detect_images<G: MatTraitConst + ToInputArray>(
         &self,
         images: &Images<'_, G>,
+        windows: Option<&[opencv::core::Rect]>,
     ) -> Result<Vec<Detection>, DetectError> {
         if !self.reader.has_codes() {
             return Err(DetectError::NoCodes {
@@ -244,7 +270,7 @@ impl ShoalDetector {
         if w < p.min_code_side_px.max(2.0) || h < p.min_code_side_px.max(2.0) {
             return Ok(Vec::new());
         }
-        let (mut quads, blobs) = quads::find_quads_and_blobs(p, images.gray)?;
+        let (mut quads, blobs) = quads::find_quads_and_blobs_within(p, images.gray, windows)?;
         let mut found: Vec<CodeSquare> = Vec::new();
         let mut undecoded = self.read_codes(images, &quads, &mut found);
         undecoded.extend(blobs);
@@ -318,6 +344,24 @@ impl MarkerDetector for ShoalDetector {
             self.detect_with_raw_fit(restored, raw)
         } else {
             self.detect_in(restored)
+        }
+    }
+
+    fn detect_restored_within(
+        &mut self,
+        restored: &Mat,
+        raw: &Mat,
+        windows: &[opencv::core::Rect],
+    ) -> Result<Vec<Detection>, DetectError> {
+        if self.params.fit_on_raw {
+            self.detect_with_raw_fit_within(restored, raw, Some(windows))
+        } else {
+            let images = Images {
+                gray: restored,
+                view: GrayView::new(restored)?,
+                raw: None,
+            };
+            self.detect_images(&images, Some(windows))
         }
     }
 }

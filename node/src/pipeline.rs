@@ -101,7 +101,22 @@ pub fn detect_restoration<D: MarkerDetector + ?Sized>(
     }
     let image = fine.image(&restored.image, raw, &unread)?;
     found.fine_searched = true;
-    for d in detector.detect_restored(&image, raw)? {
+    // Only markers near those regions are kept: the rest of the frame,
+    // searched already, is not traced again.
+    let (w, h) = (
+        opencv::prelude::MatTraitConst::cols(raw),
+        opencv::prelude::MatTraitConst::rows(raw),
+    );
+    let windows: Vec<Rect> = unread
+        .iter()
+        .map(|r| {
+            let m = FINE_SEARCH_MARGIN_PX;
+            let (x0, y0) = ((r.x - m).max(0), (r.y - m).max(0));
+            let (x1, y1) = ((r.x + r.width + m).min(w), (r.y + r.height + m).min(h));
+            Rect::new(x0, y0, (x1 - x0).max(0), (y1 - y0).max(0))
+        })
+        .collect();
+    for d in detector.detect_restored_within(&image, raw, &windows)? {
         if unread.iter().any(|r| inside(&d, *r)) {
             found.fine_reads += 1;
             found.detections.push(d);
@@ -109,6 +124,12 @@ pub fn detect_restoration<D: MarkerDetector + ?Sized>(
     }
     Ok(found)
 }
+
+/// Full-resolution pixels around each of HOIRM's detail-keeping regions
+/// that its second search also traces: a marker whose centre is in the
+/// region (what is kept) reaches out of it by up to half its size, and
+/// the markers that search is for are far ones, tens of pixels wide.
+const FINE_SEARCH_MARGIN_PX: i32 = 48;
 
 /// Whether the centre of `d`'s corners lies in `r`.
 fn inside(d: &Detection, r: Rect) -> bool {

@@ -417,3 +417,72 @@ fn a_far_markers_broken_contour_is_searched_again_at_full_resolution() {
     let read: Vec<u32> = found.iter().map(|d| d.id).collect();
     assert_eq!(read, vec![37], "{found:?}");
 }
+
+/// HOIRM's second search (`pipeline::detect_restoration`) looks only near
+/// its detail-keeping regions. Traced only inside windows, the detector
+/// reads a marker inside one exactly as the whole frame's search does (the
+/// same corners to the bit: the image is thresholded whole and a region
+/// inside the window has the same contour), and nothing of a marker the
+/// windows leave out or cut.
+#[test]
+fn a_search_within_windows_reads_the_markers_inside_them_as_the_whole_frame_search_does() {
+    use shoal_node::detect::MarkerDetector;
+    let cam = CameraModel::vehicle_1440();
+    let water = WaterParams::preset(0.5);
+    let mut scene = Scene::single_marker(
+        CodeSet::Shoal,
+        3,
+        SIDE_M,
+        facing(-0.3, 0.0, 1.2, 10.0, 15.0),
+    );
+    scene.markers.extend(
+        Scene::single_marker(
+            CodeSet::Shoal,
+            7,
+            SIDE_M,
+            facing(0.3, 0.05, 1.5, -5.0, -20.0),
+        )
+        .markers,
+    );
+    let img = Renderer::new()
+        .render(&cam, &Pose::identity(), &scene, &water, 0.0, 5)
+        .unwrap()
+        .image;
+    let mat = shoal_node::mat::gray_to_mat(&img).unwrap();
+    let mut det = ShoalDetector::new(CodeSet::Shoal, DetectParams::default());
+    let whole = det.detect_restored(&mat, &mat).unwrap();
+    let find = |ds: &[Detection], id: u32| ds.iter().find(|d| d.id == id).cloned();
+    let (three, seven) = (
+        find(&whole, 3).expect("marker 3"),
+        find(&whole, 7).expect("marker 7"),
+    );
+    // A window around marker 7 (its corners' bounding box and 48 px).
+    let around = |d: &Detection, m: f64| {
+        let xs = d.corners_px.iter().map(|c| c[0]);
+        let ys = d.corners_px.iter().map(|c| c[1]);
+        let (x0, x1) = (
+            xs.clone().fold(f64::MAX, f64::min) - m,
+            xs.fold(f64::MIN, f64::max) + m,
+        );
+        let (y0, y1) = (
+            ys.clone().fold(f64::MAX, f64::min) - m,
+            ys.fold(f64::MIN, f64::max) + m,
+        );
+        opencv::core::Rect::new(x0 as i32, y0 as i32, (x1 - x0) as i32, (y1 - y0) as i32)
+    };
+    let within = det
+        .detect_restored_within(&mat, &mat, &[around(&seven, 48.0)])
+        .unwrap();
+    assert_eq!(within.len(), 1, "{within:?}");
+    assert_eq!(within[0].id, 7);
+    assert_eq!(
+        within[0].corners_px, seven.corners_px,
+        "the same corners to the bit"
+    );
+    assert_eq!(within[0].corner_ids, seven.corner_ids);
+    // A window that cuts marker 3 through its middle reads nothing of it.
+    let whole3 = around(&three, 0.0);
+    let half3 = opencv::core::Rect::new(whole3.x, whole3.y, whole3.width / 2, whole3.height);
+    let cut = det.detect_restored_within(&mat, &mat, &[half3]).unwrap();
+    assert!(cut.iter().all(|d| d.id != 3), "{cut:?}");
+}

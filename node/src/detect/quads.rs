@@ -21,7 +21,7 @@
 use super::geom::{mean_side, min_side, signed_area2, Px};
 use super::{DetectError, DetectParams};
 use crate::mat::GrayView;
-use opencv::core::{Mat, Point, Size, ToInputArray, Vector};
+use opencv::core::{Mat, Point, Rect, Size, ToInputArray, Vector};
 use opencv::imgproc;
 use opencv::prelude::*;
 
@@ -62,10 +62,23 @@ pub fn find_quads_and_blobs(
     params: &DetectParams,
     gray: &(impl MatTraitConst + ToInputArray),
 ) -> Result<(Vec<Quad>, Vec<Quad>), DetectError> {
+    find_quads_and_blobs_within(params, gray, None)
+}
+
+/// [`find_quads_and_blobs`], with `windows` (full-resolution rectangles)
+/// only the dark regions that lie wholly inside one of them: the image is
+/// thresholded whole, as always, but its contours are traced only there,
+/// so every region inside a window gives the very contour it gives in the
+/// whole image's search, and a region the window's edge cuts none.
+pub fn find_quads_and_blobs_within(
+    params: &DetectParams,
+    gray: &(impl MatTraitConst + ToInputArray),
+    windows: Option<&[Rect]>,
+) -> Result<(Vec<Quad>, Vec<Quad>), DetectError> {
     let mut found = Found::default();
     match without_edge_artefacts(gray)? {
-        Some(cleaned) => search_level(params, &cleaned, &mut found)?,
-        None => search_level(params, gray, &mut found)?,
+        Some(cleaned) => search_level(params, &cleaned, windows, &mut found)?,
+        None => search_level(params, gray, windows, &mut found)?,
     }
     Ok((found.quads, found.blobs))
 }
@@ -82,11 +95,12 @@ struct Found {
 fn search_level(
     params: &DetectParams,
     img: &(impl MatTraitConst + ToInputArray),
+    windows: Option<&[Rect]>,
     found: &mut Found,
 ) -> Result<(), DetectError> {
     match half_level(params, img)? {
-        Some(half) => quads_of_level(params, &half, 2.0, [0.0, 0.0], None, found),
-        None => quads_of_level(params, img, 1.0, [0.0, 0.0], None, found),
+        Some(half) => quads_of_level(params, &half, 2.0, [0.0, 0.0], None, windows, found),
+        None => quads_of_level(params, img, 1.0, [0.0, 0.0], None, windows, found),
     }
 }
 
@@ -207,6 +221,7 @@ fn quads_of_level(
     scale: f64,
     offset: Px,
     noise_dn: Option<f64>,
+    windows: Option<&[Rect]>,
     found: &mut Found,
 ) -> Result<(), DetectError> {
     let mut bin = Mat::default();
@@ -220,43 +235,113 @@ fn quads_of_level(
         (Some(_), None) => noise_sigma_dn(&view),
     };
     let mut table = SumTable::new(view);
+    // The windows at this level (pixels of the level, within it, merged).
+    let level_windows =
+        windows.map(|ws| level_rects(ws, scale, offset, [level.cols(), level.rows()]));
     for &win in &params.threshold_windows {
         let win = (win.max(3)) | 1;
         binarize(params, level, win, noise_dn, &mut bin)?;
         drop_isolated(&mut bin)?;
-        let mut contours: Vector<Vector<Point>> = Vector::new();
-        imgproc::find_contours(
-            &bin,
-            &mut contours,
-            imgproc::RETR_LIST,
-            imgproc::CHAIN_APPROX_SIMPLE,
-            Point::new(0, 0),
-        )?;
-        for c in contours.iter() {
-            let (q, list) = match contour_quad(params, (level, &mut table), scale, &c, &mut approx)?
-            {
-                Shape::Quad(q) => (q, &mut found.quads),
-                Shape::Blob(q) => (q, &mut found.blobs),
-                Shape::Neither => continue,
-            };
-            // Level pixel centres to full-resolution pixel centres.
-            let q = q.map(|c| {
-                [
-                    (c[0] + 0.5) * scale - 0.5 + offset[0],
-                    (c[1] + 0.5) * scale - 0.5 + offset[1],
-                ]
-            });
-            // The same square found by another threshold window: keep one.
-            if list.iter().any(|o| o.same_as(&q)) {
-                continue;
+        // The whole level, or each window of it (its contours in level pixels).
+        let searched: Vec<Option<Rect>> = match &level_windows {
+            None => vec![None],
+            Some(rects) => rects.iter().copied().map(Some).collect(),
+        };
+        for window in searched {
+            let contours = trace_contours(&bin, window)?;
+            for c in contours.iter() {
+                let shape =
+                    contour_quad(params, (level, &mut table), scale, &c, &mut approx, window)?;
+                let (q, list) = match shape {
+                    Shape::Quad(q) => (q, &mut found.quads),
+                    Shape::Blob(q) => (q, &mut found.blobs),
+                    Shape::Neither => continue,
+                };
+                // Level pixel centres to full-resolution pixel centres.
+                let q = q.map(|c| {
+                    [
+                        (c[0] + 0.5) * scale - 0.5 + offset[0],
+                        (c[1] + 0.5) * scale - 0.5 + offset[1],
+                    ]
+                });
+                // The same square found by another threshold window: keep one.
+                if list.iter().any(|o| o.same_as(&q)) {
+                    continue;
+                }
+                list.push(Quad {
+                    pts: q,
+                    inset_px: 0.5 * scale,
+                });
             }
-            list.push(Quad {
-                pts: q,
-                inset_px: 0.5 * scale,
-            });
         }
     }
     Ok(())
+}
+
+/// Every contour of the binary image `bin` (`RETR_LIST`, simple chains),
+/// or of its part `window` only (in `bin`'s pixels either way).
+fn trace_contours(bin: &Mat, window: Option<Rect>) -> Result<Vector<Vector<Point>>, DetectError> {
+    let mut contours: Vector<Vector<Point>> = Vector::new();
+    let (mode, chain) = (imgproc::RETR_LIST, imgproc::CHAIN_APPROX_SIMPLE);
+    match window {
+        None => imgproc::find_contours(bin, &mut contours, mode, chain, Point::new(0, 0))?,
+        Some(r) => {
+            let roi = Mat::roi(bin, r)?;
+            imgproc::find_contours(&roi, &mut contours, mode, chain, Point::new(r.x, r.y))?;
+        }
+    }
+    Ok(contours)
+}
+
+/// Full-resolution rectangles `rects` on a level of `scale` full-resolution
+/// pixels per pixel whose top-left is at `offset`: outward to whole level
+/// pixels, within the level's `size`, and merged while any two overlap
+/// (a region in the overlap is then traced once, whole).
+fn level_rects(rects: &[Rect], scale: f64, offset: Px, size: [i32; 2]) -> Vec<Rect> {
+    let mut boxes: Vec<[i32; 4]> = rects
+        .iter()
+        .map(|r| {
+            let to =
+                |v: i32, o: f64, round: fn(f64) -> f64| round((f64::from(v) - o) / scale) as i32;
+            [
+                to(r.x, offset[0], f64::floor).clamp(0, size[0]),
+                to(r.y, offset[1], f64::floor).clamp(0, size[1]),
+                to(r.x + r.width, offset[0], f64::ceil).clamp(0, size[0]),
+                to(r.y + r.height, offset[1], f64::ceil).clamp(0, size[1]),
+            ]
+        })
+        .filter(|b| b[2] > b[0] && b[3] > b[1])
+        .collect();
+    let overlap =
+        |a: &[i32; 4], b: &[i32; 4]| a[0] < b[2] && b[0] < a[2] && a[1] < b[3] && b[1] < a[3];
+    let mut merged = true;
+    while merged {
+        merged = false;
+        let mut i = 0;
+        while i < boxes.len() {
+            let mut j = i + 1;
+            while j < boxes.len() {
+                if overlap(&boxes[i], &boxes[j]) {
+                    let b = boxes.swap_remove(j);
+                    let a = &mut boxes[i];
+                    *a = [
+                        a[0].min(b[0]),
+                        a[1].min(b[1]),
+                        a[2].max(b[2]),
+                        a[3].max(b[3]),
+                    ];
+                    merged = true;
+                } else {
+                    j += 1;
+                }
+            }
+            i += 1;
+        }
+    }
+    boxes
+        .into_iter()
+        .map(|b| Rect::new(b[0], b[1], b[2] - b[0], b[3] - b[1]))
+        .collect()
 }
 
 /// Clears every dark pixel of `bin` (255 on 0) that has no dark pixel
@@ -660,6 +745,7 @@ fn contour_quad(
     scale: f64,
     c: &Vector<Point>,
     approx: &mut Vector<Point>,
+    window: Option<Rect>,
 ) -> Result<Shape, DetectError> {
     let (w, h) = (f64::from(level.cols()), f64::from(level.rows()));
     let min_side_lvl = params.min_code_side_px / scale;
@@ -677,6 +763,16 @@ fn contour_quad(
         .any(|p| p.x <= 0 || p.y <= 0 || p.x >= wi || p.y >= hi)
     {
         return Ok(Shape::Neither);
+    }
+    // So is one that reaches the edge of the window it was traced in
+    // ([`find_quads_and_blobs_within`]): it may go on outside.
+    if let Some(r) = window {
+        let (x1, y1) = (r.x + r.width - 1, r.y + r.height - 1);
+        if c.iter()
+            .any(|p| p.x <= r.x || p.y <= r.y || p.x >= x1 || p.y >= y1)
+        {
+            return Ok(Shape::Neither);
+        }
     }
     imgproc::approx_poly_dp(c, approx, params.approx_epsilon * perim, true)?;
     let blob = approx.len() != 4 || !imgproc::is_contour_convex(&*approx)?;
@@ -788,6 +884,7 @@ pub fn full_res_quads(
             1.0,
             [f64::from(x0), f64::from(y0)],
             Some(noise),
+            None,
             &mut found,
         )?;
         for f in found.quads {
@@ -1089,7 +1186,7 @@ mod tests {
         );
         // Without the guard (the same search on the frame as it is).
         let mut unguarded = Found::default();
-        quads_of_level(&params, &img, 1.0, [0.0, 0.0], None, &mut unguarded).unwrap();
+        quads_of_level(&params, &img, 1.0, [0.0, 0.0], None, None, &mut unguarded).unwrap();
         assert!(
             !found(&unguarded.quads),
             "the line's dark band merges with the square"
@@ -1219,7 +1316,7 @@ mod tests {
         // black square would pass for an edge-line artefact here.
         let search = |params: &DetectParams, img: &Mat| {
             let mut found = Found::default();
-            quads_of_level(params, img, 1.0, [0.0, 0.0], None, &mut found).unwrap();
+            quads_of_level(params, img, 1.0, [0.0, 0.0], None, None, &mut found).unwrap();
             found.quads
         };
         let whole = frame(1);
