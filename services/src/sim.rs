@@ -67,7 +67,8 @@ pub struct SimConfig {
     /// seed drawn already; `None`: the ideal renderer. A frame through a
     /// profile is stamped, as a camera driver stamps it, at the tick that
     /// triggered it: the start of its exposure (its middle row's mid-exposure
-    /// comes a few to tens of ms later, part of the error measured). The nodes should
+    /// comes later by the exposure and line times; part of the error
+    /// measured). The nodes should
     /// hold the calibration a lab would have for such a camera, not the
     /// renderer's (the demo's `--profile`).
     pub profile: Option<CameraProfile>,

@@ -78,8 +78,8 @@ pub struct DemoArgs {
     /// it is) or `realistic` (motion blur, rolling shutter, flat port, lamps,
     /// marine snow, other PSFs, exposure, JPEG, calibration error;
     /// docs/water-model.md). Through a profile every node holds a lab's
-    /// calibration of its camera, not the renderer's. Rendering is ~10x
-    /// slower, so the time scale defaults to 0.1 through a profile.
+    /// calibration of its camera, not the renderer's. Each frame takes ~15x
+    /// longer to render, so the time scale defaults to 0.1 through a profile.
     #[arg(long, default_value = "ideal")]
     profile: String,
     /// Only these camera effects (repeatable; replaces --profile), as `shoal sim render --effect`.
