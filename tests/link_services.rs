@@ -8,7 +8,9 @@
 //! In this geometry only 10 and 17 see a neighbour (each sees 15), so a
 //! vehicle's map holds the third pair only through the link. Every map must
 //! hold every pair within 5 cm of the full-rate map, and no sender may exceed
-//! its modem's rate.
+//! its modem's rate. Every vehicle also publishes its own nav (10 Hz, the
+//! simulated sensors): each sender must send it as navigation spans at its
+//! period, and every fusion on the link must take the other vehicles' spans.
 
 #[path = "common/fusion_rig.rs"]
 mod fusion_rig;
@@ -102,6 +104,7 @@ fn link_sender(rig: &Rig, vehicle: VehicleId) -> LinkHandle {
             rate_bps: RATE_BPS,
             overhead_bytes: shoal_fusion::link::MODEM_OVERHEAD_BYTES,
             queue_capacity: 1024,
+            nav_period_ns: None,
         },
         rig.clock.clone(),
     )
@@ -118,8 +121,9 @@ fn check_senders(
     for (s, v) in senders.iter().zip(ids) {
         let st = s.stats();
         eprintln!(
-            "LINK vehicle {v}: {} packets, {} modem bytes ({:.0} bit/s), {} offered, {} folded, {} expired, {} dropped",
+            "LINK vehicle {v}: {} packets ({} navigation spans), {} modem bytes ({:.0} bit/s), {} offered, {} folded, {} expired, {} dropped",
             st.packets,
+            st.nav_spans,
             st.modem_bytes,
             st.modem_bytes as f64 * 8.0 / sim_s,
             st.queue.offered,
@@ -139,6 +143,44 @@ fn check_senders(
             st.modem_bytes
         );
         assert_eq!(st.unencodable + st.wrong_observer, 0);
+    }
+}
+
+/// Every sender sent its vehicle's nav as spans at its period, and every
+/// fusion on the link took the other vehicles' spans.
+fn check_nav(
+    senders: &[LinkHandle],
+    ids: &[VehicleId],
+    local: &[(String, FusionHandle)],
+    sim_s: f64,
+) {
+    let period_s =
+        shoal_fusion::link::nav_span_period_ns(RATE_BPS, shoal_fusion::link::MODEM_OVERHEAD_BYTES)
+            as f64
+            * 1e-9;
+    for (s, v) in senders.iter().zip(ids) {
+        let st = s.stats();
+        // One span a period, but for the first and one on the air at the end.
+        let want = (sim_s / period_s).floor() as u64 - 2;
+        assert!(
+            st.nav_spans >= want && st.nav_spans <= want + 3,
+            "vehicle {v}: {} navigation spans in {sim_s} s, every {period_s:.2} s",
+            st.nav_spans
+        );
+        assert_eq!(st.nav_refused, 0, "vehicle {v}");
+    }
+    for (name, f) in local {
+        assert_eq!(f.observations_rejected(), 0, "{name} refused packets");
+        let st = f.stats();
+        // The others' spans (two or three vehicles', at least ~20 each), and
+        // on a vehicle its own nav in full (500 samples).
+        let others = if name.starts_with("on") { 2 } else { 3 };
+        assert!(
+            st.nav_ingested >= others * 20 && st.nav_rejected == 0,
+            "{name}: {} nav states and spans taken, {} refused",
+            st.nav_ingested,
+            st.nav_rejected
+        );
     }
 }
 
@@ -167,6 +209,16 @@ fn decentralized_maps_over_a_1000_bit_link_stay_within_5_cm_of_the_full_rate_map
     let senders: Vec<LinkHandle> = ids.iter().map(|&v| link_sender(&rig, v)).collect();
     let bus = rig.session();
     let publishers = rig.observation_publishers(&bus);
+    let keys = fleet.keys();
+    let nav_publishers: Vec<shoal_bus::Publisher<shoal_proto::NavState>> = ids
+        .iter()
+        .map(|&v| bus.publisher(keys.nav(v)).expect("nav publisher"))
+        .collect();
+    let mut sensors = shoal_sim_bridge::nav::NavSensors::new(
+        shoal_sim_bridge::nav::NavSensorParams::default(),
+        7,
+    )
+    .expect("nav sensors");
     // Let the subscriptions reach the router before anything is published.
     std::thread::sleep(Duration::from_millis(500));
 
@@ -179,6 +231,9 @@ fn decentralized_maps_over_a_1000_bit_link_stay_within_5_cm_of_the_full_rate_map
     while now < DURATION_S * 1_000_000_000 {
         now += STEP_NS;
         rig.clock.advance_to(now);
+        for (t, p) in truth.iter().zip(&nav_publishers) {
+            p.put(&sensors.measure(t, now)).expect("publish nav");
+        }
         if now.is_multiple_of(500_000_000) {
             for s in synth.observe(&truth, now) {
                 if let Some(p) = publishers.get(&s.obs.observer) {
@@ -211,9 +266,7 @@ fn decentralized_maps_over_a_1000_bit_link_stay_within_5_cm_of_the_full_rate_map
     }
     eprintln!("LINK observations published per vehicle: {published:?}");
     check_senders(&senders, &ids, &published, sim_s);
-    for (name, f) in &local {
-        assert_eq!(f.observations_rejected(), 0, "{name} refused packets");
-    }
+    check_nav(&senders, &ids, &local, sim_s);
     let Tally {
         mut diffs,
         slots,

@@ -492,6 +492,34 @@ impl Fusion {
         r
     }
 
+    /// Admit a span of another vehicle's navigation that crossed a slow link
+    /// (a compact packet from `shoal link`) on `arrived_on`'s key at
+    /// `now_ns`: held as samples across the span for the link window
+    /// ([`nav::NavWindow::admit_span`]), used by the nav checks only (no
+    /// odometry crosses a link).
+    pub fn ingest_linked_nav(
+        &mut self,
+        span: &proto::compact::NavSpan,
+        arrived_on: VehicleId,
+        now_ns: u64,
+    ) -> Result<(), NavRejected> {
+        let limits = self.admission();
+        let max = self.params.nav.max_samples_per_vehicle;
+        match self
+            .nav
+            .admit_span(&self.fleet, span, arrived_on, now_ns, &limits, max)
+        {
+            Ok(_) => {
+                self.stats.nav_ingested += 1;
+                Ok(())
+            }
+            Err(e) => {
+                self.stats.nav_rejected += 1;
+                Err(e)
+            }
+        }
+    }
+
     /// The pose graph of the last solve's final round (the constraints LM
     /// minimised and its spanning-tree start), for export ([`export`]);
     /// `None` before the first solve or when nothing was connected.

@@ -18,10 +18,17 @@
 //!   several frames measured. Frames older than [`LinkQueue::max_age_ns`]
 //!   are dropped (counted): the receivers' fusion window would refuse them.
 //!
-//! Both are plain state machines over injected time (nanoseconds), so the
+//! - [`NavSpanner`]: the vehicle's own navigation, gathered between the
+//!   compact navigation spans ([`proto::compact::NavSpan`]) it sends every
+//!   [`nav_span_period_ns`], so that the receivers can settle planar flips
+//!   by both vehicles' gravity as a fusion fed in full does.
+//!
+//! All are plain state machines over injected time (nanoseconds), so the
 //! same code runs in the relay, a vehicle's sender and the link evaluation.
 
+use proto::compact::{NavSpan, MAX_SPAN_NS, NAV_SPAN_LEN};
 use proto::geometry::{difference, perturb, Cov6};
+use proto::nav::NavState;
 use proto::Observation;
 use std::collections::{BTreeMap, VecDeque};
 
@@ -42,6 +49,104 @@ pub const LINK_WINDOW_S: f64 = 8.0;
 /// that adds `overhead_bytes` of framing, ns (rounded up).
 pub fn airtime_ns(payload: usize, overhead_bytes: usize, rate_bps: f64) -> u64 {
     (((payload + overhead_bytes) * 8) as f64 / rate_bps * 1e9).ceil() as u64
+}
+
+/// Share of a modem's airtime the navigation spans take at most.
+pub const NAV_SPAN_AIRTIME_SHARE: f64 = 0.15;
+/// Shortest time between two navigation spans.
+pub const MIN_NAV_SPAN_PERIOD_NS: u64 = 1_000_000_000;
+
+/// How often a vehicle's link sender sends a navigation span on a modem of
+/// `rate_bps` adding `overhead_bytes` a packet: rarely enough to leave the
+/// observations 1 − [`NAV_SPAN_AIRTIME_SHARE`] of the airtime, at least every
+/// second, and at most half the link window apart (a frame waits for the span
+/// that covers it, then for the modem's latency, and the receivers keep what
+/// crossed the link for [`LINK_WINDOW_S`]), which on the slowest links takes
+/// more than the share: at 8 bytes of framing 4 s and 23 % at 300 bit/s,
+/// 1.9 s and 15 % at 1 000, 1 s from ~1 900 bit/s on. Chosen from the
+/// airtime before any run, not tuned.
+pub fn nav_span_period_ns(rate_bps: f64, overhead_bytes: usize) -> u64 {
+    let share = airtime_ns(NAV_SPAN_LEN, overhead_bytes, rate_bps) as f64 / NAV_SPAN_AIRTIME_SHARE;
+    (share as u64).clamp(MIN_NAV_SPAN_PERIOD_NS, LINK_WINDOW_NS / 2)
+}
+
+const LINK_WINDOW_NS: u64 = (LINK_WINDOW_S * 1e9) as u64;
+
+/// A vehicle's own navigation samples since the last span it sent
+/// ([`NavSpan`]). Each span runs from the newest sample of the one before
+/// (shared, so the spans meet and every instant between is bounded by samples
+/// on both sides) to the newest sample offered; a gap in the nav longer than
+/// `2 · period` starts the next span afresh (nothing is claimed over it).
+#[derive(Debug, Clone)]
+pub struct NavSpanner {
+    period_ns: u64,
+    vehicle: proto::VehicleId,
+    /// The previous span's last sample.
+    boundary: Option<NavState>,
+    pending: Vec<NavState>,
+    refused: u64,
+}
+
+impl NavSpanner {
+    /// Spans of `vehicle`'s nav every `period_ns` (at least 1 ms, at most [`MAX_SPAN_NS`]).
+    pub fn new(vehicle: proto::VehicleId, period_ns: u64) -> Self {
+        Self {
+            period_ns: period_ns.clamp(1_000_000, MAX_SPAN_NS / 2),
+            vehicle,
+            boundary: None,
+            pending: Vec::new(),
+            refused: 0,
+        }
+    }
+
+    /// Take one sample; another vehicle's, or one not newer than the last
+    /// taken, is refused and counted.
+    pub fn offer(&mut self, nav: NavState) {
+        let newest = self
+            .pending
+            .last()
+            .or(self.boundary.as_ref())
+            .map(|n| n.stamp_ns);
+        if nav.vehicle != self.vehicle || newest.is_some_and(|t| nav.stamp_ns <= t) {
+            self.refused += 1;
+            return;
+        }
+        self.pending.push(nav);
+    }
+
+    /// Samples refused by [`NavSpanner::offer`].
+    pub fn refused(&self) -> u64 {
+        self.refused
+    }
+
+    /// The span to send now, once the samples since the last one cover a
+    /// period (or the newest is a period old at `now_ns`).
+    pub fn due(&mut self, now_ns: u64) -> Option<NavSpan> {
+        let newest = self.pending.last()?.stamp_ns;
+        let first = self.pending[0].stamp_ns;
+        if self
+            .boundary
+            .is_some_and(|b| first - b.stamp_ns > 2 * self.period_ns)
+        {
+            self.boundary = None;
+        }
+        if newest - self.boundary.map_or(first, |b| b.stamp_ns) > MAX_SPAN_NS / 2 {
+            // Not sent for a long while (a modem held by others): only the
+            // newest period's samples are summarized.
+            self.boundary = None;
+            self.pending
+                .retain(|n| n.stamp_ns + self.period_ns >= newest);
+        }
+        let first = self.pending[0].stamp_ns;
+        let start = self.boundary.map_or(first, |b| b.stamp_ns);
+        if newest - start < self.period_ns && now_ns.saturating_sub(start) < 2 * self.period_ns {
+            return None;
+        }
+        let mut samples: Vec<NavState> = self.boundary.into_iter().collect();
+        samples.append(&mut self.pending);
+        self.boundary = samples.last().copied();
+        NavSpan::summarize(&samples, start, newest)
+    }
 }
 
 /// A token bucket of bits: `rate_bps` tokens a second, at most `burst_bits` saved.
@@ -350,5 +455,77 @@ mod tests {
         assert_eq!(s.observer_from_target.translation.vector.x, 0.0);
         assert!((s.covariance[(0, 0)] - 1e-6).abs() < 1e-12);
         assert_eq!(q.stats().gated, 1);
+    }
+
+    fn nav(vehicle: u32, stamp_ns: u64, roll_rad: f64) -> NavState {
+        NavState {
+            vehicle,
+            stamp_ns,
+            depth: None,
+            tilt: Some(proto::nav::Tilt {
+                roll_rad,
+                pitch_rad: 0.0,
+                covariance: [[1e-6, 0.0], [0.0, 1e-6]],
+            }),
+            heading: None,
+            velocity: None,
+        }
+    }
+
+    #[test]
+    fn nav_spans_meet_cover_a_period_each_and_skip_a_gap() {
+        const S: u64 = 1_000_000_000;
+        let mut sp = NavSpanner::new(7, 2 * S);
+        let mut spans = Vec::new();
+        // 10 Hz for 6.05 s, then nothing for 10 s, then 10 Hz again for 3 s.
+        let stamps = (0..=60u64)
+            .map(|k| k * S / 10)
+            .chain((0..=30).map(|k| 16 * S + k * S / 10));
+        for t in stamps {
+            sp.offer(nav(7, t, 0.01 * (t as f64 * 1e-9).sin()));
+            spans.extend(sp.due(t));
+        }
+        let ranges: Vec<(u64, u64)> = spans.iter().map(|s| (s.from_ns, s.to_ns)).collect();
+        assert_eq!(
+            ranges,
+            vec![(0, 2 * S), (2 * S, 4 * S), (4 * S, 6 * S), (16 * S, 18 * S)],
+            "{ranges:?}"
+        );
+        // The samples at 6.0–6.05 s wait for the next span; with nothing newer,
+        // it goes once two periods have passed since its start.
+        assert!(sp.due(18 * S + S / 2).is_none());
+        let last = sp.due(22 * S).unwrap();
+        assert_eq!((last.from_ns, last.to_ns), (18 * S, 19 * S));
+        // Every span's roll bounds each sample it covers.
+        for s in &spans {
+            let t = s.tilt.unwrap();
+            for k in (s.from_ns / (S / 10))..=(s.to_ns / (S / 10)) {
+                let x = 0.01 * ((k * S / 10) as f64 * 1e-9).sin();
+                assert!((x - t.roll_rad).abs() <= t.covariance[0][0].sqrt() + 1e-12);
+            }
+        }
+        // Another vehicle's samples, and stale ones, are refused.
+        sp.offer(nav(8, 30 * S, 0.0));
+        sp.offer(nav(7, 10 * S, 0.0));
+        assert_eq!(sp.refused(), 2);
+    }
+
+    #[test]
+    fn the_nav_span_period_leaves_the_observations_most_of_the_airtime() {
+        for rate in [300.0, 1000.0, 5000.0] {
+            let p = nav_span_period_ns(rate, MODEM_OVERHEAD_BYTES);
+            let share = airtime_ns(NAV_SPAN_LEN, MODEM_OVERHEAD_BYTES, rate) as f64 / p as f64;
+            let cap = if rate < 450.0 {
+                0.25
+            } else {
+                NAV_SPAN_AIRTIME_SHARE
+            };
+            assert!(share <= cap + 1e-9, "{rate}: {share}");
+            assert!((MIN_NAV_SPAN_PERIOD_NS..=LINK_WINDOW_NS / 2).contains(&p));
+        }
+        assert_eq!(nav_span_period_ns(300.0, 8), LINK_WINDOW_NS / 2);
+        assert_eq!(nav_span_period_ns(5000.0, 8), MIN_NAV_SPAN_PERIOD_NS);
+        let p = nav_span_period_ns(1000.0, 8) as f64 * 1e-9;
+        assert!((1.8..2.0).contains(&p), "{p}");
     }
 }

@@ -152,10 +152,16 @@ pub enum NavRejected {
     Invalid { field: &'static str, why: String },
 }
 
+/// Spacing of the samples a linked navigation span is held as ([`NavWindow::admit_span`]).
+pub const LINKED_NAV_STEP_NS: u64 = 50_000_000;
+
 /// Each vehicle's nav samples over the window, by stamp.
 #[derive(Debug, Clone, Default)]
 pub(crate) struct NavWindow {
     samples: BTreeMap<VehicleId, BTreeMap<u64, NavState>>,
+    /// Per vehicle whose nav crosses a link ([`NavWindow::admit_span`]),
+    /// its spans: `(from_ns, to_ns)` → when it arrived.
+    linked: BTreeMap<VehicleId, BTreeMap<(u64, u64), u64>>,
 }
 
 /// A vehicle's nav at a frame's capture: the nearest sample and how far it is.
@@ -220,6 +226,90 @@ impl NavWindow {
         Ok(())
     }
 
+    /// Admit a span of `span.vehicle`'s nav that crossed a slow link (arrived
+    /// on `arrived_on`'s key at `now_ns`; kept, like linked observations, for
+    /// the link window) as samples every [`LINKED_NAV_STEP_NS`] across it,
+    /// each stating the span's parts: the span bounds what held at every
+    /// instant in it, so a frame captured within it is checked against it
+    /// with no more than half a step of gap. Samples already held at those
+    /// stamps (the vehicle's own, full-rate) are kept. Returns the samples added.
+    pub fn admit_span(
+        &mut self,
+        fleet: &Fleet,
+        span: &proto::compact::NavSpan,
+        arrived_on: VehicleId,
+        now_ns: u64,
+        limits: &Admission,
+        max_samples: usize,
+    ) -> Result<usize, NavRejected> {
+        if span.vehicle != arrived_on {
+            return Err(NavRejected::SenderMismatch {
+                claimed: span.vehicle,
+                arrived_on,
+            });
+        }
+        if fleet.vehicle(span.vehicle).is_none() {
+            return Err(NavRejected::UnknownVehicle(span.vehicle));
+        }
+        span.validate()
+            .map_err(|(field, why)| NavRejected::Invalid { field, why })?;
+        if span.from_ns > now_ns.saturating_add(limits.max_clock_skew_ns) {
+            return Err(NavRejected::ClockSkew {
+                stamp_ns: span.from_ns,
+            });
+        }
+        if span.to_ns.saturating_add(limits.link_window_ns) < now_ns {
+            return Err(NavRejected::Stale {
+                stamp_ns: span.to_ns,
+            });
+        }
+        let arrived = self.linked.entry(span.vehicle).or_default();
+        arrived.entry((span.from_ns, span.to_ns)).or_insert(now_ns);
+        while arrived.len() > max_samples.max(1) {
+            arrived.pop_first();
+        }
+        let list = self.samples.entry(span.vehicle).or_default();
+        let mut added = 0;
+        let mut t = span.from_ns;
+        loop {
+            if let std::collections::btree_map::Entry::Vacant(e) = list.entry(t) {
+                e.insert(span.state_at(t));
+                added += 1;
+            }
+            if t >= span.to_ns {
+                break;
+            }
+            t = (t + LINKED_NAV_STEP_NS).min(span.to_ns);
+        }
+        while list.len() > max_samples.max(1) {
+            list.pop_first();
+        }
+        Ok(added)
+    }
+
+    /// For a vehicle whose nav crosses a link, when nav usable for a frame
+    /// captured at `stamp_ns` arrived: `Some(Some(t))` the earliest arrival
+    /// of a span within `max_gap_ns` of it, `Some(None)` none yet; `None`
+    /// for a vehicle whose nav does not cross a link.
+    pub fn linked_arrival(
+        &self,
+        vehicle: VehicleId,
+        stamp_ns: u64,
+        max_gap_ns: u64,
+    ) -> Option<Option<u64>> {
+        let spans = self.linked.get(&vehicle)?;
+        Some(
+            spans
+                .iter()
+                .filter(|((from, to), _)| {
+                    from.saturating_sub(max_gap_ns) <= stamp_ns
+                        && stamp_ns <= to.saturating_add(max_gap_ns)
+                })
+                .map(|(_, t)| *t)
+                .min(),
+        )
+    }
+
     /// Forget samples older than `keep_ns` before `now_ns`.
     pub fn evict(&mut self, now_ns: u64, keep_ns: u64) {
         let oldest = now_ns.saturating_sub(keep_ns);
@@ -227,6 +317,11 @@ impl NavWindow {
             *list = list.split_off(&oldest);
         }
         self.samples.retain(|_, l| !l.is_empty());
+        // A vehicle whose linked nav has all aged out no longer holds frames back.
+        for spans in self.linked.values_mut() {
+            spans.retain(|(_, to), _| *to >= oldest);
+        }
+        self.linked.retain(|_, spans| !spans.is_empty());
     }
 
     /// `vehicle`'s sample nearest to `stamp_ns`, if one is within `max_gap_ns`.

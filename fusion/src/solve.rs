@@ -53,16 +53,38 @@ impl Fusion {
         crate::par::install(threads, |threads| self.solve_on(now_ns, started, threads))
     }
 
+    /// Drop what left the windows at `now_ns`: observations (an own frame
+    /// of a vehicle whose nav crosses a link is kept the window from when
+    /// that nav covered it, `Window::evict`), then nav samples.
+    fn evict(&mut self, now_ns: u64) {
+        let window_ns = seconds_to_ns(self.params.window_s);
+        let link_window_ns = seconds_to_ns(self.params.link_window_s);
+        let max_gap_ns = seconds_to_ns(self.params.nav.max_gap_s);
+        let (nav, nav_on) = (&self.nav, self.params.nav.enabled);
+        let nav_ready = |o, t, stamp| -> Option<Option<u64>> {
+            if !nav_on {
+                return None;
+            }
+            match (
+                nav.linked_arrival(o, stamp, max_gap_ns),
+                nav.linked_arrival(t, stamp, max_gap_ns),
+            ) {
+                (None, None) => None,
+                (Some(None), _) | (_, Some(None)) => Some(None),
+                (a, b) => Some(a.flatten().max(b.flatten())),
+            }
+        };
+        self.stats.expired +=
+            self.window
+                .evict(now_ns, window_ns, link_window_ns, nav_ready) as u64;
+        let nav_keep_ns = window_ns.max(link_window_ns).saturating_add(max_gap_ns);
+        self.nav.evict(now_ns, nav_keep_ns);
+    }
+
     /// [`Self::solve`] on `threads` threads of the current pool, its wall
     /// clock started at `started`.
     fn solve_on(&mut self, now_ns: u64, started: Option<Instant>, threads: usize) -> FleetMap {
-        let window_ns = seconds_to_ns(self.params.window_s);
-        let link_window_ns = seconds_to_ns(self.params.link_window_s);
-        self.stats.expired += self.window.evict(now_ns, window_ns, link_window_ns) as u64;
-        let nav_keep_ns = window_ns
-            .max(link_window_ns)
-            .saturating_add(seconds_to_ns(self.params.nav.max_gap_s));
-        self.nav.evict(now_ns, nav_keep_ns);
+        self.evict(now_ns);
         let reference = self.fleet.reference_vehicle;
         let consistency = &self.params.consistency;
         let entries: Vec<(&ObservationKey, &Stored)> = self.window.entries.iter().collect();
@@ -92,7 +114,12 @@ impl Fusion {
         let moving_groups = motion::compensate(&mut frames, &groups, &fits, threads);
         let groups_us = elapsed_us(started).saturating_sub(frames_us);
         let pairs = hypotheses::pair_candidates(&frames, &groups, consistency, threads);
-        let prior = hypotheses::attitude_prior(&self.last_estimate, &pairs, now_ns, window_ns);
+        let prior = hypotheses::attitude_prior(
+            &self.last_estimate,
+            &pairs,
+            now_ns,
+            seconds_to_ns(self.params.window_s),
+        );
         let hyps = hypotheses::choose(
             pairs,
             &frames,

@@ -229,17 +229,40 @@ impl Window {
         Ok(target)
     }
 
-    /// Drop what fell out of its window (`window_ns`, or `link_window_ns` for
-    /// what arrived over a link); returns how many.
-    pub fn evict(&mut self, now_ns: u64, window_ns: u64, link_window_ns: u64) -> usize {
+    /// Drop what fell out of its window: `window_ns`, or `link_window_ns` for
+    /// what arrived over a link. An own frame's window runs from when gravity
+    /// can judge it: `nav_ready(observer, target, stamp)` is `None` where both
+    /// vehicles' nav arrives with their frames (the window from the capture),
+    /// `Some(None)` while a vehicle's nav that crosses a link has not covered
+    /// the frame yet (kept, up to `link_window_ns`), `Some(Some(t))` once it
+    /// arrived at `t` (the window from `t`, up to `link_window_ns`). Returns
+    /// how many were dropped.
+    pub fn evict(
+        &mut self,
+        now_ns: u64,
+        window_ns: u64,
+        link_window_ns: u64,
+        nav_ready: impl Fn(VehicleId, VehicleId, u64) -> Option<Option<u64>>,
+    ) -> usize {
         let shorter = window_ns.min(link_window_ns);
+        let longer = window_ns.max(link_window_ns);
         let expired: Vec<ObservationKey> = self
             .entries
             .iter()
             .take_while(|(k, _)| k.stamp_ns.saturating_add(shorter) < now_ns)
             .filter(|(k, s)| {
-                let w = if s.linked { link_window_ns } else { window_ns };
-                k.stamp_ns.saturating_add(w) < now_ns
+                let own = k.stamp_ns.saturating_add(window_ns);
+                let last = k.stamp_ns.saturating_add(longer);
+                let end = if s.linked {
+                    k.stamp_ns.saturating_add(link_window_ns)
+                } else {
+                    match nav_ready(k.observer, s.target, k.stamp_ns) {
+                        None => own,
+                        Some(None) => last,
+                        Some(Some(t)) => own.max(t.saturating_add(window_ns)).min(last),
+                    }
+                };
+                end < now_ns
             })
             .map(|(k, _)| *k)
             .collect();
@@ -336,7 +359,12 @@ mod tests {
         );
         // At t0 + 3 s the frames at t0 and t0 + 0.5 s are beyond 2 s.
         assert_eq!(
-            w.evict(t0 + 3 * S, LIMITS.window_ns, LIMITS.link_window_ns),
+            w.evict(
+                t0 + 3 * S,
+                LIMITS.window_ns,
+                LIMITS.link_window_ns,
+                |_, _, _| None
+            ),
             2
         );
         assert_eq!(w.entries.len(), 3);
@@ -367,16 +395,52 @@ mod tests {
             .unwrap();
         // 2.5 s later: the local frame (3.5 s old) is gone, both linked ones stay.
         assert_eq!(
-            w.evict(now + 5 * S / 2, LIMITS.window_ns, LIMITS.link_window_ns),
+            w.evict(
+                now + 5 * S / 2,
+                LIMITS.window_ns,
+                LIMITS.link_window_ns,
+                |_, _, _| None
+            ),
             1
         );
         assert!(w.entries.values().all(|s| s.linked));
         // 3 s after that the older linked frame (10.5 s) goes, the newer (6 s) stays.
         assert_eq!(
-            w.evict(now + 11 * S / 2, LIMITS.window_ns, LIMITS.link_window_ns),
+            w.evict(
+                now + 11 * S / 2,
+                LIMITS.window_ns,
+                LIMITS.link_window_ns,
+                |_, _, _| None
+            ),
             1
         );
         assert_eq!(w.entries.len(), 1);
+    }
+
+    #[test]
+    fn an_own_frame_awaiting_linked_nav_stays_for_the_link_window_only() {
+        let fleet = paper_fleet();
+        let mut w = Window::default();
+        let now = 100 * S;
+        w.admit_from(&fleet, seen(now - S), (10, false), now, &LIMITS)
+            .unwrap();
+        let mut not_awaited = w.clone();
+        let (win, link) = (LIMITS.window_ns, LIMITS.link_window_ns);
+        // 4 s old: kept while its target's (15's) nav is awaited, not for another vehicle's.
+        let awaited = |_: VehicleId, t: VehicleId, _: u64| (t == 15).then_some(None);
+        assert_eq!(w.evict(now + 3 * S, win, link, awaited), 0);
+        let other = |_: VehicleId, t: VehicleId, _: u64| (t == 16).then_some(None);
+        assert_eq!(not_awaited.evict(now + 3 * S, win, link, other), 1);
+        // Its nav arrived 4 s after the capture: the frame stays the window from then.
+        let arrived = |_: VehicleId, _: VehicleId, stamp: u64| Some(Some(stamp + 4 * S));
+        assert_eq!(w.evict(now + 5 * S, win, link, arrived), 0);
+        assert_eq!(w.clone().evict(now + 5 * S + 1, win, link, arrived), 1);
+        // Arrived 0.5 s after the capture: 2.5 s in all.
+        let early = |_: VehicleId, _: VehicleId, stamp: u64| Some(Some(stamp + S / 2));
+        assert_eq!(w.clone().evict(now + 3 * S / 2, win, link, early), 0);
+        assert_eq!(w.clone().evict(now + 3 * S / 2 + 1, win, link, early), 1);
+        // Awaited past the link window it goes even so.
+        assert_eq!(w.evict(now + 7 * S + 1, win, link, awaited), 1);
     }
 
     #[test]
@@ -427,7 +491,12 @@ mod tests {
         assert_eq!(w.crowded_out, 43);
         // Eviction keeps the per-observer index in step: after the window
         // passes, vehicle 10 has its whole share again.
-        w.evict(now + 3 * S, limits.window_ns, limits.link_window_ns);
+        w.evict(
+            now + 3 * S,
+            limits.window_ns,
+            limits.link_window_ns,
+            |_, _, _| None,
+        );
         assert!(w.entries.is_empty() && w.by_observer.is_empty() && w.duplicates.is_empty());
         for k in 0..8u64 {
             let mut o = seen(now + 3 * S + k);

@@ -892,6 +892,88 @@ fn gravity_settles_planar_flips_that_votes_cannot() {
 }
 
 #[test]
+fn gravity_settles_planar_flips_from_nav_spans_that_crossed_a_link() {
+    // The case above on a vehicle's fusion fed over a link: the observer's
+    // frames and both vehicles' nav arrive as compact packets (observations
+    // and navigation spans through their encodings, a span every 0.3 s), none
+    // in full.
+    use shoal_fusion::link::NavSpanner;
+    use shoal_proto::compact;
+    let fleet = synthetic_fleet(2, CodeSet::Aruco4x4_1000).unwrap();
+    let truth = grid_formation(&[1, 2], 2, 1.5, FormationJitter::default(), 3);
+    let params = ObsSynthParams {
+        outliers: OutlierModel {
+            flip_rate: 1.0,
+            alternative_rate: 1.0,
+            ..OutlierModel::default()
+        },
+        ..ObsSynthParams::default()
+    };
+    let run = |with_nav: bool| {
+        let mut synth = shoal_sim_bridge::obs_synth::ObsSynth::new(&fleet, params, 3);
+        let mut sensors = shoal_sim_bridge::nav::NavSensors::new(
+            shoal_sim_bridge::nav::NavSensorParams::default(),
+            3,
+        )
+        .unwrap();
+        let mut spanners: Vec<NavSpanner> = [1, 2].map(|v| NavSpanner::new(v, 300_000_000)).into();
+        let mut fusion = Fusion::new(&fleet, FusionParams::default(), "2");
+        let (mut flipped, mut spans, mut now) = (0, 0, T0_NS);
+        for k in 0..10 {
+            now = T0_NS + k * FRAME_NS;
+            for (t, sp) in truth.iter().zip(spanners.iter_mut()) {
+                sp.offer(sensors.measure(t, now));
+                if let Some(span) = sp.due(now).filter(|_| with_nav) {
+                    let back = compact::decode_nav_span(&compact::encode_nav_span(&span).unwrap())
+                        .unwrap();
+                    fusion.ingest_linked_nav(&back, t.vehicle, now).unwrap();
+                    spans += 1;
+                }
+            }
+            for s in synth.observe(&truth, now) {
+                if s.obs.observer != 1 {
+                    continue;
+                }
+                flipped += usize::from(s.outlier == OutlierKind::Flipped);
+                let back = compact::decode(&compact::encode(&s.obs).unwrap()).unwrap();
+                let _ = fusion.ingest_linked(back, 1, now);
+            }
+        }
+        (fusion.solve(now), flipped, spans)
+    };
+    let (map, flipped, spans) = run(true);
+    assert!(
+        flipped >= 10 && spans == 6,
+        "{flipped} flips, {spans} spans"
+    );
+    let gravity = map
+        .edges
+        .iter()
+        .filter(|e| e.rejected == Some(RejectReason::Gravity))
+        .count();
+    assert!(
+        gravity >= flipped,
+        "{gravity} gravity rejections, {flipped} flips"
+    );
+    let truth_poses = truth_poses(&fleet, &truth);
+    let (t_err, r_err, live) = map_error(&map, &truth_poses);
+    assert_eq!(live, 2);
+    assert!(
+        t_err < 0.02 && r_err.to_degrees() < 1.0,
+        "{t_err} m, {} deg",
+        r_err.to_degrees()
+    );
+    // Without the spans the same frames put the pair on its twin.
+    let (map, _, _) = run(false);
+    let (_, r_err, _) = map_error(&map, &truth_poses);
+    assert!(
+        r_err.to_degrees() > 10.0,
+        "without nav: {} deg",
+        r_err.to_degrees()
+    );
+}
+
+#[test]
 fn nav_checks_reject_no_true_hypothesis_in_a_jittered_grid() {
     // Ten vehicles rolled and pitched up to 8°, a third of the primaries
     // flipped, default sensors: every flip settled, nothing true lost.

@@ -38,6 +38,12 @@ use crate::messages::{
 };
 use nalgebra::{Quaternion, Translation3, UnitQuaternion};
 
+mod nav;
+pub use nav::{
+    decode_nav_span, encode_nav_span, NavSpan, ANGLE_STEP_RAD, DEPTH_STEP_M, MAX_SPAN_NS,
+    NAV_SPAN_LEN, NAV_SPAN_TAG,
+};
+
 /// The version this module writes and reads.
 pub const VERSION: u8 = 1;
 /// Size of an observation without the planar flip.
@@ -56,17 +62,17 @@ const LOG_RMS_SPAN: f64 = 5.0;
 /// Why an observation cannot be written compactly, or bytes cannot be read as one.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum CompactError {
-    #[error("compact observation: {field} = {value} does not fit ({limit})")]
+    #[error("compact link payload: {field} = {value} does not fit ({limit})")]
     OutOfRange {
         field: &'static str,
         value: String,
         limit: &'static str,
     },
-    #[error("compact observation: version {0} is not known (this build reads version {VERSION})")]
+    #[error("compact link payload: version {0} is not known (this build reads observations of version {VERSION} and navigation spans, tag 0x81)")]
     Version(u8),
-    #[error("compact observation: {got} bytes, expected {expected}")]
+    #[error("compact link payload: {got} bytes, expected {expected}")]
     Length { got: usize, expected: usize },
-    #[error("compact observation: {field}: {reason}")]
+    #[error("compact link payload: {field}: {reason}")]
     Invalid { field: &'static str, reason: String },
 }
 
@@ -373,23 +379,56 @@ fn read_covariance(b: &[u8]) -> Result<Cov6, CompactError> {
 }
 
 /// What a vehicle's link sender (`shoal link`) publishes on
-/// `shoal/<fleet>/<vehicle>/link`: one compact observation, `payload` being
-/// exactly the bytes the modem carries. The envelope around it is for the
-/// local bus and the log; a modem driver sends `payload` and, on the far
-/// side, publishes it again under the sender's key.
+/// `shoal/<fleet>/<vehicle>/link`: one compact observation or one compact
+/// navigation span of the sender's own, `payload` being exactly the bytes the
+/// modem carries (the first byte tells which: an observation's version, `1`,
+/// or [`NAV_SPAN_TAG`]). The envelope around it is for the local bus and the
+/// log; a modem driver sends `payload` and, on the far side, publishes it
+/// again under the sender's key.
 #[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct LinkPacket {
-    /// The vehicle whose modem sent it (the observation's observer).
+    /// The vehicle whose modem sent it (the observation's observer, the span's vehicle).
     pub sender: VehicleId,
     /// Per sender, counting up from 0 when its link sender starts (gaps are packets lost).
     pub seq: u32,
-    /// One observation in this module's encoding.
+    /// One observation or navigation span in this module's encodings.
     pub payload: Vec<u8>,
 }
 
+/// What a [`LinkPacket`] carries.
+#[derive(Debug, Clone, PartialEq)]
+pub enum LinkContent {
+    /// Boxed: ~800 bytes against the span's ~130.
+    Observation(Box<Observation>),
+    Nav(NavSpan),
+}
+
+impl LinkContent {
+    /// The capture time of the observation, the end of the span.
+    pub fn stamp_ns(&self) -> u64 {
+        match self {
+            LinkContent::Observation(o) => o.stamp_ns,
+            LinkContent::Nav(n) => n.to_ns,
+        }
+    }
+}
+
 impl LinkPacket {
-    /// The observation it carries, checked against its sender.
-    pub fn observation(&self) -> Result<Observation, CompactError> {
+    /// What it carries, checked against its sender.
+    pub fn content(&self) -> Result<LinkContent, CompactError> {
+        if self.payload.first() == Some(&NAV_SPAN_TAG) {
+            let span = decode_nav_span(&self.payload)?;
+            if span.vehicle != self.sender {
+                return Err(CompactError::Invalid {
+                    field: "vehicle",
+                    reason: format!(
+                        "navigation of vehicle {} in a packet sent by vehicle {}",
+                        span.vehicle, self.sender
+                    ),
+                });
+            }
+            return Ok(LinkContent::Nav(span));
+        }
         let obs = decode(&self.payload)?;
         if obs.observer != self.sender {
             return Err(CompactError::Invalid {
@@ -400,14 +439,14 @@ impl LinkPacket {
                 ),
             });
         }
-        Ok(obs)
+        Ok(LinkContent::Observation(Box::new(obs)))
     }
 }
 
 impl WireMessage for LinkPacket {
     const KIND: MessageKind = MessageKind::LinkPacket;
     fn validate(&self) -> Result<(), (&'static str, String)> {
-        self.observation()
+        self.content()
             .map(|_| ())
             .map_err(|e| ("payload", e.to_string()))
     }

@@ -579,9 +579,9 @@ impl Converter {
             Some(MessageKind::LinkPacket) => {
                 match codec::decode::<proto::compact::LinkPacket>(bytes)
                     .ok()
-                    .and_then(|p| p.observation().ok())
+                    .and_then(|p| p.content().ok())
                 {
-                    Some(o) => publish_time = o.stamp_ns,
+                    Some(c) => publish_time = c.stamp_ns(),
                     None => undecodable = true,
                 }
             }

@@ -10,7 +10,7 @@
 use shoal_bus::{Bus, BusError, Publisher, Subscription, Worker};
 use shoal_fusion::{Fusion, FusionParams, FusionStats, LatestMap, MapView};
 use shoal_proto::clock::Clock;
-use shoal_proto::compact::LinkPacket;
+use shoal_proto::compact::{LinkContent, LinkPacket};
 use shoal_proto::config::Fleet;
 use shoal_proto::queue::DropOldestQueue;
 use shoal_proto::{FleetMap, KeyKind, Keys, NavState, Observation, VehicleId};
@@ -47,7 +47,8 @@ pub struct FusionConfig {
     /// Observations buffered between solves before the oldest are dropped.
     pub queue_capacity: usize,
     /// Fed over an acoustic-rate link: the vehicles' [`LinkPacket`]s (not
-    /// their full observations; kept for `params.link_window_s`), plus, on a
+    /// their full observations; compact observations and navigation spans,
+    /// kept for `params.link_window_s`), plus, on a
     /// vehicle, its own observations and navigation (kept for `params.window_s`).
     pub link: bool,
 }
@@ -156,10 +157,15 @@ impl Inputs {
                 continue;
             }
             // Validated on receipt (`LinkPacket::validate`), so this decodes.
-            match r.msg.observation() {
-                Ok(obs) => {
-                    if let Err(reason) = fusion.ingest_linked(obs, vehicle, now) {
+            match r.msg.content() {
+                Ok(LinkContent::Observation(obs)) => {
+                    if let Err(reason) = fusion.ingest_linked(*obs, vehicle, now) {
                         tracing::debug!("link observation on {} rejected: {reason:?}", r.key);
+                    }
+                }
+                Ok(LinkContent::Nav(span)) => {
+                    if let Err(e) = fusion.ingest_linked_nav(&span, vehicle, now) {
+                        tracing::debug!("link navigation span on {} refused: {e}", r.key);
                     }
                 }
                 Err(e) => {

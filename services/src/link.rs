@@ -1,5 +1,5 @@
-//! The link sender (`shoal link`): one vehicle's observations → compact
-//! packets at the rate of an acoustic modem (issue #22).
+//! The link sender (`shoal link`): one vehicle's observations and navigation
+//! → compact packets at the rate of an acoustic modem (issue #22).
 //!
 //! It subscribes to the vehicle's own observations, keeps them in a
 //! [`LinkQueue`] (per track the frames since it was last sent; the most
@@ -7,16 +7,22 @@
 //! half-duplex modem sends them, publishes a [`LinkPacket`] on
 //! `shoal/<fleet>/<vehicle>/link`: the compact observation is the packet's
 //! payload, and a packet of `n` payload bytes occupies the modem for
-//! `(n + overhead) · 8 / rate` seconds. A modem driver forwards the payloads;
+//! `(n + overhead) · 8 / rate` seconds. It also subscribes to the vehicle's
+//! own navigation and, every [`nav_span_period_ns`] of it, sends a compact
+//! navigation span ([`NavSpanner`]) ahead of the next observation, so that
+//! the receivers settle planar flips by both vehicles' gravity. A modem driver forwards the payloads;
 //! on the far side it publishes them under the sender's key, where a fusion
 //! service started with `--link` (`FusionConfig::link`) reads them.
 
 use shoal_bus::{Bus, BusError, Publisher, Subscription, Worker};
-use shoal_fusion::link::{airtime_ns, LinkQueue, LinkQueueStats, LINK_WINDOW_S, MODEM_LATENCY_NS};
+use shoal_fusion::link::{
+    airtime_ns, nav_span_period_ns, LinkQueue, LinkQueueStats, NavSpanner, LINK_WINDOW_S,
+    MODEM_LATENCY_NS,
+};
 use shoal_proto::clock::Clock;
 use shoal_proto::compact::{self, LinkPacket};
 use shoal_proto::config::Fleet;
-use shoal_proto::{Observation, VehicleId};
+use shoal_proto::{NavState, Observation, VehicleId};
 use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -32,6 +38,9 @@ pub struct LinkConfig {
     pub overhead_bytes: usize,
     /// Observations buffered between sends before the oldest are dropped.
     pub queue_capacity: usize,
+    /// Send the vehicle's own navigation as spans this often, ns (`None`:
+    /// [`nav_span_period_ns`] of the rate; `Some(0)`: never).
+    pub nav_period_ns: Option<u64>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -54,8 +63,12 @@ pub struct LinkStats {
     pub unencodable: u64,
     /// Observations on this vehicle's key claiming another observer (counted, not sent).
     pub wrong_observer: u64,
-    /// Observations dropped because the sender's subscription overflowed.
+    /// Observations and nav states dropped because the sender's subscriptions overflowed.
     pub dropped: u64,
+    /// Of the packets, navigation spans.
+    pub nav_spans: u64,
+    /// Nav states of another vehicle, or not newer than the last, on this vehicle's key (counted, not sent).
+    pub nav_refused: u64,
     pub queue: LinkQueueStats,
 }
 
@@ -97,6 +110,12 @@ pub fn spawn(bus: &Bus, cfg: LinkConfig, clock: Arc<dyn Clock>) -> Result<LinkHa
     let keys = cfg.fleet.keys();
     let own: Subscription<Observation> =
         bus.subscribe(&keys.observations(cfg.vehicle), cfg.queue_capacity)?;
+    let nav_period_ns = cfg
+        .nav_period_ns
+        .unwrap_or_else(|| nav_span_period_ns(cfg.rate_bps, cfg.overhead_bytes));
+    let own_nav: Option<Subscription<NavState>> = (nav_period_ns > 0)
+        .then(|| bus.subscribe(&keys.nav(cfg.vehicle), cfg.queue_capacity))
+        .transpose()?;
     let publisher: Publisher<LinkPacket> = bus.publisher(keys.link(cfg.vehicle))?;
     let stats: Arc<Mutex<LinkStats>> = Arc::default();
     let stats2 = stats.clone();
@@ -107,6 +126,7 @@ pub fn spawn(bus: &Bus, cfg: LinkConfig, clock: Arc<dyn Clock>) -> Result<LinkHa
     let worker = Worker::spawn(format!("link-{}", cfg.vehicle), move |stop| {
         let _keep = &bus;
         let mut queue = LinkQueue::new(max_age_ns);
+        let mut spanner = NavSpanner::new(cfg.vehicle, nav_period_ns);
         let mut busy_until = 0u64;
         let mut seq = 0u32;
         let mut local = LinkStats::default();
@@ -119,20 +139,36 @@ pub fn spawn(bus: &Bus, cfg: LinkConfig, clock: Arc<dyn Clock>) -> Result<LinkHa
                     local.wrong_observer += 1;
                 }
             }
+            for r in own_nav.iter().flat_map(|s| s.drain()) {
+                spanner.offer(r.msg);
+            }
             let now = clock.now_ns();
             while busy_until <= now {
-                let Some(obs) = queue.next(now) else { break };
-                let payload = match compact::encode(&obs) {
-                    Ok(p) => p,
-                    Err(e) => {
-                        tracing::debug!("observation not sent over the link: {e}");
-                        local.unencodable += 1;
-                        continue;
+                // A span when one is due, else the next observation.
+                let (payload, is_nav) = match own_nav.as_ref().and_then(|_| spanner.due(now)) {
+                    Some(span) => match compact::encode_nav_span(&span) {
+                        Ok(p) => (p, true),
+                        Err(e) => {
+                            tracing::debug!("navigation span not sent over the link: {e}");
+                            local.unencodable += 1;
+                            continue;
+                        }
+                    },
+                    None => {
+                        let Some(obs) = queue.next(now) else { break };
+                        match compact::encode(&obs) {
+                            Ok(p) => (p, false),
+                            Err(e) => {
+                                tracing::debug!("observation not sent over the link: {e}");
+                                local.unencodable += 1;
+                                continue;
+                            }
+                        }
                     }
                 };
                 let n = payload.len();
                 let packet = LinkPacket {
-                    sender: obs.observer,
+                    sender: cfg.vehicle,
                     seq,
                     payload,
                 };
@@ -140,6 +176,7 @@ pub fn spawn(bus: &Bus, cfg: LinkConfig, clock: Arc<dyn Clock>) -> Result<LinkHa
                     Ok(()) => {
                         seq = seq.wrapping_add(1);
                         local.packets += 1;
+                        local.nav_spans += u64::from(is_nav);
                         local.modem_bytes += (n + cfg.overhead_bytes) as u64;
                     }
                     Err(e) => tracing::warn!("publishing link packet: {e}"),
@@ -147,7 +184,8 @@ pub fn spawn(bus: &Bus, cfg: LinkConfig, clock: Arc<dyn Clock>) -> Result<LinkHa
                 busy_until = busy_until.max(now) + airtime_ns(n, cfg.overhead_bytes, cfg.rate_bps);
             }
             local.queue = queue.stats();
-            local.dropped = own.dropped();
+            local.dropped = own.dropped() + own_nav.as_ref().map_or(0, |s| s.dropped());
+            local.nav_refused = spanner.refused();
             if let Ok(mut g) = stats2.lock() {
                 *g = local;
             }

@@ -214,7 +214,7 @@ pub struct FusionArgs {
 pub struct LinkArgs {
     #[arg(long, default_value = "configs/fleets/paper.toml")]
     fleet: PathBuf,
-    /// The vehicle whose observations are sent.
+    /// The vehicle whose observations and navigation are sent.
     #[arg(long)]
     vehicle: u32,
     /// The modem's rate for this vehicle, bit/s.
@@ -223,6 +223,11 @@ pub struct LinkArgs {
     /// Bytes the modem adds to every packet (sync, address, CRC).
     #[arg(long, default_value_t = shoal_fusion::link::MODEM_OVERHEAD_BYTES)]
     overhead_bytes: usize,
+    /// Send the vehicle's own navigation (its `nav` key) as a compact span
+    /// this often, seconds; 0: never (default: at most 15 % of the modem's
+    /// airtime, every 1–4 s: `shoal_fusion::link::nav_span_period_ns`).
+    #[arg(long, value_parser = super::args::non_negative)]
+    nav_every_s: Option<f64>,
     /// Time line of the observations' stamps: `wall` or `sim`.
     #[arg(long, default_value = "wall")]
     clock: String,
@@ -242,6 +247,7 @@ pub fn run_link(a: LinkArgs) -> anyhow::Result<()> {
             rate_bps: a.rate_bps,
             overhead_bytes: a.overhead_bytes,
             queue_capacity: 1024,
+            nav_period_ns: a.nav_every_s.map(|s| (s * 1e9).round() as u64),
         },
         clock,
     )?;
@@ -254,16 +260,18 @@ pub fn run_link(a: LinkArgs) -> anyhow::Result<()> {
     let s = handle.stats();
     handle.stop();
     shoal::outln!(
-        "vehicle {}: {} observations offered, {} packets sent ({} modem bytes, {:.1} per packet), {} folded into summaries, {} expired, {} not encodable, {} on the wrong key, {} dropped",
+        "vehicle {}: {} observations offered, {} packets sent ({} of them navigation spans; {} modem bytes, {:.1} per packet), {} folded into summaries, {} expired, {} not encodable, {} on the wrong key, {} nav states refused, {} dropped",
         a.vehicle,
         s.queue.offered,
         s.packets,
+        s.nav_spans,
         s.modem_bytes,
         s.modem_bytes as f64 / s.packets.max(1) as f64,
         s.queue.superseded,
         s.queue.expired,
         s.unencodable,
         s.wrong_observer,
+        s.nav_refused,
         s.dropped
     );
     Ok(())

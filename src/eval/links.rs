@@ -9,6 +9,13 @@
 //! - **compact**: [`shoal_proto::compact`] observations (53–66 bytes) from a
 //!   [`shoal_fusion::link::LinkQueue`] (newest per track, most informative
 //!   and longest-waiting pair first);
+//! - **compact + nav**: the same, and every vehicle's own navigation
+//!   (simulated sensors, `sim_bridge::nav` defaults: depth, IMU roll/pitch,
+//!   compass, 10 Hz) as compact navigation spans
+//!   ([`shoal_fusion::link::NavSpanner`], one every
+//!   [`shoal_fusion::link::nav_span_period_ns`]) ahead of the next
+//!   observation; each vehicle's fusion also takes its own nav in full, and
+//!   the full-rate map it is compared with every vehicle's;
 //! - **full**: today's messages (the bincode envelope, ~700 bytes) in
 //!   arrival order through a 16-message queue that drops new messages when
 //!   full (what a Zenoh publisher with `CongestionControl::Drop` does).
@@ -28,11 +35,14 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde_json::{json, Map, Value};
 use shoal_fusion::link::{
-    airtime_ns, LinkQueue, LINK_WINDOW_S, MODEM_LATENCY_NS, MODEM_OVERHEAD_BYTES,
+    airtime_ns, nav_span_period_ns, LinkQueue, NavSpanner, LINK_WINDOW_S, MODEM_LATENCY_NS,
+    MODEM_OVERHEAD_BYTES,
 };
 use shoal_fusion::{Fusion, FusionParams};
+use shoal_proto::compact::LinkContent;
 use shoal_proto::config::Fleet;
 use shoal_proto::{FleetMap, Observation, Pose, VehicleId, VehicleState, VehicleTruth};
+use shoal_sim_bridge::nav::{NavSensorParams, NavSensors};
 use shoal_sim_bridge::obs_synth::{drifting_line_abreast, ObsSynth, ObsSynthParams};
 use std::collections::{BTreeMap, VecDeque};
 use std::path::Path;
@@ -47,6 +57,8 @@ pub const LATENCY_NS: u64 = MODEM_LATENCY_NS;
 /// Probability that a packet is lost on the way to one receiver.
 pub const LOSS: f64 = 0.1;
 const FRAME_NS: u64 = 500_000_000;
+/// The vehicles' nav rate with `compact + nav` (10 Hz).
+const NAV_NS: u64 = 100_000_000;
 const STEP_NS: u64 = 50_000_000;
 const SPACING_M: f64 = 1.75;
 /// Seconds before the maps are compared (the windows fill).
@@ -57,6 +69,7 @@ const FULL_QUEUE: usize = 16;
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Encoding {
     Compact,
+    CompactNav,
     Full,
 }
 
@@ -64,6 +77,7 @@ impl Encoding {
     fn name(self) -> &'static str {
         match self {
             Encoding::Compact => "compact",
+            Encoding::CompactNav => "compact+nav",
             Encoding::Full => "full",
         }
     }
@@ -83,6 +97,9 @@ enum Outbox {
 
 struct Sender {
     outbox: Outbox,
+    /// With `compact + nav`: the vehicle's own nav, sent as spans.
+    spanner: Option<NavSpanner>,
+    nav_spans: u64,
     busy_until_ns: u64,
     packets: u64,
     bytes: u64,
@@ -90,6 +107,24 @@ struct Sender {
 }
 
 impl Sender {
+    /// Vehicle `id`'s modem for `encoding` (with `compact + nav`, a span every `nav_period_ns`).
+    fn new(encoding: Encoding, id: VehicleId, nav_period_ns: u64) -> Sender {
+        Sender {
+            outbox: match encoding {
+                Encoding::Compact | Encoding::CompactNav => {
+                    Outbox::Compact(LinkQueue::new((LINK_WINDOW_S * 1e9) as u64 - LATENCY_NS))
+                }
+                Encoding::Full => Outbox::Full(VecDeque::new()),
+            },
+            spanner: (encoding == Encoding::CompactNav).then(|| NavSpanner::new(id, nav_period_ns)),
+            nav_spans: 0,
+            busy_until_ns: 0,
+            packets: 0,
+            bytes: 0,
+            dropped_full: 0,
+        }
+    }
+
     fn offer(&mut self, obs: Observation) {
         match &mut self.outbox {
             Outbox::Compact(q) => q.offer(obs),
@@ -103,9 +138,18 @@ impl Sender {
         }
     }
 
-    /// The next packet at `now_ns`: what the receivers decode, and its size on the wire.
-    fn next(&mut self, now_ns: u64) -> Result<Option<(Observation, usize)>, EvalError> {
+    /// The next packet at `now_ns`: what the receivers decode, and its size
+    /// on the wire. A navigation span goes first when one is due.
+    fn next(&mut self, now_ns: u64) -> Result<Option<(LinkContent, usize)>, EvalError> {
         let setup = |e: String| EvalError::Setup(e);
+        if let Some(span) = self.spanner.as_mut().and_then(|s| s.due(now_ns)) {
+            let bytes =
+                shoal_proto::compact::encode_nav_span(&span).map_err(|e| setup(e.to_string()))?;
+            let back =
+                shoal_proto::compact::decode_nav_span(&bytes).map_err(|e| setup(e.to_string()))?;
+            self.nav_spans += 1;
+            return Ok(Some((LinkContent::Nav(back), bytes.len())));
+        }
         Ok(match &mut self.outbox {
             Outbox::Compact(q) => match q.next(now_ns) {
                 Some(o) => {
@@ -113,7 +157,7 @@ impl Sender {
                         shoal_proto::compact::encode(&o).map_err(|e| setup(e.to_string()))?;
                     let back =
                         shoal_proto::compact::decode(&bytes).map_err(|e| setup(e.to_string()))?;
-                    Some((back, bytes.len()))
+                    Some((LinkContent::Observation(Box::new(back)), bytes.len()))
                 }
                 None => None,
             },
@@ -122,7 +166,7 @@ impl Sender {
                     let n = shoal_proto::codec::encode(&o)
                         .map_err(|e| setup(e.to_string()))?
                         .len();
-                    Some((o, n))
+                    Some((LinkContent::Observation(Box::new(o)), n))
                 }
                 None => None,
             },
@@ -131,7 +175,7 @@ impl Sender {
 }
 
 /// Columns of `links.csv`, one row per (formation, encoding, rate, seed).
-const CSV_COLUMNS: [&str; 16] = [
+const CSV_COLUMNS: [&str; 17] = [
     "formation",
     "encoding",
     "rate_bps",
@@ -148,6 +192,7 @@ const CSV_COLUMNS: [&str; 16] = [
     "superseded",
     "expired",
     "queue_full_drops",
+    "nav_spans_per_s",
 ];
 
 /// One trial's comparison of every vehicle's map with the full-rate one.
@@ -168,6 +213,7 @@ struct Trial {
     superseded: u64,
     expired: u64,
     queue_full_drops: u64,
+    nav_spans_per_s: f64,
 }
 
 fn pair_poses(map: &FleetMap) -> BTreeMap<VehicleId, Pose> {
@@ -217,6 +263,24 @@ fn compare(local: &FleetMap, full: &FleetMap, ids: &[VehicleId], now_ns: u64, t:
     t.ages_s.push(oldest);
 }
 
+/// Hand the packets that have arrived by `now_ns` to their receivers' fusion.
+fn deliver(in_flight: &mut Vec<(u64, usize, LinkContent)>, local: &mut [Fusion], now_ns: u64) {
+    in_flight.retain(|(arrive, r, content)| {
+        if *arrive > now_ns {
+            return true;
+        }
+        match content {
+            LinkContent::Observation(obs) => {
+                let _ = local[*r].ingest_linked((**obs).clone(), obs.observer, now_ns);
+            }
+            LinkContent::Nav(span) => {
+                let _ = local[*r].ingest_linked_nav(span, span.vehicle, now_ns);
+            }
+        }
+        false
+    });
+}
+
 fn run_trial(
     fleet: &Fleet,
     drift_m: f64,
@@ -244,26 +308,39 @@ fn run_trial(
         .iter()
         .map(|id| Fusion::new(fleet, link_params, &id.to_string()))
         .collect();
+    let with_nav = encoding == Encoding::CompactNav;
+    let mut nav_sensors = with_nav
+        .then(|| NavSensors::new(NavSensorParams::default(), seed))
+        .transpose()
+        .map_err(|e| EvalError::Setup(e.to_string()))?;
+    let nav_period_ns = nav_span_period_ns(rate_bps, MODEM_OVERHEAD_BYTES);
     let mut senders: Vec<Sender> = ids
         .iter()
-        .map(|_| Sender {
-            outbox: match encoding {
-                Encoding::Compact => {
-                    Outbox::Compact(LinkQueue::new((LINK_WINDOW_S * 1e9) as u64 - LATENCY_NS))
-                }
-                Encoding::Full => Outbox::Full(VecDeque::new()),
-            },
-            busy_until_ns: 0,
-            packets: 0,
-            bytes: 0,
-            dropped_full: 0,
-        })
+        .map(|&id| Sender::new(encoding, id, nav_period_ns))
         .collect();
-    let mut in_flight: Vec<(u64, usize, Observation)> = Vec::new();
+    let mut in_flight: Vec<(u64, usize, LinkContent)> = Vec::new();
     let mut trial = Trial::default();
     let end_ns = duration_s * 1_000_000_000;
     let mut now = 0u64;
     while now <= end_ns {
+        if let Some(sensors) = nav_sensors.as_mut().filter(|_| now.is_multiple_of(NAV_NS)) {
+            // Every vehicle's own nav: in full to the full-rate map and to its
+            // own fusion, to its link sender for the others.
+            for (k, t) in truth_at(&ids, drift_m, now as f64 * 1e-9)
+                .iter()
+                .enumerate()
+            {
+                let nav = sensors.measure(t, now);
+                let refused = |e: shoal_fusion::NavRejected| {
+                    EvalError::Setup(format!("nav of vehicle {}: {e}", t.vehicle))
+                };
+                full_rate.ingest_nav(nav, t.vehicle, now).map_err(refused)?;
+                local[k].ingest_nav(nav, t.vehicle, now).map_err(refused)?;
+                if let Some(sp) = senders[k].spanner.as_mut() {
+                    sp.offer(nav);
+                }
+            }
+        }
         if now.is_multiple_of(FRAME_NS) {
             let truth = truth_at(&ids, drift_m, now as f64 * 1e-9);
             for s in synth.observe(&truth, now) {
@@ -278,7 +355,7 @@ fn run_trial(
         }
         for (k, s) in senders.iter_mut().enumerate() {
             while s.busy_until_ns <= now {
-                let Some((obs, n)) = s.next(now)? else {
+                let Some((content, n)) = s.next(now)? else {
                     break;
                 };
                 s.busy_until_ns =
@@ -287,19 +364,12 @@ fn run_trial(
                 s.bytes += (n + MODEM_OVERHEAD_BYTES) as u64;
                 for r in (0..ids.len()).filter(|r| *r != k) {
                     if rng.gen::<f64>() >= LOSS {
-                        in_flight.push((s.busy_until_ns + LATENCY_NS, r, obs.clone()));
+                        in_flight.push((s.busy_until_ns + LATENCY_NS, r, content.clone()));
                     }
                 }
             }
         }
-        in_flight.retain(|(arrive, r, obs)| {
-            if *arrive <= now {
-                let _ = local[*r].ingest_linked(obs.clone(), obs.observer, now);
-                false
-            } else {
-                true
-            }
-        });
+        deliver(&mut in_flight, &mut local, now);
         if now.is_multiple_of(1_000_000_000) && now >= WARMUP_S * 1_000_000_000 {
             let full = full_rate.solve(now);
             let truth = truth_at(&ids, drift_m, now as f64 * 1e-9);
@@ -315,6 +385,9 @@ fn run_trial(
     let packets: u64 = senders.iter().map(|s| s.packets).sum();
     let bytes: u64 = senders.iter().map(|s| s.bytes).sum();
     trial.packets_per_s = packets as f64 / ids.len() as f64 / duration_s as f64;
+    trial.nav_spans_per_s = senders.iter().map(|s| s.nav_spans).sum::<u64>() as f64
+        / ids.len() as f64
+        / duration_s as f64;
     trial.bytes_per_packet = if packets > 0 {
         bytes as f64 / packets as f64
     } else {
@@ -340,6 +413,9 @@ struct Cell {
     age_median_s: Vec<f64>,
     packets_per_s: Vec<f64>,
     bytes_per_packet: Vec<f64>,
+    local_truth_p95_cm: Vec<f64>,
+    full_truth_p95_cm: Vec<f64>,
+    nav_spans_per_s: Vec<f64>,
 }
 
 fn range(v: &[f64]) -> Value {
@@ -385,6 +461,31 @@ fn plots(
     json!([p1, p2])
 }
 
+/// One `links.csv` row: the trial's figures.
+fn csv_row(formation: &str, enc: Encoding, rate: f64, seed: u64, t: &Trial) -> Vec<String> {
+    let cm = |v: &[f64], p: f64| quantile(v, p).unwrap_or(f64::NAN) * 100.0;
+    let max = t.diffs_m.iter().copied().fold(f64::NAN, f64::max) * 100.0;
+    vec![
+        formation.into(),
+        enc.name().into(),
+        rate.to_string(),
+        seed.to_string(),
+        format!("{:.2}", cm(&t.diffs_m, 0.5)),
+        format!("{:.2}", cm(&t.diffs_m, 0.95)),
+        format!("{max:.2}"),
+        format!("{:.3}", t.missing as f64 / t.slots.max(1) as f64),
+        format!("{:.2}", quantile(&t.ages_s, 0.5).unwrap_or(f64::NAN)),
+        format!("{:.2}", cm(&t.local_truth_m, 0.95)),
+        format!("{:.2}", cm(&t.full_truth_m, 0.95)),
+        format!("{:.2}", t.packets_per_s),
+        format!("{:.1}", t.bytes_per_packet),
+        t.superseded.to_string(),
+        t.expired.to_string(),
+        t.queue_full_drops.to_string(),
+        format!("{:.3}", t.nav_spans_per_s),
+    ]
+}
+
 pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     let fleet = Fleet::parse(
         crate::demo::PAPER_FLEET,
@@ -401,7 +502,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     } else {
         RATES_BPS.to_vec()
     };
-    let encodings = [Encoding::Compact, Encoding::Full];
+    let encodings = [Encoding::Compact, Encoding::CompactNav, Encoding::Full];
     let bar = opts.bar(
         FORMATIONS.len() * encodings.len() * rates.len() * seeds.len(),
         "links: trials",
@@ -427,30 +528,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
                     let missing = t.missing as f64 / t.slots.max(1) as f64;
                     let age = quantile(&t.ages_s, 0.5).unwrap_or(f64::NAN);
                     let max = t.diffs_m.iter().copied().fold(f64::NAN, f64::max) * 100.0;
-                    csv.row(vec![
-                        formation.into(),
-                        enc.name().into(),
-                        rate.to_string(),
-                        seed.to_string(),
-                        format!("{:.2}", q(0.5)),
-                        format!("{:.2}", q(0.95)),
-                        format!("{max:.2}"),
-                        format!("{missing:.3}"),
-                        format!("{age:.2}"),
-                        format!(
-                            "{:.2}",
-                            quantile(&t.local_truth_m, 0.95).unwrap_or(f64::NAN) * 100.0
-                        ),
-                        format!(
-                            "{:.2}",
-                            quantile(&t.full_truth_m, 0.95).unwrap_or(f64::NAN) * 100.0
-                        ),
-                        format!("{:.2}", t.packets_per_s),
-                        format!("{:.1}", t.bytes_per_packet),
-                        t.superseded.to_string(),
-                        t.expired.to_string(),
-                        t.queue_full_drops.to_string(),
-                    ]);
+                    csv.row(csv_row(formation, enc, rate, seed, &t));
                     cell.median_cm.push(q(0.5));
                     cell.p95_cm.push(q(0.95));
                     cell.max_cm.push(max);
@@ -458,6 +536,11 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
                     cell.age_median_s.push(age);
                     cell.packets_per_s.push(t.packets_per_s);
                     cell.bytes_per_packet.push(t.bytes_per_packet);
+                    cell.local_truth_p95_cm
+                        .push(quantile(&t.local_truth_m, 0.95).unwrap_or(f64::NAN) * 100.0);
+                    cell.full_truth_p95_cm
+                        .push(quantile(&t.full_truth_m, 0.95).unwrap_or(f64::NAN) * 100.0);
+                    cell.nav_spans_per_s.push(t.nav_spans_per_s);
                     bar.inc(1);
                 }
                 let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
@@ -477,6 +560,9 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
                         "median_oldest_news_s": range(&cell.age_median_s),
                         "packets_per_s": range(&cell.packets_per_s),
                         "bytes_per_packet": range(&cell.bytes_per_packet),
+                        "p95_local_vs_truth_cm": range(&cell.local_truth_p95_cm),
+                        "p95_full_rate_vs_truth_cm": range(&cell.full_truth_p95_cm),
+                        "nav_spans_per_s": range(&cell.nav_spans_per_s),
                     }),
                 );
             }
