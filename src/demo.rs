@@ -126,8 +126,14 @@ pub struct PairError {
 #[derive(Debug, Clone, Serialize)]
 pub struct DemoSummary {
     pub pairs: Vec<PairError>,
+    /// Camera frames the simulator published; of them, processed by the
+    /// nodes, dropped by their queues (a node behind), and lost on the bus
+    /// (published, never received: Zenoh drops a frame under congestion
+    /// without telling anyone; the node sees the gap in the sequence).
+    pub frames_published: u64,
     pub frames_processed: u64,
     pub frames_dropped: u64,
+    pub frames_lost: u64,
     pub mean_latency_ms: f64,
     /// Mean time from a tick's frames being published (its ground truth follows
     /// them) to the first fleet map that includes an observation of that tick, ms.
@@ -151,6 +157,12 @@ pub struct DemoSummary {
     pub sim_ticks: u64,
     pub sim_ticks_skipped: u64,
     pub wall_time_s: f64,
+    /// Of it: from the start to the simulator's first tick (router, services,
+    /// subscriptions), the simulated run, and from its last tick to the end
+    /// (the pipeline drained, the services stopped, the log finished).
+    pub startup_s: f64,
+    pub running_s: f64,
+    pub finishing_s: f64,
     /// The MCAP log written, with its message count and messages dropped.
     pub log: Option<LogSummary>,
     /// Simulated time at which a stop request (Ctrl-C, SIGTERM) ended the run early.
@@ -283,8 +295,6 @@ impl SimulatedSwarm {
             swarm.station = Some(station);
         }
         before_sim(&swarm)?;
-        // Let subscriptions propagate before the first frame.
-        std::thread::sleep(Duration::from_millis(300));
         swarm.sim = Some(shoal_services::sim::spawn(
             &swarm.session()?,
             SimConfig {
@@ -303,6 +313,8 @@ impl SimulatedSwarm {
                     .then(shoal_sim_bridge::nav::NavSensorParams::default),
                 hidden: cfg.occlude.into_iter().collect(),
                 profile,
+                // The first frames wait for the nodes (~0.1 s here), no longer.
+                wait_for_nodes: NODES_TIMEOUT,
             },
             clock,
         )?);
@@ -364,6 +376,13 @@ impl SimulatedSwarm {
 
     pub fn sim_finished(&self) -> bool {
         self.sim.as_ref().is_none_or(|s| s.finished())
+    }
+
+    /// Camera frames the simulator has published so far.
+    pub fn frames_published(&self) -> u64 {
+        self.sim
+            .as_ref()
+            .map_or(0, |s| s.stats().frames_published.load(Ordering::Relaxed))
     }
 
     /// Stop the simulator, then the nodes and fusion; returns the simulator's
@@ -640,6 +659,46 @@ fn stop_recorder(r: shoal_services::recorder::RecorderHandle) -> anyhow::Result<
     })
 }
 
+/// How long the simulator waits for the nodes, and the run's end for the
+/// pipeline to drain, at most.
+const NODES_TIMEOUT: Duration = Duration::from_secs(2);
+const DRAIN_TIMEOUT: Duration = Duration::from_secs(1);
+/// No frame handled for this long: the rest of the last tick is not coming.
+const DRAIN_QUIET: Duration = Duration::from_millis(200);
+
+/// After the simulator's last tick: wait until every frame it published is
+/// processed or dropped by its node (or none has been for [`DRAIN_QUIET`]:
+/// a frame the bus lost under load never comes), then for the next fleet map
+/// (which holds the last observations), within [`DRAIN_TIMEOUT`] in all.
+fn drain(swarm: &SimulatedSwarm, map_sub: &Subscription<FleetMap>, watch: &mut TrialWatch) {
+    let deadline = Instant::now() + DRAIN_TIMEOUT;
+    let published = swarm.frames_published();
+    let handled = || -> u64 {
+        swarm
+            .nodes()
+            .map(|n| n.stats().frames_processed() + n.stats().frames_dropped())
+            .sum()
+    };
+    let (mut last, mut since) = (handled(), Instant::now());
+    while last < published && since.elapsed() < DRAIN_QUIET && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(5));
+        let now = handled();
+        if now != last {
+            (last, since) = (now, Instant::now());
+        }
+    }
+    let maps_before = watch.maps.len();
+    while Instant::now() < deadline {
+        for r in map_sub.drain() {
+            watch.add_map(r);
+        }
+        if watch.maps.len() > maps_before {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+}
+
 /// Run the demo; `on_progress(sim_s, total_s, status)` is called as simulated time advances.
 pub fn run(
     cfg: &DemoConfig,
@@ -677,6 +736,7 @@ pub fn run_until(
             Ok(())
         },
     )?;
+    let startup_s = started.elapsed().as_secs_f64();
     say_where(cfg, &swarm);
     let clock = swarm.clock.clone();
     let observer_bus = swarm.session()?;
@@ -723,8 +783,8 @@ pub fn run_until(
             return Err(anyhow!("demo did not finish in time: simulator stalled"));
         }
     }
-    // Give the pipeline a moment to drain the last frames.
-    std::thread::sleep(Duration::from_millis(500));
+    let ran_until_s = started.elapsed().as_secs_f64();
+    drain(&swarm, &map_sub, &mut watch);
     let TrialWatch {
         mut truths,
         mut maps,
@@ -733,16 +793,8 @@ pub fn run_until(
     } = watch;
     maps.extend(map_sub.drain().into_iter().map(|r| r.msg));
     truths.extend(truth_sub.drain().into_iter().map(|r| r.msg));
-    let frames_processed = swarm.nodes().map(|n| n.stats().frames_processed()).sum();
-    let frames_dropped = swarm.nodes().map(|n| n.stats().frames_dropped()).sum();
-    let observations_sent = swarm
-        .nodes()
-        .map(|n| n.stats().observations_sent.load(Ordering::Relaxed))
-        .sum();
-    let latencies: Vec<f64> = swarm
-        .nodes()
-        .filter_map(|n| n.stats().mean_latency_ms())
-        .collect();
+    let frames_published = swarm.frames_published();
+    let counts = NodeCounts::of(&swarm);
     let (sim_ticks, sim_ticks_skipped) = swarm.shutdown()?;
     let log = recorder.map(stop_recorder).transpose()?;
 
@@ -753,12 +805,14 @@ pub fn run_until(
     let (nav_refused, nav_twins) = nav_verdicts(&maps);
     Ok(DemoSummary {
         pairs,
-        frames_processed,
-        frames_dropped,
-        mean_latency_ms: mean_or_nan(latencies.iter().sum(), latencies.len()),
+        frames_published,
+        frames_processed: counts.processed,
+        frames_dropped: counts.dropped,
+        frames_lost: frames_published.saturating_sub(counts.received),
+        mean_latency_ms: mean_or_nan(counts.latencies.iter().sum(), counts.latencies.len()),
         mean_end_to_end_latency_ms: mean_or_nan(e2e.0, e2e.1),
         maps_received: maps.len(),
-        observations_sent,
+        observations_sent: counts.observations_sent,
         edges_accepted: acc,
         edges_rejected: rej,
         flip_twins_rejected: twins,
@@ -770,9 +824,37 @@ pub fn run_until(
         sim_ticks,
         sim_ticks_skipped,
         wall_time_s: started.elapsed().as_secs_f64(),
+        startup_s,
+        running_s: ran_until_s - startup_s,
+        finishing_s: started.elapsed().as_secs_f64() - ran_until_s,
         log,
         interrupted_at_s,
     })
+}
+
+/// The nodes' counters, summed over the vehicles (latencies: each node's mean).
+struct NodeCounts {
+    processed: u64,
+    dropped: u64,
+    received: u64,
+    observations_sent: u64,
+    latencies: Vec<f64>,
+}
+
+impl NodeCounts {
+    fn of(swarm: &SimulatedSwarm) -> NodeCounts {
+        let sum = |f: &dyn Fn(&NodeHandle) -> u64| swarm.nodes().map(f).sum();
+        NodeCounts {
+            processed: sum(&|n| n.stats().frames_processed()),
+            dropped: sum(&|n| n.stats().frames_dropped()),
+            received: sum(&|n| n.stats().frames_in()),
+            observations_sent: sum(&|n| n.stats().observations_sent.load(Ordering::Relaxed)),
+            latencies: swarm
+                .nodes()
+                .filter_map(|n| n.stats().mean_latency_ms())
+                .collect(),
+        }
+    }
 }
 
 /// The formation to hold: every follower's starting offset from the reference.

@@ -279,6 +279,17 @@ impl<M: WireMessage> Publisher<M> {
         })
     }
 
+    /// Whether a subscriber matching this key is known to the session now
+    /// (its own, or one the router has told it of): a publisher whose
+    /// session does not know of one does not send. `false` when the session
+    /// cannot say.
+    pub fn has_subscribers(&self) -> bool {
+        self.publisher
+            .matching_status()
+            .wait()
+            .is_ok_and(|s| s.matching())
+    }
+
     pub fn key(&self) -> &str {
         &self.key
     }

@@ -72,6 +72,15 @@ pub struct SimConfig {
     /// hold the calibration a lab would have for such a camera, not the
     /// renderer's (the demo's `--profile`).
     pub profile: Option<CameraProfile>,
+    /// Before the first tick, wait up to this long until every vehicle whose
+    /// cameras are rendered has a node alive (its liveliness token, declared
+    /// after its frame subscriptions on the same session, so the router knows
+    /// them by then) and each rendered camera's publisher knows of a
+    /// subscriber (else its session does not send), so that the first frames
+    /// are not published to no one; the clock starts after (zero: start at
+    /// once). Either alone lost frames: a recorder subscribed to every key
+    /// matches at once, and the token can arrive before the subscriptions.
+    pub wait_for_nodes: Duration,
 }
 
 /// Vehicle `vehicle`'s camera in the swarm world over a frame's exposure,
@@ -331,6 +340,52 @@ fn pace(cfg: &SimConfig, started: Instant, t_s: f64, dt: f64) -> bool {
 }
 
 /// Start the simulator on `bus`; `clock` follows simulation time.
+/// The vehicles whose node is alive, watched while the first tick waits for
+/// them ([`SimConfig::wait_for_nodes`]).
+struct NodeWait {
+    alive: Arc<std::sync::Mutex<std::collections::BTreeSet<VehicleId>>>,
+    until: Instant,
+    _watch: shoal_bus::Declaration,
+}
+
+impl NodeWait {
+    fn watch(bus: &Bus, keys: &Keys, longest: Duration) -> Result<Option<NodeWait>, BusError> {
+        if longest.is_zero() {
+            return Ok(None);
+        }
+        let alive: Arc<std::sync::Mutex<std::collections::BTreeSet<VehicleId>>> = Arc::default();
+        let (alive2, keys2) = (alive.clone(), keys.clone());
+        let watch = bus.watch_liveliness(&keys.all_alive(), move |key, up| {
+            if let (Ok(KeyKind::Alive { vehicle }), Ok(mut a)) = (keys2.parse(key), alive2.lock()) {
+                if up {
+                    a.insert(vehicle);
+                } else {
+                    a.remove(&vehicle);
+                }
+            }
+        })?;
+        Ok(Some(NodeWait {
+            alive,
+            until: Instant::now() + longest,
+            _watch: watch,
+        }))
+    }
+
+    /// Until every camera's vehicle has a node alive and its publisher knows
+    /// of a subscriber, the time is up, or `stop`.
+    fn wait(self, cams: &[SimCamera], stop: &AtomicBool) {
+        let ready = |c: &SimCamera| {
+            self.alive.lock().is_ok_and(|a| a.contains(&c.0)) && c.3.has_subscribers()
+        };
+        while Instant::now() < self.until
+            && !stop.load(Ordering::Relaxed)
+            && !cams.iter().all(ready)
+        {
+            std::thread::sleep(Duration::from_millis(2));
+        }
+    }
+}
+
 pub fn spawn(bus: &Bus, cfg: SimConfig, clock: Arc<ManualClock>) -> Result<SimHandle, BusError> {
     let keys = cfg.fleet.keys();
     let mut world = SwarmWorld::new(&cfg.fleet, cfg.formation, cfg.spacing_m, cfg.seed)
@@ -344,6 +399,7 @@ pub fn spawn(bus: &Bus, cfg: SimConfig, clock: Arc<ManualClock>) -> Result<SimHa
     let truth_pub: Publisher<SimTruth> = bus.publisher(keys.truth())?;
     let mut nav = nav_sensors(bus, &cfg, &keys)?;
     let commands: Subscription<VehicleCommand> = bus.subscribe(&keys.all_commands(), 64)?;
+    let nodes = NodeWait::watch(bus, &keys, cfg.wait_for_nodes)?;
     let stop = Arc::new(AtomicBool::new(false));
     let finished = Arc::new(AtomicBool::new(false));
     let stats = Arc::new(SimStats::default());
@@ -355,6 +411,9 @@ pub fn spawn(bus: &Bus, cfg: SimConfig, clock: Arc<ManualClock>) -> Result<SimHa
             let _session = bus;
             let mut renderer = Renderer::new();
             let dt = 1.0 / cfg.frame_rate_hz.max(0.1);
+            if let Some(nodes) = nodes {
+                nodes.wait(&cams, &stop2);
+            }
             let started = Instant::now();
             let mut tick = 0u64;
             while !stop2.load(Ordering::Relaxed) {

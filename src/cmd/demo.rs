@@ -208,16 +208,21 @@ fn print_figures(summary: &shoal::demo::DemoSummary) {
         );
     }
     shoal::outln!(
-        "frames processed {} (dropped {}), mean per-frame pipeline latency {:.1} ms, frame-to-map latency {:.0} ms, observations {}, maps {}, sim ticks {} ({} skipped), wall time {:.1} s",
+        "frames published {}, processed {} (dropped by the nodes {}, never received {}), mean per-frame pipeline latency {:.1} ms, frame-to-map latency {:.0} ms, observations {}, maps {}, sim ticks {} ({} skipped), wall time {:.1} s ({:.1} s start-up, {:.1} s running, {:.1} s finishing)",
+        summary.frames_published,
         summary.frames_processed,
         summary.frames_dropped,
+        summary.frames_lost,
         summary.mean_latency_ms,
         summary.mean_end_to_end_latency_ms,
         summary.observations_sent,
         summary.maps_received,
         summary.sim_ticks,
         summary.sim_ticks_skipped,
-        summary.wall_time_s
+        summary.wall_time_s,
+        summary.startup_s,
+        summary.running_s,
+        summary.finishing_s
     );
     shoal::outln!(
         "last map: {} hypotheses accepted, {} observations rejected, {} planar-flip twins rejected (by vote or by the vehicles' nav)",

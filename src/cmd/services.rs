@@ -469,6 +469,8 @@ pub fn run_sim(a: SimArgs) -> anyhow::Result<()> {
             nav: (!a.no_nav).then(shoal_sim_bridge::nav::NavSensorParams::default),
             hidden: a.occlude.into_iter().collect(),
             profile: None,
+            // Nodes started by hand in other terminals come when they come.
+            wait_for_nodes: std::time::Duration::ZERO,
         },
         clock,
     )?;
