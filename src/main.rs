@@ -31,6 +31,10 @@ struct Cli {
 #[derive(Debug, Subcommand)]
 enum Command {
     /// Run the simulated three-vehicle swarm of the paper's §6.3 end to end (no setup needed).
+    ///
+    /// Through a camera profile (`--profile realistic`) the simulator renders
+    /// every camera through it and every node holds a lab's calibration of
+    /// its camera, not the renderer's.
     Demo(cmd::demo::DemoArgs),
     /// Run one vehicle's node: cameras → restoration → detection → pose → observations on Zenoh.
     Node(cmd::services::NodeArgs),
@@ -53,6 +57,12 @@ enum Command {
     /// Restore an underwater image (HOIRM or a baseline).
     Restore(cmd::tools::RestoreArgs),
     /// Measure shoal against the paper and the baselines: CSV, plots and summary.json per experiment.
+    ///
+    /// `--profile`, `--effect` and `--profile-file` are taken by `detection`,
+    /// `restoration`, `accuracy`, `accuracy-yaw`, `accuracy-rmse`, `fit-noise`,
+    /// `swarm` and `node-rate` (the frames rendered through the profile);
+    /// `fusion`, `links` and `nav` take `realistic` as the observation model
+    /// fitted to that camera; the other experiments refuse them.
     Eval(cmd::eval::EvalArgs),
     /// Record the fleet's Zenoh traffic into an MCAP log (wire bytes unchanged + Foxglove channels).
     Record(cmd::log::RecordArgs),

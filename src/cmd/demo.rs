@@ -1,4 +1,3 @@
-use anyhow::Context;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use shoal::demo::{run_until, DemoConfig};
@@ -74,20 +73,8 @@ pub struct DemoArgs {
     port: u16,
     #[command(flatten)]
     ros2: super::net::Ros2Args,
-    /// Camera profile the simulator renders through: `ideal` (the renderer as
-    /// it is) or `realistic` (motion blur, rolling shutter, flat port, lamps,
-    /// marine snow, other PSFs, exposure, JPEG, calibration error;
-    /// docs/water-model.md). Through a profile every node holds a lab's
-    /// calibration of its camera, not the renderer's. Each frame takes ~15x
-    /// longer to render, so the time scale defaults to 0.1 through a profile.
-    #[arg(long, default_value = "ideal")]
-    profile: String,
-    /// Only these camera effects (repeatable; replaces --profile), as `shoal sim render --effect`.
-    #[arg(long = "effect", value_name = "NAME")]
-    effects: Vec<String>,
-    /// A camera profile file (TOML, as `shoal sim render --profile-file`; replaces --profile and --effect).
-    #[arg(long)]
-    profile_file: Option<PathBuf>,
+    #[command(flatten)]
+    profile: super::sim_render::ProfileArgs,
 }
 
 /// The default time scale through a camera profile: its frames (motion
@@ -120,10 +107,7 @@ pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
         ros2: None,
         profile: None,
     };
-    let profile =
-        super::sim_render::profile_of(&a.profile, &a.effects, a.profile_file.as_deref(), None)
-            .context("the camera profile (--profile, --effect, --profile-file)")?;
-    cfg.profile = (!profile.is_ideal()).then_some(profile);
+    cfg.profile = a.profile.selected(None)?.filter(|p| !p.is_ideal());
     if cfg.profile.is_some() && a.time_scale.is_none() {
         cfg.time_scale = PROFILE_TIME_SCALE;
     }

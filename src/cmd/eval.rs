@@ -43,22 +43,13 @@ pub struct EvalArgs {
     /// Set a restoration parameter (a `RestoreParams` field) for every restorer of the experiment, e.g. `psf_px_per_unit=8`, `order=physical`; repeatable.
     #[arg(long = "restore-param", value_name = "NAME=VALUE")]
     restore_param: Vec<String>,
-    /// Camera profile the frames are rendered through: `ideal` (the default: the renderer
-    /// every figure used so far) or `realistic` (every camera effect, issue #16). Taken by
-    /// `detection`, `restoration`, `accuracy`, `accuracy-yaw`, `accuracy-rmse`, `fit-noise`, `swarm` and `node-rate`; `fusion`,
-    /// `links` and `nav` take `realistic` as the observation model fitted to that camera;
-    /// the other experiments refuse it.
-    #[arg(long)]
-    profile: Option<String>,
-    /// Only these camera effects, with typical parameters (repeatable; replaces --profile),
-    /// as `shoal sim render --effect`: motion-blur, rolling-shutter, port, lamps, snow, psf,
-    /// vignetting, colour, exposure, jpeg, h264, calibration.
-    #[arg(long = "effect", value_name = "NAME")]
-    effects: Vec<String>,
-    /// A camera profile file (TOML, as `shoal sim render --profile-file`; replaces --profile
-    /// and --effect).
-    #[arg(long)]
-    profile_file: Option<PathBuf>,
+    // The camera profile the frames are rendered through (issue #16). Taken by
+    // `detection`, `restoration`, `accuracy`, `accuracy-yaw`, `accuracy-rmse`, `fit-noise`,
+    // `swarm` and `node-rate`; `fusion`, `links` and `nav` take `realistic` as the
+    // observation model fitted to that camera; the other experiments refuse it
+    // (`eval::run`, naming the experiment).
+    #[command(flatten)]
+    profile: super::sim_render::ProfileArgs,
     /// `real`: the folder of real recordings, one sub-folder with an eval.json each (default: $SHOAL_REAL_DATA, ../shared/data/real, data/real).
     #[arg(long)]
     data: Option<PathBuf>,
@@ -108,19 +99,7 @@ pub fn run_eval(a: EvalArgs) -> anyhow::Result<()> {
         data: a.data.clone(),
         split: a.split.clone(),
         restore_params: eval::restore_params::from_assignments(&a.restore_param)?,
-        profile: if a.profile.is_some() || !a.effects.is_empty() || a.profile_file.is_some() {
-            Some(
-                super::sim_render::profile_of(
-                    a.profile.as_deref().unwrap_or("ideal"),
-                    &a.effects,
-                    a.profile_file.as_deref(),
-                    None,
-                )
-                .context("the camera profile (--profile, --effect, --profile-file)")?,
-            )
-        } else {
-            None
-        },
+        profile: a.profile.selected(None)?,
     };
     let summary = eval::run(experiment, &opts).with_context(|| format!("eval {experiment}"))?;
     shoal::outln!("{}", serde_json::to_string_pretty(&summary)?);
