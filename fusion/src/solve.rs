@@ -81,6 +81,39 @@ impl Fusion {
         self.nav.evict(now_ns, nav_keep_ns);
     }
 
+    /// Step 2: the tracks' groups and each group's motion fit. Once pairs
+    /// are seen to move, older frames describe the past to within how far a
+    /// pair moves in that time: the tracks of the frames that grows are
+    /// grouped and fitted again with that known.
+    fn group_and_fit(
+        &self,
+        frames: &mut [frames::Frame],
+        now_ns: u64,
+        threads: usize,
+    ) -> (groups::TrackGroups, motion::GroupFits) {
+        let (gate, fuse) = (
+            self.params.consistency.gate_chi2,
+            self.params.consistency.fuse_tracks,
+        );
+        let groups = groups::group_tracks(frames, gate, fuse, threads);
+        let fits = motion::fit_groups(frames, &groups, &self.params.motion, threads);
+        let moving = motion::pair_motion(frames, &groups, &fits, &self.params.motion);
+        if moving.is_empty() {
+            return (groups, fits);
+        }
+        let changed = frames::inflate_moving(frames, &moving, now_ns, threads);
+        let frames = &*frames;
+        groups::regroup_changed(
+            frames,
+            (groups, fits),
+            &changed,
+            gate,
+            fuse,
+            |g| motion::fit_groups(frames, g, &self.params.motion, threads),
+            threads,
+        )
+    }
+
     /// [`Self::solve`] on `threads` threads of the current pool, its wall
     /// clock started at `started`.
     fn solve_on(&mut self, now_ns: u64, started: Option<Instant>, threads: usize) -> FleetMap {
@@ -92,24 +125,7 @@ impl Fusion {
         let mut frames = frames::measured(&entries, now_ns, &self.params.age_inflation, threads);
         let (nav_verdicts, nav_stats) = nav::check(&mut frames, &self.nav, &self.params.nav);
         let frames_us = elapsed_us(started);
-        let group = |frames: &[frames::Frame]| {
-            groups::group_tracks(
-                frames,
-                consistency.gate_chi2,
-                consistency.fuse_tracks,
-                threads,
-            )
-        };
-        let mut groups = group(&frames);
-        // Once pairs are seen to move, older frames describe the past to within
-        // how far a pair moves in that time: grouped again with that known.
-        let mut fits = motion::fit_groups(&frames, &groups, &self.params.motion, threads);
-        let moving = motion::pair_motion(&frames, &groups, &fits, &self.params.motion);
-        if !moving.is_empty() {
-            frames::inflate_moving(&mut frames, &moving, now_ns, threads);
-            groups = group(&frames);
-            fits = motion::fit_groups(&frames, &groups, &self.params.motion, threads);
-        }
+        let (groups, fits) = self.group_and_fit(&mut frames, now_ns, threads);
         let superseded = groups.superseded_frames(frames.len());
         let moving_groups = motion::compensate(&mut frames, &groups, &fits, threads);
         let groups_us = elapsed_us(started).saturating_sub(frames_us);

@@ -121,17 +121,29 @@ const PER_THREAD: usize = 256;
 /// in a large still swarm some fit passes the significance test by chance, and
 /// its rate given to every pair would merge a marker's planar flips (tens of
 /// degrees apart) into one track. Nothing changes while nothing moves.
+///
+/// Returns, per frame, whether it changed: a frame given no motion (or of
+/// age zero) is left as it was, bit for bit, so its track's groups stand.
 pub(crate) fn inflate_moving(
     frames: &mut [Frame],
     moving: &super::motion::PairMotion,
     now_ns: u64,
     threads: usize,
-) {
+) -> Vec<bool> {
     let fastest = moving.fastest();
-    crate::par::for_each_mut(frames, threads, PER_THREAD, |_, f| {
-        let (speed, turn) = moving.bound(f.pair(), fastest);
-        let age_s = now_ns.saturating_sub(f.stamp_ns) as f64 * 1e-9;
-        let (dt2, dr2) = ((speed * age_s).powi(2), (turn * age_s).powi(2));
+    let growth: Vec<(f64, f64)> = frames
+        .iter()
+        .map(|f| {
+            let (speed, turn) = moving.bound(f.pair(), fastest);
+            let age_s = now_ns.saturating_sub(f.stamp_ns) as f64 * 1e-9;
+            ((speed * age_s).powi(2), (turn * age_s).powi(2))
+        })
+        .collect();
+    crate::par::for_each_mut(frames, threads, PER_THREAD, |i, f| {
+        let (dt2, dr2) = growth[i];
+        if dt2 == 0.0 && dr2 == 0.0 {
+            return;
+        }
         f.inflation[0] += dt2;
         f.inflation[1] += dr2;
         for h in f.hyps.iter_mut() {
@@ -145,6 +157,10 @@ pub(crate) fn inflate_moving(
             }
         }
     });
+    growth
+        .into_iter()
+        .map(|(dt2, dr2)| dt2 != 0.0 || dr2 != 0.0)
+        .collect()
 }
 
 #[cfg(test)]

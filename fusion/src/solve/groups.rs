@@ -196,13 +196,25 @@ pub(crate) fn group_tracks(
     fuse: bool,
     threads: usize,
 ) -> TrackGroups {
+    group_tracks_where(frames, gate_chi2, fuse, threads, |_| true)
+}
+
+/// [`group_tracks`] of the frames `take` keeps only (a frame's whole track
+/// must be kept or left, as [`regroup_changed`] does).
+fn group_tracks_where(
+    frames: &[Frame],
+    gate_chi2: f64,
+    fuse: bool,
+    threads: usize,
+    take: impl Fn(usize) -> bool,
+) -> TrackGroups {
     // Each track's frames, newest first (frames are in time order): a
     // group's leaders are its most recent frames, so it describes the
     // present. A frame without a primary hypothesis has nothing to compare
     // with: it stands alone.
     let mut groups: Vec<(Vec<usize>, bool)> = Vec::new();
     let mut tracks: BTreeMap<TrackKey, Vec<usize>> = BTreeMap::new();
-    for (i, f) in frames.iter().enumerate().rev() {
+    for (i, f) in frames.iter().enumerate().rev().filter(|(i, _)| take(*i)) {
         if f.hyps[0].is_none() {
             groups.push((vec![i], false));
         } else {
@@ -224,6 +236,69 @@ pub(crate) fn group_tracks(
         members,
         superseded,
     }
+}
+
+/// A group's members and whether it is superseded; a group's fits.
+type GroupEntry = (Vec<usize>, bool);
+type FitPair = [Option<super::motion::Fit>; 2];
+
+/// The groups and their motion fits after some frames `changed` (their
+/// covariances grown, [`super::frames::inflate_moving`]): the tracks with a
+/// changed frame grouped and fitted again, every other group and fit kept as
+/// it was (tracks are grouped and groups fitted independently, so the result
+/// is the same, bit for bit, as grouping and fitting everything again).
+pub(crate) fn regroup_changed(
+    frames: &[Frame],
+    old: (TrackGroups, super::motion::GroupFits),
+    changed: &[bool],
+    gate_chi2: f64,
+    fuse: bool,
+    fit: impl Fn(&TrackGroups) -> super::motion::GroupFits,
+    threads: usize,
+) -> (TrackGroups, super::motion::GroupFits) {
+    // A frame without a primary hypothesis stands alone: regrouped when changed.
+    let dirty: std::collections::BTreeSet<TrackKey> = frames
+        .iter()
+        .zip(changed)
+        .filter(|(f, c)| **c && f.hyps[0].is_some())
+        .map(|(f, _)| f.track)
+        .collect();
+    let redo = |i: usize| {
+        if frames[i].hyps[0].is_some() {
+            dirty.contains(&frames[i].track)
+        } else {
+            changed[i]
+        }
+    };
+    let (old_groups, old_fits) = old;
+    if dirty.is_empty() && !changed.iter().any(|c| *c) {
+        return (old_groups, old_fits);
+    }
+    let new_groups = group_tracks_where(frames, gate_chi2, fuse, threads, redo);
+    let new_fits = fit(&new_groups);
+    // A group lies in one track (or is one frame): kept when its first frame is not redone.
+    let kept = old_groups
+        .members
+        .into_iter()
+        .zip(old_groups.superseded)
+        .zip(old_fits)
+        .filter(|((m, _), _)| !redo(m[0]));
+    let fresh = new_groups
+        .members
+        .into_iter()
+        .zip(new_groups.superseded)
+        .zip(new_fits);
+    let mut all: Vec<(GroupEntry, FitPair)> = kept.chain(fresh).collect();
+    all.sort_unstable_by_key(|((m, _), _)| m[0]);
+    let (groups, fits): (Vec<GroupEntry>, super::motion::GroupFits) = all.into_iter().unzip();
+    let (members, superseded) = groups.into_iter().unzip();
+    (
+        TrackGroups {
+            members,
+            superseded,
+        },
+        fits,
+    )
 }
 
 /// Tracks per thread at least ([`crate::par`]).
@@ -467,6 +542,61 @@ mod tests {
             fuse_sharing_inflation(&items, false),
             consistency::fuse(&plain)
         );
+    }
+
+    #[test]
+    fn regrouping_the_changed_tracks_only_gives_what_regrouping_all_gives() {
+        use crate::solve::motion::{fit_groups, MotionModel};
+        // Three tracks of observer 1, interleaved in time: 2 moving 3 cm a
+        // frame (split into groups by its motion), 3 still, 4 with a frame
+        // that has no primary (standing alone) and a flip.
+        let mut frames = Vec::new();
+        for k in 0..6 {
+            let t = k as u64 * FRAME_NS;
+            let n = frames.len();
+            frames.push(frame(n, 1, 2, t, at(0.03 * k as f64), None));
+            frames.push(frame(n + 1, 1, 3, t, at(0.5), None));
+            let mut f = frame(n + 2, 1, 4, t, at(-0.5), Some(at(-0.4)));
+            if k == 2 {
+                f.hyps[0] = None;
+            }
+            frames.push(f);
+        }
+        let model = MotionModel::default();
+        let fit = |fr: &[Frame], g: &TrackGroups| fit_groups(fr, g, &model, 2);
+        let before = group_tracks(&frames, GATE, true, 2);
+        let before_fits = fit(&frames, &before);
+        assert_eq!(before.members.len(), 5, "{:?}", before.members);
+        // Track 2's frames and the lone frame grown, as a pair seen to move would be.
+        let mut changed = vec![false; frames.len()];
+        for (i, f) in frames.iter_mut().enumerate() {
+            if f.track.marker == 2 || f.hyps[0].is_none() {
+                for h in f.hyps.iter_mut().flatten() {
+                    let mut cov = h.covariance;
+                    for d in 0..3 {
+                        cov[(d, d)] += 1e-3;
+                    }
+                    *h = Candidate::new(h.observation, h.hypothesis, h.a_from_b, cov).unwrap();
+                }
+                changed[i] = true;
+            }
+        }
+        let all = group_tracks(&frames, GATE, true, 2);
+        let all_fits = fit(&frames, &all);
+        // The premise: track 2's groups change with its covariances.
+        assert_ne!(all.members, before.members);
+        let (g, fits) = regroup_changed(
+            &frames,
+            (before, before_fits),
+            &changed,
+            GATE,
+            true,
+            |g| fit(&frames, g),
+            2,
+        );
+        assert_eq!(g.members, all.members);
+        assert_eq!(g.superseded, all.superseded);
+        assert_eq!(fits, all_fits);
     }
 
     #[test]
