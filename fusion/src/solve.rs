@@ -83,8 +83,8 @@ impl Fusion {
 
     /// Step 2: the tracks' groups and each group's motion fit. Once pairs
     /// are seen to move, older frames describe the past to within how far a
-    /// pair moves in that time: the tracks of the frames that grows are
-    /// grouped and fitted again with that known.
+    /// pair moves in that time: the tracks whose frames grew are grouped and
+    /// fitted again with that known.
     fn group_and_fit(
         &self,
         frames: &mut [frames::Frame],
