@@ -152,6 +152,37 @@ pub enum NavRejected {
     Invalid { field: &'static str, why: String },
 }
 
+/// The checks every nav state or span passes before it is held: its vehicle
+/// is the key's (`(claimed, arrived_on)`) and in the fleet, its fields
+/// valid, it begins no later than the clock-skew bound after `now_ns` and
+/// ends within `window_ns` before it (`(skew, window)`).
+fn admissible(
+    fleet: &Fleet,
+    (claimed, arrived_on): (VehicleId, VehicleId),
+    valid: Result<(), (&'static str, String)>,
+    (from_ns, to_ns): (u64, u64),
+    now_ns: u64,
+    (max_clock_skew_ns, window_ns): (u64, u64),
+) -> Result<(), NavRejected> {
+    if claimed != arrived_on {
+        return Err(NavRejected::SenderMismatch {
+            claimed,
+            arrived_on,
+        });
+    }
+    if fleet.vehicle(claimed).is_none() {
+        return Err(NavRejected::UnknownVehicle(claimed));
+    }
+    valid.map_err(|(field, why)| NavRejected::Invalid { field, why })?;
+    if from_ns > now_ns.saturating_add(max_clock_skew_ns) {
+        return Err(NavRejected::ClockSkew { stamp_ns: from_ns });
+    }
+    if to_ns.saturating_add(window_ns) < now_ns {
+        return Err(NavRejected::Stale { stamp_ns: to_ns });
+    }
+    Ok(())
+}
+
 /// Spacing of the samples a linked navigation span is held as ([`NavWindow::admit_span`]).
 pub const LINKED_NAV_STEP_NS: u64 = 50_000_000;
 
@@ -197,27 +228,14 @@ impl NavWindow {
         limits: &Admission,
         max_samples: usize,
     ) -> Result<(), NavRejected> {
-        if nav.vehicle != arrived_on {
-            return Err(NavRejected::SenderMismatch {
-                claimed: nav.vehicle,
-                arrived_on,
-            });
-        }
-        if fleet.vehicle(nav.vehicle).is_none() {
-            return Err(NavRejected::UnknownVehicle(nav.vehicle));
-        }
-        nav.validate()
-            .map_err(|(field, why)| NavRejected::Invalid { field, why })?;
-        if nav.stamp_ns > now_ns.saturating_add(limits.max_clock_skew_ns) {
-            return Err(NavRejected::ClockSkew {
-                stamp_ns: nav.stamp_ns,
-            });
-        }
-        if nav.stamp_ns.saturating_add(limits.window_ns) < now_ns {
-            return Err(NavRejected::Stale {
-                stamp_ns: nav.stamp_ns,
-            });
-        }
+        admissible(
+            fleet,
+            (nav.vehicle, arrived_on),
+            nav.validate(),
+            (nav.stamp_ns, nav.stamp_ns),
+            now_ns,
+            (limits.max_clock_skew_ns, limits.window_ns),
+        )?;
         let list = self.samples.entry(nav.vehicle).or_default();
         list.insert(nav.stamp_ns, nav);
         while list.len() > max_samples.max(1) {
@@ -242,27 +260,14 @@ impl NavWindow {
         limits: &Admission,
         max_samples: usize,
     ) -> Result<usize, NavRejected> {
-        if span.vehicle != arrived_on {
-            return Err(NavRejected::SenderMismatch {
-                claimed: span.vehicle,
-                arrived_on,
-            });
-        }
-        if fleet.vehicle(span.vehicle).is_none() {
-            return Err(NavRejected::UnknownVehicle(span.vehicle));
-        }
-        span.validate()
-            .map_err(|(field, why)| NavRejected::Invalid { field, why })?;
-        if span.from_ns > now_ns.saturating_add(limits.max_clock_skew_ns) {
-            return Err(NavRejected::ClockSkew {
-                stamp_ns: span.from_ns,
-            });
-        }
-        if span.to_ns.saturating_add(limits.link_window_ns) < now_ns {
-            return Err(NavRejected::Stale {
-                stamp_ns: span.to_ns,
-            });
-        }
+        admissible(
+            fleet,
+            (span.vehicle, arrived_on),
+            span.validate(),
+            (span.from_ns, span.to_ns),
+            now_ns,
+            (limits.max_clock_skew_ns, limits.link_window_ns),
+        )?;
         let arrived = self.linked.entry(span.vehicle).or_default();
         arrived.entry((span.from_ns, span.to_ns)).or_insert(now_ns);
         while arrived.len() > max_samples.max(1) {

@@ -850,6 +850,31 @@ fn run_with_nav(
     (map, all, truth_poses(&fleet, &truth))
 }
 
+/// Every one of `flipped` twins refused by gravity, both vehicles Live,
+/// within 2 cm and 1° of `truth`.
+fn assert_gravity_settled(
+    map: &shoal_proto::FleetMap,
+    flipped: usize,
+    truth: &BTreeMap<u32, shoal_proto::Pose>,
+) {
+    let gravity = map
+        .edges
+        .iter()
+        .filter(|e| e.rejected == Some(RejectReason::Gravity))
+        .count();
+    assert!(
+        gravity >= flipped,
+        "{gravity} gravity rejections, {flipped} flips"
+    );
+    let (t_err, r_err, live) = map_error(map, truth);
+    assert_eq!(live, 2);
+    assert!(
+        t_err < 0.02 && r_err.to_degrees() < 1.0,
+        "{t_err} m, {} deg",
+        r_err.to_degrees()
+    );
+}
+
 #[test]
 fn gravity_settles_planar_flips_that_votes_cannot() {
     // Two vehicles, one camera heard, every visible flip taken as the
@@ -864,22 +889,7 @@ fn gravity_settles_planar_flips_that_votes_cannot() {
     assert!(flipped >= 10, "{flipped} flipped of {}", obs.len());
     let s = score(&map, &obs);
     assert_eq!((s.true_rejected, s.false_accepted), (0, 0), "{s:?}");
-    let gravity = map
-        .edges
-        .iter()
-        .filter(|e| e.rejected == Some(RejectReason::Gravity))
-        .count();
-    assert!(
-        gravity >= flipped,
-        "{gravity} gravity rejections, {flipped} flips"
-    );
-    let (t_err, r_err, live) = map_error(&map, &truth);
-    assert_eq!(live, 2);
-    assert!(
-        t_err < 0.02 && r_err.to_degrees() < 1.0,
-        "{t_err} m, {} deg",
-        r_err.to_degrees()
-    );
+    assert_gravity_settled(&map, flipped, &truth);
 
     // The premise: the same frames without nav put the pair on its twin.
     let (map, _, truth) = run_with_nav(2, Some(1), 1.0, None, FusionParams::default(), 3);
@@ -946,23 +956,8 @@ fn gravity_settles_planar_flips_from_nav_spans_that_crossed_a_link() {
         flipped >= 10 && spans == 6,
         "{flipped} flips, {spans} spans"
     );
-    let gravity = map
-        .edges
-        .iter()
-        .filter(|e| e.rejected == Some(RejectReason::Gravity))
-        .count();
-    assert!(
-        gravity >= flipped,
-        "{gravity} gravity rejections, {flipped} flips"
-    );
     let truth_poses = truth_poses(&fleet, &truth);
-    let (t_err, r_err, live) = map_error(&map, &truth_poses);
-    assert_eq!(live, 2);
-    assert!(
-        t_err < 0.02 && r_err.to_degrees() < 1.0,
-        "{t_err} m, {} deg",
-        r_err.to_degrees()
-    );
+    assert_gravity_settled(&map, flipped, &truth_poses);
     // Without the spans the same frames put the pair on its twin.
     let (map, _, _) = run(false);
     let (_, r_err, _) = map_error(&map, &truth_poses);

@@ -1,3 +1,4 @@
+use anyhow::Context;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use shoal::demo::{run_until, DemoConfig};
@@ -74,7 +75,7 @@ pub struct DemoArgs {
     #[command(flatten)]
     ros2: super::net::Ros2Args,
     #[command(flatten)]
-    profile: super::sim_render::ProfileArgs,
+    profile: shoal::eval::profiles::ProfileArgs,
 }
 
 /// The default time scale through a camera profile: its frames (motion
@@ -107,7 +108,11 @@ pub fn run_demo(a: DemoArgs) -> anyhow::Result<()> {
         ros2: None,
         profile: None,
     };
-    cfg.profile = a.profile.selected(None)?.filter(|p| !p.is_ideal());
+    cfg.profile = a
+        .profile
+        .selected(None)
+        .context("the camera profile (--profile, --effect, --profile-file)")?
+        .filter(|p| !p.is_ideal());
     if cfg.profile.is_some() && a.time_scale.is_none() {
         cfg.time_scale = PROFILE_TIME_SCALE;
     }

@@ -49,7 +49,7 @@ pub struct EvalArgs {
     // observation model fitted to that camera; the other experiments refuse it
     // (`eval::run`, naming the experiment).
     #[command(flatten)]
-    profile: super::sim_render::ProfileArgs,
+    profile: shoal::eval::profiles::ProfileArgs,
     /// `real`: the folder of real recordings, one sub-folder with an eval.json each (default: $SHOAL_REAL_DATA, ../shared/data/real, data/real).
     #[arg(long)]
     data: Option<PathBuf>,
@@ -99,7 +99,10 @@ pub fn run_eval(a: EvalArgs) -> anyhow::Result<()> {
         data: a.data.clone(),
         split: a.split.clone(),
         restore_params: eval::restore_params::from_assignments(&a.restore_param)?,
-        profile: a.profile.selected(None)?,
+        profile: a
+            .profile
+            .selected(None)
+            .context("the camera profile (--profile, --effect, --profile-file)")?,
     };
     let summary = eval::run(experiment, &opts).with_context(|| format!("eval {experiment}"))?;
     shoal::outln!("{}", serde_json::to_string_pretty(&summary)?);

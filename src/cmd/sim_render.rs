@@ -35,7 +35,7 @@ pub struct RenderArgs {
     #[arg(long, default_value_t = 0.0, value_parser = super::args::non_negative)]
     time: f64,
     #[command(flatten)]
-    profile: ProfileArgs,
+    profile: shoal::eval::profiles::ProfileArgs,
     /// Seed of the profile's own draws (PSF family, marine snow, calibration error).
     #[arg(long)]
     profile_seed: Option<u64>,
@@ -44,44 +44,6 @@ pub struct RenderArgs {
     /// calibration, what the profile did).
     #[arg(long)]
     out: PathBuf,
-}
-
-/// The camera profile options of `shoal sim render`, `shoal demo` and `shoal eval`.
-#[derive(Debug, Clone, Args)]
-pub struct ProfileArgs {
-    /// Camera profile: `ideal` (the renderer as it is; the default) or
-    /// `realistic` (motion blur, rolling shutter, flat port, lamps, marine
-    /// snow, other PSFs, vignetting, exposure, compression, calibration error,
-    /// typical parameters; docs/water-model.md).
-    #[arg(long)]
-    pub profile: Option<String>,
-    /// Only these effects, with typical parameters (repeatable; replaces --profile): motion-blur,
-    /// rolling-shutter, port, lamps, snow, psf, vignetting, colour, exposure, jpeg, h264, calibration.
-    #[arg(long = "effect", value_name = "NAME")]
-    pub effects: Vec<String>,
-    /// A camera profile file (TOML; replaces --profile and --effect).
-    #[arg(long)]
-    pub profile_file: Option<PathBuf>,
-}
-
-impl ProfileArgs {
-    /// The profile asked for, validated, its own draws seeded by `seed`
-    /// when given; `None` when no option was.
-    pub fn selected(&self, seed: Option<u64>) -> anyhow::Result<Option<CameraProfile>> {
-        if self.profile.is_none() && self.effects.is_empty() && self.profile_file.is_none() {
-            return Ok(None);
-        }
-        let mut p = CameraProfile::selected(
-            self.profile.as_deref().unwrap_or("ideal"),
-            &self.effects,
-            self.profile_file.as_deref(),
-        )
-        .context("the camera profile (--profile, --effect, --profile-file)")?;
-        if let Some(s) = seed {
-            p.seed = s;
-        }
-        Ok(Some(p))
-    }
 }
 
 fn formation(name: &str) -> anyhow::Result<Formation> {
@@ -95,7 +57,11 @@ fn formation(name: &str) -> anyhow::Result<Formation> {
 }
 
 pub fn run(a: RenderArgs) -> anyhow::Result<()> {
-    let profile = match a.profile.selected(a.profile_seed)? {
+    let profile = match a
+        .profile
+        .selected(a.profile_seed)
+        .context("the camera profile (--profile, --effect, --profile-file)")?
+    {
         Some(p) => p,
         None => CameraProfile::selected("ideal", &[], None)?,
     };

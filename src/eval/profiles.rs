@@ -30,6 +30,48 @@ use rand::Rng;
 use serde_json::{json, Map, Value};
 use shoal_proto::{CameraModel, CodeSet, Pose};
 use shoal_sim_bridge::profile::{CameraProfile, Effect};
+use std::path::PathBuf;
+
+/// The camera profile options of `shoal sim render`, `shoal demo`, `shoal
+/// eval` and its HOIRM probe.
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct ProfileArgs {
+    /// Camera profile: `ideal` (the renderer as it is; the default) or
+    /// `realistic` (motion blur, rolling shutter, flat port, lamps, marine
+    /// snow, other PSFs, vignetting, exposure, compression, calibration error,
+    /// typical parameters; docs/water-model.md).
+    #[arg(long)]
+    pub profile: Option<String>,
+    /// Only these effects, with typical parameters (repeatable; replaces --profile): motion-blur,
+    /// rolling-shutter, port, lamps, snow, psf, vignetting, colour, exposure, jpeg, h264, calibration.
+    #[arg(long = "effect", value_name = "NAME")]
+    pub effects: Vec<String>,
+    /// A camera profile file (TOML; replaces --profile and --effect).
+    #[arg(long)]
+    pub profile_file: Option<PathBuf>,
+}
+
+impl ProfileArgs {
+    /// The profile asked for, validated, its own draws seeded by `seed`
+    /// when given; `None` when no option was.
+    pub fn selected(
+        &self,
+        seed: Option<u64>,
+    ) -> Result<Option<CameraProfile>, shoal_sim_bridge::SimError> {
+        if self.profile.is_none() && self.effects.is_empty() && self.profile_file.is_none() {
+            return Ok(None);
+        }
+        let mut p = CameraProfile::selected(
+            self.profile.as_deref().unwrap_or("ideal"),
+            &self.effects,
+            self.profile_file.as_deref(),
+        )?;
+        if let Some(s) = seed {
+            p.seed = s;
+        }
+        Ok(Some(p))
+    }
+}
 use shoal_sim_bridge::render::motion::{RigidMotion, Timeline, Twist};
 use shoal_sim_bridge::render::realistic::{calibration_error, lens_in_air, render_profiled};
 use shoal_sim_bridge::render::{facing_camera, Renderer, Scene};

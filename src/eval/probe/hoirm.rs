@@ -60,16 +60,11 @@ pub struct HoirmArgs {
     /// Which frame `--save` writes.
     #[arg(long, default_value_t = 0)]
     pub save_frame: usize,
-    /// Camera profile the frames are rendered through, as `shoal eval detection --profile`
-    /// (`ideal` by default); the detector then holds the node's calibration.
-    #[arg(long)]
-    pub profile: Option<String>,
-    /// Only these camera effects (repeatable; replaces --profile), as `shoal sim render --effect`.
-    #[arg(long = "effect", value_name = "NAME")]
-    pub effects: Vec<String>,
-    /// A camera profile file (TOML; replaces --profile and --effect).
-    #[arg(long)]
-    pub profile_file: Option<PathBuf>,
+    /// The camera profile the frames are rendered through, as `shoal eval
+    /// detection --profile` (`ideal` by default); the detector then holds the
+    /// node's calibration.
+    #[command(flatten)]
+    pub profile: crate::eval::profiles::ProfileArgs,
     /// Cache the rendered raw frames as PNG in this folder (and read them back on the next run).
     #[arg(long)]
     pub frame_cache: Option<PathBuf>,
@@ -134,11 +129,9 @@ fn profile_and_lens(
     a: &HoirmArgs,
     cam: &CameraModel,
 ) -> Result<(Option<CameraProfile>, CameraModel), EvalError> {
-    if a.profile.is_none() && a.effects.is_empty() && a.profile_file.is_none() {
+    let Some(p) = a.profile.selected(None)? else {
         return Ok((None, *cam));
-    }
-    let name = a.profile.as_deref().unwrap_or("ideal");
-    let p = CameraProfile::selected(name, &a.effects, a.profile_file.as_deref())?;
+    };
     let lens = profiles::node_camera(&p, cam, 1)?;
     Ok((Some(p), lens))
 }
