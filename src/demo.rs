@@ -127,9 +127,10 @@ pub struct PairError {
 pub struct DemoSummary {
     pub pairs: Vec<PairError>,
     /// Camera frames the simulator published; of them, processed by the
-    /// nodes, dropped by their queues (a node behind), and lost on the bus
-    /// (published, never received: Zenoh drops a frame under congestion
-    /// without telling anyone; the node sees the gap in the sequence).
+    /// nodes, dropped by their queues (a node behind), and never received by
+    /// a node (lost on the bus: Zenoh drops a frame under congestion without
+    /// telling anyone, the node sees the gap in the sequence; or published
+    /// for a node that was stopped).
     pub frames_published: u64,
     pub frames_processed: u64,
     pub frames_dropped: u64,
@@ -157,8 +158,9 @@ pub struct DemoSummary {
     pub sim_ticks: u64,
     pub sim_ticks_skipped: u64,
     pub wall_time_s: f64,
-    /// Of it: from the start to the simulator's first tick (router, services,
-    /// subscriptions), the simulated run, and from its last tick to the end
+    /// Of it: from the start to the simulator's start (router, services,
+    /// subscriptions), the simulated run (with the simulator's own wait for
+    /// the nodes before its first tick), and from its last tick to the end
     /// (the pipeline drained, the services stopped, the log finished).
     pub startup_s: f64,
     pub running_s: f64,

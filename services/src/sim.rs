@@ -339,7 +339,6 @@ fn pace(cfg: &SimConfig, started: Instant, t_s: f64, dt: f64) -> bool {
     }
 }
 
-/// Start the simulator on `bus`; `clock` follows simulation time.
 /// The vehicles whose node is alive, watched while the first tick waits for
 /// them ([`SimConfig::wait_for_nodes`]).
 struct NodeWait {
@@ -386,6 +385,7 @@ impl NodeWait {
     }
 }
 
+/// Start the simulator on `bus`; `clock` follows simulation time.
 pub fn spawn(bus: &Bus, cfg: SimConfig, clock: Arc<ManualClock>) -> Result<SimHandle, BusError> {
     let keys = cfg.fleet.keys();
     let mut world = SwarmWorld::new(&cfg.fleet, cfg.formation, cfg.spacing_m, cfg.seed)
