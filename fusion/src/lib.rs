@@ -505,19 +505,14 @@ impl Fusion {
     ) -> Result<(), NavRejected> {
         let limits = self.admission();
         let max = self.params.nav.max_samples_per_vehicle;
-        match self
+        let r = self
             .nav
-            .admit_span(&self.fleet, span, arrived_on, now_ns, &limits, max)
-        {
-            Ok(_) => {
-                self.stats.nav_ingested += 1;
-                Ok(())
-            }
-            Err(e) => {
-                self.stats.nav_rejected += 1;
-                Err(e)
-            }
+            .admit_span(&self.fleet, span, arrived_on, now_ns, &limits, max);
+        match r {
+            Ok(()) => self.stats.nav_ingested += 1,
+            Err(_) => self.stats.nav_rejected += 1,
         }
+        r
     }
 
     /// The pose graph of the last solve's final round (the constraints LM

@@ -250,7 +250,7 @@ impl NavWindow {
     /// each stating the span's parts: the span bounds what held at every
     /// instant in it, so a frame captured within it is checked against it
     /// with no more than half a step of gap. Samples already held at those
-    /// stamps (the vehicle's own, full-rate) are kept. Returns the samples added.
+    /// stamps (the vehicle's own, full-rate) are kept.
     pub fn admit_span(
         &mut self,
         fleet: &Fleet,
@@ -259,7 +259,7 @@ impl NavWindow {
         now_ns: u64,
         limits: &Admission,
         max_samples: usize,
-    ) -> Result<usize, NavRejected> {
+    ) -> Result<(), NavRejected> {
         admissible(
             fleet,
             (span.vehicle, arrived_on),
@@ -274,13 +274,9 @@ impl NavWindow {
             arrived.pop_first();
         }
         let list = self.samples.entry(span.vehicle).or_default();
-        let mut added = 0;
         let mut t = span.from_ns;
         loop {
-            if let std::collections::btree_map::Entry::Vacant(e) = list.entry(t) {
-                e.insert(span.state_at(t));
-                added += 1;
-            }
+            list.entry(t).or_insert_with(|| span.state_at(t));
             if t >= span.to_ns {
                 break;
             }
@@ -289,7 +285,7 @@ impl NavWindow {
         while list.len() > max_samples.max(1) {
             list.pop_first();
         }
-        Ok(added)
+        Ok(())
     }
 
     /// For a vehicle whose nav crosses a link, when nav usable for a frame
