@@ -8,10 +8,11 @@ use shoal::eval::{self, EvalOptions, Experiment};
 use shoal_node::restore::Method;
 use std::path::PathBuf;
 
+#[path = "common/scratch.rs"]
+mod scratch;
+
 fn out_dir(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("shoal-eval-quick-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    dir
+    scratch::scratch_dir("shoal-eval-quick", name)
 }
 
 fn run_quick(experiment: Experiment) -> (PathBuf, Value) {

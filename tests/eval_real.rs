@@ -136,10 +136,15 @@ fn make_data(root: &Path) {
         angles.insert(name.clone(), json!(yaw));
         images.push(name);
     }
+    // A fourth step whose frame shows no tag (as a step no detector reads):
+    // the truth says the marker is there, so it counts as present and missed.
+    render(&[], 13, &dir.join("r3.png"));
+    angles.insert("r3.png".into(), json!(60.0));
+    images.push("r3.png".into());
     write_manifest(
         &dir,
         json!({"name": "rotation", "underwater": false, "codes": "apriltag36h11", "side_m": SIDE_M,
-               "camera": camera_json(), "images": images, "splits": {"holdout": [0, 3]},
+               "camera": camera_json(), "images": images, "splits": {"holdout": [0, 4]},
                "truth": {"rotation_steps": {"id": 4, "angle_deg": angles}}}),
     );
 
@@ -166,10 +171,11 @@ fn make_data(root: &Path) {
     );
 }
 
+#[path = "common/scratch.rs"]
+mod scratch;
+
 fn out_dir(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("shoal-eval-real-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    dir
+    scratch::scratch_dir("shoal-eval-real", name)
 }
 
 #[test]
@@ -200,6 +206,7 @@ fn eval_real_scores_recall_false_reads_layout_rotation_and_corners_against_known
 
         let rot = &r["rotation"]["splits"]["holdout"][method];
         assert_eq!(rot["read"], 3, "{method}: {rot}");
+        assert_eq!(rot["present"], 4, "{method}: every listed step: {rot}");
         // A 60 mm tag at 0.45 m is small enough that PnP's two planar
         // hypotheses fit clean corners almost equally well: the detector-bound
         // figure is the flip-resolved one.

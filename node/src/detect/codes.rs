@@ -15,7 +15,7 @@
 use super::corners::FittedSquare;
 use super::geom::{apply, dist, homography_4, mean_side, Px};
 use super::quads::Quad;
-use super::refine::{refine_by_edge_lines_coarse, Polarity};
+use super::refine::{refine_by_edge_lines_coarse, refine_by_edge_lines_wide, Polarity};
 use super::DetectParams;
 use crate::mat::GrayView;
 use shoal_proto::marker::{rotate_code, CodeSet, MarkerId};
@@ -229,13 +229,26 @@ impl CodeReader {
                 centre[1] + grow * (p[1] - centre[1]),
             ]
         });
-        let (hamming, id, k) = self.read_square(view, &outer).or_else(|| {
-            let module_px = mean_side(&outer) / (self.codes.data_side() + 2) as f64;
-            let edges = refine_by_edge_lines_coarse(view, &outer, module_px, Polarity::DarkInside)?;
-            self.read_square(view, &edges)
-        })?;
+        let module_px = mean_side(&outer) / (self.codes.data_side() + 2) as f64;
+        let read_on = |square: [Px; 4]| self.read_square(view, &square).map(|r| (r, square));
+        let ((hamming, id, k), square) = read_on(outer)
+            .or_else(|| {
+                // The polygon's corners are kept: the refinement starts from them.
+                let edges =
+                    refine_by_edge_lines_coarse(view, &outer, module_px, Polarity::DarkInside)?;
+                self.read_square(view, &edges).map(|r| (r, outer))
+            })
+            .or_else(|| {
+                // A corner a module or more off: the square found replaces
+                // the polygon, which would lead the refinement astray.
+                // Searched this widely, a square has more ways to match a
+                // code by chance: only an exact code counts.
+                let wide =
+                    refine_by_edge_lines_wide(view, &outer, module_px, Polarity::DarkInside)?;
+                read_on(wide).filter(|((hamming, _, _), _)| *hamming == 0)
+            })?;
         // Seen rotated clockwise k times: the upright corner i sits at quad corner (i + k) mod 4.
-        let upright = std::array::from_fn(|i| outer[(i + k) % 4]);
+        let upright = std::array::from_fn(|i| square[(i + k) % 4]);
         Some(Code {
             id,
             hamming,
@@ -466,8 +479,9 @@ mod tests {
         let n = codes.data_side();
         let m = (n + 2) as f64;
         let code = codes.code(id).unwrap();
-        let size = 48;
-        let centre = [23.7, 24.2];
+        // 48 px, or the tag and three modules round it when larger.
+        let size = 48.max(((m + 6.0) * module_px).ceil() as i32);
+        let centre = [f64::from(size) / 2.0 - 0.3, f64::from(size) / 2.0 + 0.2];
         let (sin, cos) = angle_rad.sin_cos();
         // Module coordinates (u right, v down from the code square's corner) → pixels.
         let to_px = |u: f64, v: f64| {
@@ -545,6 +559,43 @@ mod tests {
             assert_eq!(read, id);
             assert!(hamming <= reader.correction_bits());
         }
+    }
+
+    #[test]
+    fn a_polygon_with_a_corner_pulled_a_module_out_is_read_on_the_square_its_edges_give() {
+        // As the contour of a tag whose black square a shadow joins at one
+        // corner: that corner 1.4 modules out, its neighbour 0.7 down (the
+        // tag turned 40° of the public rotation steps, docs/detector.md,
+        // "A corner pulled out"). 12 px per module: the coarse edge search
+        // reaches ±6 px only.
+        let (img, outer) = small_tag(7, 12.0, 0.0, 1.0);
+        let view = GrayView::new(&img).unwrap();
+        let reader = CodeReader::new(CodeSet::AprilTag36h11, &DetectParams::default());
+        let mut pulled = outer;
+        pulled[3] = [outer[3][0] - 12.0, outer[3][1] + 12.0];
+        pulled[2] = [outer[2][0] - 1.0, outer[2][1] + 8.0];
+        assert!(
+            reader.read_square(&view, &pulled).is_none(),
+            "the premise: the polygon reads nothing"
+        );
+        let code = reader
+            .read(
+                &view,
+                &Quad {
+                    pts: pulled,
+                    inset_px: 0.0,
+                },
+            )
+            .expect("read on the edges found");
+        assert_eq!((code.id, code.hamming), (7, 0));
+        for (got, want) in code.upright.iter().zip(&outer) {
+            assert!(dist(*got, *want) < 0.5, "{got:?} against {want:?}");
+        }
+        // A square read from where the polygon's own edges would be is not
+        // trusted that far: a corner may move two modules at most.
+        let mut far = outer;
+        far[3] = [outer[3][0] - 30.0, outer[3][1] + 30.0];
+        assert!(refine_by_edge_lines_wide(&view, &far, 12.0, Polarity::DarkInside).is_none());
     }
 
     #[test]

@@ -296,13 +296,23 @@ pub(crate) fn refine_square<G: MatTraitConst + ToInputArray>(
             SquareCorners::EdgeLines,
         ),
         Refinement::EdgeModel => {
-            let Some(coarse) = refine::refine_by_edge_lines_coarse(view, quad, module_px, polarity)
-            else {
-                return FittedSquare::without_fit(*quad, SquareCorners::Contour);
-            };
-            fit_model(view, images.raw.as_ref(), &coarse, module_px, polarity).unwrap_or(
-                FittedSquare::without_fit(coarse, SquareCorners::CoarseLines),
-            )
+            let raw = images.raw.as_ref();
+            let coarse = refine::refine_by_edge_lines_coarse(view, quad, module_px, polarity);
+            if let Some(fit) = coarse.and_then(|c| fit_model(view, raw, &c, module_px, polarity)) {
+                return fit;
+            }
+            // No fit from there: a corner of `quad` may be a module or more
+            // off (a dark region joined to the square at that corner pulled
+            // the contour's polygon out), which the coarse search cannot
+            // reach. Its edges searched for wider, the fit once more.
+            let wide = refine::refine_by_edge_lines_wide(view, quad, module_px, polarity);
+            if let Some(fit) = wide.and_then(|w| fit_model(view, raw, &w, module_px, polarity)) {
+                return fit;
+            }
+            match coarse {
+                Some(c) => FittedSquare::without_fit(c, SquareCorners::CoarseLines),
+                None => FittedSquare::without_fit(*quad, SquareCorners::Contour),
+            }
         }
         Refinement::CornerSubPix => or_contour(
             refine::refine_by_corner_subpix(images.gray, quad, module_px).ok(),

@@ -141,7 +141,7 @@ pub fn refine_by_edge_lines(
     module_px: f64,
     polarity: Polarity,
 ) -> Option<[Px; 4]> {
-    edge_line_passes(view, quad, module_px, polarity, &PASSES)
+    edge_line_passes(view, quad, module_px, polarity, &PASSES, 1.0)
 }
 
 /// Pass 1 searches ±0.45 module around the contour estimate, pass 2 ±0.3
@@ -167,9 +167,41 @@ pub fn refine_by_edge_lines_coarse(
     polarity: Polarity,
 ) -> Option<[Px; 4]> {
     // The fine fit starts from this: every 8th pixel along a side is enough.
-    edge_line_passes(view, quad, module_px, polarity, &[(0.45, 6.0, 8.0)])
-        .or_else(|| edge_line_passes(view, quad, module_px, polarity, &[(0.9, 6.0, 4.0)]))
+    edge_line_passes(view, quad, module_px, polarity, &[(0.45, 6.0, 8.0)], 1.0)
+        .or_else(|| edge_line_passes(view, quad, module_px, polarity, &[(0.9, 6.0, 4.0)], 1.0))
 }
+
+/// The square's edges searched for within ±1.5 modules of each side, then
+/// once more within ±0.45 module of what that found: for a polygon with a
+/// corner pulled a module or more out (a shadow or the card's edge joined
+/// to the black region at that corner, so the contour runs out to it, and
+/// the polygon's approximation skews the sides next to it). Each side's
+/// edge points are fitted robustly, so the part of a side that runs along
+/// the true edge decides where it lies; a corner may move two modules at
+/// most. Only for modules over 6.7 px: below that the coarse search
+/// ([`refine_by_edge_lines_coarse`]) already reaches ±0.9 module, above it
+/// its cap of 6 px stops short of one.
+pub fn refine_by_edge_lines_wide(
+    view: &GrayView<'_>,
+    quad: &[Px; 4],
+    module_px: f64,
+    polarity: Polarity,
+) -> Option<[Px; 4]> {
+    if 0.9 * module_px <= COARSE_CAP_PX {
+        return None;
+    }
+    edge_line_passes(
+        view,
+        quad,
+        module_px,
+        polarity,
+        &[(1.5, f64::INFINITY, 8.0), (0.45, COARSE_CAP_PX, 8.0)],
+        2.0,
+    )
+}
+
+/// The coarse edge search's half-width at most (px).
+const COARSE_CAP_PX: f64 = 6.0;
 
 fn edge_line_passes(
     view: &GrayView<'_>,
@@ -177,6 +209,7 @@ fn edge_line_passes(
     module_px: f64,
     polarity: Polarity,
     passes: &[(f64, f64, f64)],
+    max_move_modules: f64,
 ) -> Option<[Px; 4]> {
     let sign = polarity.sign();
     let mut cur = *quad;
@@ -193,7 +226,7 @@ fn edge_line_passes(
             next[i] = prev.intersect(&this)?;
         }
         // A refinement that moves a corner by more than a module is not the same edge.
-        if (0..4).any(|i| dist(next[i], quad[i]) > module_px.max(2.0)) {
+        if (0..4).any(|i| dist(next[i], quad[i]) > (max_move_modules * module_px).max(2.0)) {
             return None;
         }
         cur = next;

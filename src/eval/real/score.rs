@@ -298,19 +298,22 @@ fn confirmed(tallies: &BTreeMap<&String, Tally>) -> BTreeSet<(usize, u32)> {
 
 pub(super) fn scores(m: &Manifest, runs: &BTreeMap<String, MethodRun>) -> BTreeMap<String, Scores> {
     let tallies: BTreeMap<&String, _> = runs.iter().map(|(k, r)| (k, tally(m, r))).collect();
+    let frames: BTreeMap<&str, usize> = runs
+        .values()
+        .flat_map(|r| r.frames.iter().map(|(i, n, _)| (n.as_str(), *i)))
+        .collect();
     let present: BTreeSet<(usize, u32)> = match &m.truth {
-        Truth::Corners { images } => {
-            let frames: BTreeMap<&str, usize> = runs
-                .values()
-                .flat_map(|r| r.frames.iter().map(|(i, n, _)| (n.as_str(), *i)))
-                .collect();
-            images
-                .iter()
-                .filter_map(|(name, tags)| frames.get(name.as_str()).map(|i| (*i, tags.len())))
-                .flat_map(|(i, n)| (0..n as u32).map(move |k| (i, k)))
-                .collect()
-        }
-        _ => confirmed(&tallies),
+        Truth::Corners { images } => images
+            .iter()
+            .filter_map(|(name, tags)| frames.get(name.as_str()).map(|i| (*i, tags.len())))
+            .flat_map(|(i, n)| (0..n as u32).map(move |k| (i, k)))
+            .collect(),
+        // The marker is in every image the steps list, read by anyone or not.
+        Truth::RotationSteps { id, angle_deg } => angle_deg
+            .keys()
+            .filter_map(|name| frames.get(name.as_str()).map(|i| (*i, *id)))
+            .collect(),
+        Truth::Layout { .. } => confirmed(&tallies),
     };
     let distances: BTreeMap<&String, _> = match &m.truth {
         Truth::Layout { centres_m } => runs
