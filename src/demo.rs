@@ -399,6 +399,9 @@ impl SimulatedSwarm {
             );
             sim.stop().map_err(|e| anyhow!(e))?;
         }
+        for n in self.nodes.values() {
+            n.request_stop();
+        }
         for (_, n) in std::mem::take(&mut self.nodes) {
             n.stop();
         }

@@ -136,6 +136,9 @@ impl Connect {
                 set(&mut c, "listen/endpoints", &endpoints(&[*port]))?;
                 set(&mut c, "connect/endpoints", "[]")?;
                 set(&mut c, "scouting/multicast/enabled", "false")?;
+                // Nothing to connect to and no multicast: nobody to scout
+                // for, so the open need not wait its 500 ms for them.
+                set(&mut c, "scouting/delay", "0")?;
                 Ok(c)
             }
             Connect::RouterLinked { port, routers } => {
@@ -573,5 +576,29 @@ fn note_rejection(stats: &SubscriptionStats, key: &str, e: &DecodeError) {
     }
     if let Ok(mut g) = stats.last_error.lock() {
         *g = Some(text);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_router_with_nobody_to_scout_for_does_not_wait_to_scout() {
+        // zenoh's default makes `open` wait 500 ms for peers to scout; the
+        // demo's router has no endpoint to connect to and no multicast
+        // (it was half of the demo's start-up, docs/results.md).
+        let c = Connect::Router { port: 7447 }.config().unwrap();
+        assert_eq!(c.get_json("scouting/delay").unwrap(), "0");
+        assert_eq!(c.get_json("connect/endpoints").unwrap(), "[]");
+        assert_eq!(c.get_json("scouting/multicast/enabled").unwrap(), "false");
+        // Where there is someone to find, the wait stays zenoh's.
+        let linked = Connect::RouterLinked {
+            port: 7448,
+            routers: vec![7447],
+        }
+        .config()
+        .unwrap();
+        assert_ne!(linked.get_json("scouting/delay").unwrap(), "0");
     }
 }
