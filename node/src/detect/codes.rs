@@ -42,8 +42,10 @@ pub struct CodeSquare {
 /// What reading a code square again on its refined edges said
 /// ([`CodeReader::confirm`]).
 enum Confirmed {
-    /// The first read (or nothing read again).
+    /// The first read.
     Same,
+    /// Nothing read again on the refined square.
+    Unread,
     /// Another ID or rotation: (bits corrected, ID, quarter turns from the
     /// first read's upright order).
     Other(u32, MarkerId, usize),
@@ -138,6 +140,18 @@ impl CodeReader {
             let mut square = refine(&code.upright, rough_module);
             match self.confirm((view, raw), &square.corners, id) {
                 Confirmed::Same => {}
+                // The first read stands; but where the refined square reads
+                // nothing, the refinement may have followed a corner pulled
+                // out (docs/detector.md, "A corner pulled out"): a square on
+                // the edges searched wider that reads this very code exactly,
+                // and whose refinement reads it again, replaces it.
+                Confirmed::Unread => {
+                    if let Some(better) =
+                        self.relocated((view, raw), &code, rough_module, &mut refine)
+                    {
+                        square = better;
+                    }
+                }
                 Confirmed::Other(h, again, k) => {
                     let upright = std::array::from_fn(|i| square.corners[(i + k) % 4]);
                     (id, hamming) = (again, h);
@@ -168,6 +182,29 @@ impl CodeReader {
         undecoded
     }
 
+    /// The square of `code` found on its edges searched ±1.5 modules wide
+    /// ([`refine_by_edge_lines_wide`]) and refined, when it reads `code`'s ID
+    /// with no bit corrected in its upright order, and its refinement reads
+    /// it again; `None` otherwise.
+    fn relocated(
+        &self,
+        (view, raw): (&GrayView<'_>, Option<&GrayView<'_>>),
+        code: &Code,
+        module_px: f64,
+        refine: &mut impl FnMut(&[Px; 4], f64) -> FittedSquare,
+    ) -> Option<FittedSquare> {
+        let wide = refine_by_edge_lines_wide(view, &code.upright, module_px, Polarity::DarkInside)?;
+        if self.read_square(view, &wide) != Some((0, code.id, 0)) {
+            return None;
+        }
+        let square = refine(&wide, module_px);
+        matches!(
+            self.confirm((view, raw), &square.corners, code.id),
+            Confirmed::Same
+        )
+        .then_some(square)
+    }
+
     /// The code read again on the refined square (`corners`, in the first
     /// read's upright order): on the detection image and on the raw frame.
     /// A polygon whose corners are off by a module (a small marker's
@@ -193,7 +230,7 @@ impl CodeReader {
         let best = reads.iter().map(|r| r.0).min();
         let winners: Vec<_> = reads.iter().filter(|r| Some(r.0) == best).collect();
         match winners.as_slice() {
-            [] => Confirmed::Same,
+            [] => Confirmed::Unread,
             [w, rest @ ..] if rest.iter().all(|r| (r.1, r.2) == (w.1, w.2)) => {
                 if (w.1, w.2) == (id, 0) {
                     Confirmed::Same
@@ -596,6 +633,50 @@ mod tests {
         let mut far = outer;
         far[3] = [outer[3][0] - 30.0, outer[3][1] + 30.0];
         assert!(refine_by_edge_lines_wide(&view, &far, 12.0, Polarity::DarkInside).is_none());
+    }
+
+    #[test]
+    fn a_refinement_that_followed_a_pulled_corner_is_replaced_by_the_square_the_wide_edges_give() {
+        // The tag turned -40° of the public rotation steps read on its
+        // polygon, then its refinement ran out along the card's edge to a
+        // corner 15 px off, where the square reads nothing (docs/detector.md,
+        // "A corner pulled out"). Here the first refinement is made to do
+        // that (one corner two modules out); later ones are the coarse
+        // edge lines from where they start.
+        use super::super::corners::SquareCorners;
+        let (img, outer) = small_tag(7, 12.0, 0.0, 1.0);
+        let view = GrayView::new(&img).unwrap();
+        let reader = CodeReader::new(CodeSet::AprilTag36h11, &DetectParams::default());
+        let mut astray = outer;
+        astray[2] = [outer[2][0] + 24.0, outer[2][1] + 14.0];
+        assert!(
+            reader.read_square(&view, &astray).is_none(),
+            "the premise: that square reads nothing"
+        );
+        let calls = std::cell::Cell::new(0);
+        let refine = |q: &[Px; 4], module_px: f64| {
+            calls.set(calls.get() + 1);
+            let corners = if calls.get() == 1 {
+                astray
+            } else {
+                refine_by_edge_lines_coarse(&view, q, module_px, Polarity::DarkInside).unwrap_or(*q)
+            };
+            FittedSquare::without_fit(corners, SquareCorners::CoarseLines)
+        };
+        let mut found = Vec::new();
+        let quad = Quad {
+            pts: outer,
+            inset_px: 0.0,
+        };
+        assert!(reader
+            .decode((&view, None), &[quad], refine, &mut found)
+            .is_empty());
+        assert_eq!(found.len(), 1);
+        assert_eq!((found[0].id, found[0].hamming), (7, 0));
+        for (got, want) in found[0].square.corners.iter().zip(&outer) {
+            assert!(dist(*got, *want) < 0.5, "{got:?} against {want:?}");
+        }
+        assert!(calls.get() >= 2, "the wide square was refined");
     }
 
     #[test]

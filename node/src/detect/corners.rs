@@ -266,7 +266,7 @@ impl FittedSquare {
         }
     }
 
-    fn without_fit(corners: [Px; 4], method: SquareCorners) -> FittedSquare {
+    pub(crate) fn without_fit(corners: [Px; 4], method: SquareCorners) -> FittedSquare {
         FittedSquare {
             corners,
             fit: None,
