@@ -83,6 +83,10 @@ pub(super) struct Scores {
     pub(super) pairs: usize,
     pub(super) distance_ratio_median: Option<f64>,
     pub(super) distance_ratio_iqr: Option<f64>,
+    /// The same over the pairs of present markers only (a read of a known ID
+    /// no other family confirms, counted under `unconfirmed`, left out): the
+    /// consistency of what a method reads right, apart from its false reads.
+    pub(super) distance_ratio_iqr_present: Option<f64>,
     pub(super) jitter_mm_median: Option<f64>,
     /// Jitter over the (frame, pair)s every method read.
     pub(super) jitter_mm_median_common: Option<f64>,
@@ -273,6 +277,23 @@ fn rotation_errors(
         .collect()
 }
 
+/// The interquartile range of `v`.
+fn iqr(v: &[f64]) -> Option<f64> {
+    quantile(v, 0.75).zip(quantile(v, 0.25)).map(|(a, b)| a - b)
+}
+
+/// Measured over known distance of the pairs whose two markers are both
+/// `present` in their frame.
+fn present_ratios(
+    d: &BTreeMap<(usize, u32, u32), PairDistance>,
+    present: &BTreeSet<(usize, u32)>,
+) -> Vec<f64> {
+    d.iter()
+        .filter(|((i, a, b), _)| present.contains(&(*i, *a)) && present.contains(&(*i, *b)))
+        .map(|(_, p)| p.measured / p.known)
+        .collect()
+}
+
 /// The detector family of a method (`shoal+hoirm` → `shoal`, `apriltag3-d1` → `apriltag3`).
 fn family(method: &str) -> &str {
     method.split(['+', '-']).next().unwrap_or(method)
@@ -345,9 +366,8 @@ pub(super) fn scores(m: &Manifest, runs: &BTreeMap<String, MethodRun>) -> BTreeM
                 let ratios: Vec<f64> = d.values().map(|p| p.measured / p.known).collect();
                 s.pairs = ratios.len();
                 s.distance_ratio_median = median(&ratios);
-                s.distance_ratio_iqr = quantile(&ratios, 0.75)
-                    .zip(quantile(&ratios, 0.25))
-                    .map(|(a, b)| a - b);
+                s.distance_ratio_iqr = iqr(&ratios);
+                s.distance_ratio_iqr_present = iqr(&present_ratios(d, &present));
                 if m.video.is_some() {
                     s.jitter_mm_median = jitter_mm(d, None);
                     s.jitter_mm_median_common = jitter_mm(d, common.as_ref());
@@ -385,6 +405,27 @@ mod tests {
             // Stretched across the line between the tags, which must not count.
             position_cov: sigma_m.map(|s| Matrix3::from_diagonal(&[s * s, 9.0, 9.0].into())),
         }
+    }
+
+    #[test]
+    fn the_present_spread_leaves_out_pairs_with_an_unconfirmed_read() {
+        let pair = |measured: f64| PairDistance {
+            measured,
+            known: 1.0,
+            variance: None,
+        };
+        // Frame 0: tags 1 and 2 present; frame 1: tag 2 a read no one confirms.
+        let d: BTreeMap<(usize, u32, u32), PairDistance> = [
+            ((0, 1, 2), pair(1.01)),
+            ((1, 1, 2), pair(1.9)),
+            ((1, 1, 3), pair(0.99)),
+        ]
+        .into();
+        let present: BTreeSet<(usize, u32)> = [(0, 1), (0, 2), (1, 1), (1, 3)].into();
+        let mut kept = present_ratios(&d, &present);
+        kept.sort_by(f64::total_cmp);
+        assert_eq!(kept, vec![0.99, 1.01]);
+        assert!(iqr(&[1.0, 1.0, 1.0, 2.0]).is_some_and(|r| r > 0.0));
     }
 
     #[test]
