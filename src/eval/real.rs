@@ -359,7 +359,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
     );
     let mut results = serde_json::Map::new();
     let mut table = String::from(
-        "| recording / split | method | read / present | recall | false | unconfirmed | corner px | pairs | ratio IQR (present) | jitter mm (common) | jitter NEES mean (median; steps) | rot err ° (flip-resolved) | ms/frame |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
+        "| recording / split | method | read / present | recall | false | unconfirmed | corner px | pairs | ratio IQR (present) | jitter mm (common; present) | jitter NEES mean (median; steps) | rot err ° (flip-resolved) | ms/frame |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     let mut categories = Vec::new();
     let mut recall: BTreeMap<String, Vec<Option<f64>>> = BTreeMap::new();
@@ -376,7 +376,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
             let cat = format!("{}/{split}", m.name);
             for (method, sc) in &s {
                 table += &format!(
-                    "| {cat} | {method} | {} / {} | {} | {} | {} | {} | {} | {} ({}) | {} ({}) | {} ({}; {}) | {} ({}) | {} |\n",
+                    "| {cat} | {method} | {} / {} | {} | {} | {} | {} | {} | {} ({}) | {} ({}; {}) | {} ({}; {}) | {} ({}) | {} |\n",
                     sc.read,
                     sc.present,
                     opt(sc.recall, 3),
@@ -388,6 +388,7 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
                     opt(sc.distance_ratio_iqr_present, 4),
                     opt(sc.jitter_mm_median, 2),
                     opt(sc.jitter_mm_median_common, 2),
+                    opt(sc.jitter_mm_median_present, 2),
                     opt(sc.jitter_nees_mean, 2),
                     opt(sc.jitter_nees_median, 2),
                     sc.jitter_nees_steps,

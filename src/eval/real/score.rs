@@ -90,6 +90,9 @@ pub(super) struct Scores {
     pub(super) jitter_mm_median: Option<f64>,
     /// Jitter over the (frame, pair)s every method read.
     pub(super) jitter_mm_median_common: Option<f64>,
+    /// Jitter over the pairs of present markers only (as
+    /// [`Scores::distance_ratio_iqr_present`]).
+    pub(super) jitter_mm_median_present: Option<f64>,
     /// The stated covariance against the jitter: the mean over consecutive
     /// frames of `(Δd)² / (σ²_d(t) + σ²_d(t−1))` for each pair's distance `d`,
     /// 1 when honest (a χ²₁ mean; below 1 also when the errors of
@@ -282,15 +285,25 @@ fn iqr(v: &[f64]) -> Option<f64> {
     quantile(v, 0.75).zip(quantile(v, 0.25)).map(|(a, b)| a - b)
 }
 
-/// Measured over known distance of the pairs whose two markers are both
-/// `present` in their frame.
+/// The (frame, pair)s of `d` whose two markers are both `present` in their frame.
+fn present_pairs(
+    d: &BTreeMap<(usize, u32, u32), PairDistance>,
+    present: &BTreeSet<(usize, u32)>,
+) -> BTreeSet<(usize, u32, u32)> {
+    d.keys()
+        .filter(|(i, a, b)| present.contains(&(*i, *a)) && present.contains(&(*i, *b)))
+        .copied()
+        .collect()
+}
+
+/// Measured over known distance of the [`present_pairs`].
 fn present_ratios(
     d: &BTreeMap<(usize, u32, u32), PairDistance>,
     present: &BTreeSet<(usize, u32)>,
 ) -> Vec<f64> {
-    d.iter()
-        .filter(|((i, a, b), _)| present.contains(&(*i, *a)) && present.contains(&(*i, *b)))
-        .map(|(_, p)| p.measured / p.known)
+    present_pairs(d, present)
+        .iter()
+        .map(|k| d[k].measured / d[k].known)
         .collect()
 }
 
@@ -371,6 +384,7 @@ pub(super) fn scores(m: &Manifest, runs: &BTreeMap<String, MethodRun>) -> BTreeM
                 if m.video.is_some() {
                     s.jitter_mm_median = jitter_mm(d, None);
                     s.jitter_mm_median_common = jitter_mm(d, common.as_ref());
+                    s.jitter_mm_median_present = jitter_mm(d, Some(&present_pairs(d, &present)));
                     let nees = jitter_nees(d);
                     s.jitter_nees_steps = nees.len();
                     s.jitter_nees_mean =
@@ -408,7 +422,7 @@ mod tests {
     }
 
     #[test]
-    fn the_present_spread_leaves_out_pairs_with_an_unconfirmed_read() {
+    fn the_present_spread_and_jitter_leave_out_pairs_with_an_unconfirmed_read() {
         let pair = |measured: f64| PairDistance {
             measured,
             known: 1.0,
@@ -425,6 +439,11 @@ mod tests {
         let mut kept = present_ratios(&d, &present);
         kept.sort_by(f64::total_cmp);
         assert_eq!(kept, vec![0.99, 1.01]);
+        let pairs: Vec<_> = present_pairs(&d, &present).into_iter().collect();
+        assert_eq!(pairs, vec![(0, 1, 2), (1, 1, 3)]);
+        // The jitter over those: the pair 1–2 has no present step to change from.
+        assert_eq!(jitter_mm(&d, Some(&present_pairs(&d, &present))), None);
+        assert!(jitter_mm(&d, None).is_some());
         assert!(iqr(&[1.0, 1.0, 1.0, 2.0]).is_some_and(|r| r > 0.0));
     }
 
