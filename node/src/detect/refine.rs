@@ -225,7 +225,7 @@ fn edge_line_passes(
             let (prev, this) = (lines[(i + 3) % 4]?, lines[i]?);
             next[i] = prev.intersect(&this)?;
         }
-        // A refinement that moves a corner by more than a module is not the same edge.
+        // A refinement that moves a corner farther than `max_move_modules` is not the same edge.
         if (0..4).any(|i| dist(next[i], quad[i]) > (max_move_modules * module_px).max(2.0)) {
             return None;
         }
