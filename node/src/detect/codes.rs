@@ -628,8 +628,8 @@ mod tests {
         for (got, want) in code.upright.iter().zip(&outer) {
             assert!(dist(*got, *want) < 0.5, "{got:?} against {want:?}");
         }
-        // A square read from where the polygon's own edges would be is not
-        // trusted that far: a corner may move two modules at most.
+        // A corner more than two modules off is beyond the wide search: it
+        // would have to move that corner farther than it may.
         let mut far = outer;
         far[3] = [outer[3][0] - 30.0, outer[3][1] + 30.0];
         assert!(refine_by_edge_lines_wide(&view, &far, 12.0, Polarity::DarkInside).is_none());
