@@ -212,7 +212,8 @@ impl CodeReader {
     /// from another ID or rotation, and a restoration that rings or
     /// saturates a module of 3 px (HOIRM at 0.5 /m and 3.5 m) can turn a
     /// bit; the refined square samples the true grid, and the raw frame has
-    /// neither artefact. No reread: the first read stands; rereads that
+    /// neither artefact. No reread: [`Confirmed::Unread`] (the first read
+    /// stands; [`Self::relocated`] may move its square); rereads that
     /// agree with it: [`Confirmed::Same`]; rereads that agree with each
     /// other, or the one with the fewer corrected bits: [`Confirmed::Other`];
     /// rereads that disagree at the same count: [`Confirmed::Conflict`].
