@@ -169,9 +169,12 @@ fn pair_distances(
 ) -> BTreeMap<(usize, u32, u32), PairDistance> {
     let mut out = BTreeMap::new();
     for (idx, _, reads) in &run.frames {
+        // An ID read twice in one frame (a false read beside the tag) says
+        // nothing of where that tag is: neither read is paired.
+        let twice = |id: u32| reads.iter().filter(|r| r.id == id).count() > 1;
         let posed: Vec<(u32, Pose, Option<Matrix3<f64>>)> = reads
             .iter()
-            .filter(|r| centres.contains_key(&r.id))
+            .filter(|r| centres.contains_key(&r.id) && !twice(r.id))
             .filter_map(|r| r.camera_from_marker.map(|p| (r.id, p, r.position_cov)))
             .collect();
         for (i, (a, pa, ca)) in posed.iter().enumerate() {
@@ -445,6 +448,31 @@ mod tests {
         assert_eq!(jitter_mm(&d, Some(&present_pairs(&d, &present))), None);
         assert!(jitter_mm(&d, None).is_some());
         assert!(iqr(&[1.0, 1.0, 1.0, 2.0]).is_some_and(|r| r > 0.0));
+    }
+
+    #[test]
+    fn an_id_read_twice_in_a_frame_is_not_paired() {
+        let centres: BTreeMap<u32, [f64; 3]> = [
+            (1, [0.0, 0.0, 0.0]),
+            (2, [0.5, 0.0, 0.0]),
+            (3, [1.0, 0.0, 0.0]),
+        ]
+        .into();
+        let run = MethodRun {
+            frames: vec![(
+                0,
+                "0".into(),
+                vec![
+                    read(1, 0.0, None),
+                    read(2, 0.5, None),
+                    read(2, 0.9, None),
+                    read(3, 1.0, None),
+                ],
+            )],
+            detect_ms: Vec::new(),
+        };
+        let d = pair_distances(&centres, &run);
+        assert_eq!(d.keys().copied().collect::<Vec<_>>(), vec![(0, 1, 3)]);
     }
 
     #[test]
