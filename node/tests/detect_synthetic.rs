@@ -598,3 +598,171 @@ fn a_dark_region_joined_at_one_corner_does_not_pull_that_corner_out() {
         );
     }
 }
+
+/// What joins a tag's black square to a dark neighbour in
+/// [`tag_joined_to`].
+#[derive(Clone, Copy, Debug)]
+enum Neighbour {
+    /// Nothing: the tag alone on its card.
+    None,
+    /// A stand: a dark bar from the bottom side, near its right end, down
+    /// to the frame's bottom row (the region is cut by the frame's edge).
+    Stand,
+    /// A card's shaded edge: a dark bar along the left, joined to the
+    /// lower quarter of the left side.
+    CardEdge,
+}
+
+/// A tag36h11 tag (ID 7, 10 px modules, `flip`: one data module inverted)
+/// on a light card, joined to `neighbour`, turned `turn_deg` about the
+/// frame's centre and blurred by a Gaussian of 1 px. Returns the frame and
+/// the black square's outer corners (TL, TR, BR, BL as drawn).
+fn tag_joined_to(neighbour: Neighbour, flip: bool, turn_deg: f64) -> (GrayImage, [[f64; 2]; 4]) {
+    use opencv::core::{Mat, Point2f, Rect, Scalar, Size, BORDER_REPLICATE, CV_8UC1};
+    use opencv::prelude::*;
+    const MODULE_PX: i32 = 10;
+    let (size, x0, y0) = (240, 80, 60);
+    let codes = CodeSet::AprilTag36h11;
+    let m = codes.modules() as i32;
+    let mut grid = codes.module_grid(7).unwrap();
+    if flip {
+        let k = (3 * m + 4) as usize;
+        grid[k] = !grid[k];
+    }
+    let (dark, light) = (50.0, 190.0);
+    let mut img = Mat::new_rows_cols_with_default(size, size, CV_8UC1, Scalar::all(light)).unwrap();
+    for y in 0..m * MODULE_PX {
+        for x in 0..m * MODULE_PX {
+            let white = grid[((y / MODULE_PX) * m + x / MODULE_PX) as usize];
+            *img.at_2d_mut::<u8>(y0 + y, x0 + x).unwrap() = if white { 190 } else { 50 };
+        }
+    }
+    let side = m * MODULE_PX;
+    let bar = match neighbour {
+        Neighbour::None => None,
+        Neighbour::Stand => Some(Rect::new(x0 + side - 22, y0 + side, 12, size - y0 - side)),
+        Neighbour::CardEdge => Some(Rect::new(x0 - 30, y0 + side - 20, 30, 14)),
+    };
+    if let Some(r) = bar {
+        opencv::imgproc::rectangle(
+            &mut img,
+            r,
+            Scalar::all(dark),
+            -1,
+            opencv::imgproc::LINE_8,
+            0,
+        )
+        .unwrap();
+    }
+    let (l, t) = (f64::from(x0) - 0.5, f64::from(y0) - 0.5);
+    let (r, b) = (l + f64::from(side), t + f64::from(side));
+    let mut corners = [[l, t], [r, t], [r, b], [l, b]];
+    let mut turned = img.clone();
+    if turn_deg != 0.0 {
+        let c = 0.5 * f64::from(size - 1);
+        let rot = opencv::imgproc::get_rotation_matrix_2d(
+            Point2f::new(c as f32, c as f32),
+            turn_deg,
+            1.0,
+        )
+        .unwrap();
+        opencv::imgproc::warp_affine(
+            &img,
+            &mut turned,
+            &rot,
+            Size::new(size, size),
+            opencv::imgproc::INTER_LINEAR,
+            BORDER_REPLICATE,
+            Scalar::all(0.0),
+        )
+        .unwrap();
+        let a = |r: i32, k: i32| *rot.at_2d::<f64>(r, k).unwrap();
+        corners = corners.map(|[x, y]| {
+            [
+                a(0, 0) * x + a(0, 1) * y + a(0, 2),
+                a(1, 0) * x + a(1, 1) * y + a(1, 2),
+            ]
+        });
+    }
+    let mut blurred = Mat::default();
+    opencv::imgproc::gaussian_blur(
+        &turned,
+        &mut blurred,
+        Size::new(0, 0),
+        1.0,
+        1.0,
+        BORDER_REPLICATE,
+    )
+    .unwrap();
+    debug_assert_eq!(blurred.typ(), CV_8UC1);
+    let frame = GrayImage {
+        width: size as u32,
+        height: size as u32,
+        data: blurred.data_bytes().unwrap().to_vec(),
+    };
+    (frame, corners)
+}
+
+/// The largest distance from a corner of `truth` to the nearest of `q`.
+fn worst_corner(q: &[[f64; 2]; 4], truth: &[[f64; 2]; 4]) -> f64 {
+    truth
+        .iter()
+        .map(|t| {
+            q.iter()
+                .map(|p| (p[0] - t[0]).hypot(p[1] - t[1]))
+                .fold(f64::INFINITY, f64::min)
+        })
+        .fold(0.0, f64::max)
+}
+
+#[test]
+fn a_tag_joined_to_a_dark_neighbour_is_read_on_the_sides_its_outline_keeps() {
+    // A tag on a stand, or beside a card's shaded edge, is one dark region
+    // with it: no quad of its own (and a stand reaching the frame's edge cut
+    // the region out of the search altogether). The public rotation steps'
+    // +70° tag and 14 tank-video reads at the frame's edge were missed so
+    // (docs/detector.md, "A marker joined to its neighbour").
+    for neighbour in [Neighbour::Stand, Neighbour::CardEdge] {
+        for turn in [0.0, 17.0, -33.0] {
+            let (frame, truth) = tag_joined_to(neighbour, false, turn);
+            let what = format!("{neighbour:?}, turned {turn}°");
+            // The premise: no quad of its own is found on the tag.
+            let mat = shoal_node::mat::gray_as_mat(&frame).unwrap();
+            let quads =
+                shoal_node::detect::quads::find_quads(&DetectParams::default(), &mat).unwrap();
+            let on_tag: Vec<_> = quads
+                .iter()
+                .filter(|q| worst_corner(&q.pts, &truth) < 5.0)
+                .collect();
+            assert!(!on_tag.is_empty(), "{what}: no quad on the tag at all");
+            assert!(
+                on_tag.iter().all(|q| q.exact_only),
+                "{what}: the tag's region is a quad of its own: {on_tag:?}"
+            );
+            let mut det = ShoalDetector::new(CodeSet::AprilTag36h11, DetectParams::default());
+            let found = det.detect_gray(&frame).unwrap();
+            assert_eq!(found.len(), 1, "{what}: {found:?}");
+            assert_eq!((found[0].id, found[0].hamming), (7, 0), "{what}");
+            let corners: [[f64; 2]; 4] = std::array::from_fn(|i| found[0].corners_px[i]);
+            let err = worst_corner(&corners, &truth);
+            assert!(err < 0.5, "{what}: a corner {err:.2} px off: {corners:?}");
+        }
+    }
+}
+
+#[test]
+fn a_joined_tag_reads_only_on_an_exact_code() {
+    // Pieced together from a larger region's outline, a quad has more ways
+    // to frame a code by chance: one bit off is refused there, and read
+    // (one bit corrected) on the same tag standing alone.
+    let mut det = ShoalDetector::new(CodeSet::AprilTag36h11, DetectParams::default());
+    let (alone, _) = tag_joined_to(Neighbour::None, true, 17.0);
+    let found = det.detect_gray(&alone).unwrap();
+    assert_eq!(found.len(), 1, "{found:?}");
+    assert_eq!((found[0].id, found[0].hamming), (7, 1));
+    for neighbour in [Neighbour::Stand, Neighbour::CardEdge] {
+        let (frame, _) = tag_joined_to(neighbour, true, 17.0);
+        let found = det.detect_gray(&frame).unwrap();
+        assert!(found.is_empty(), "{neighbour:?}: {found:?}");
+    }
+}

@@ -284,7 +284,8 @@ impl CodeReader {
                 let wide =
                     refine_by_edge_lines_wide(view, &outer, module_px, Polarity::DarkInside)?;
                 read_on(wide).filter(|((hamming, _, _), _)| *hamming == 0)
-            })?;
+            })
+            .filter(|((hamming, _, _), _)| !quad.exact_only || *hamming == 0)?;
         // Seen rotated clockwise k times: the upright corner i sits at quad corner (i + k) mod 4.
         let upright = std::array::from_fn(|i| square[(i + k) % 4]);
         Some(Code {
@@ -622,6 +623,7 @@ mod tests {
                 &Quad {
                     pts: pulled,
                     inset_px: 0.0,
+                    exact_only: false,
                 },
             )
             .expect("read on the edges found");
@@ -668,6 +670,7 @@ mod tests {
         let quad = Quad {
             pts: outer,
             inset_px: 0.0,
+            exact_only: false,
         };
         assert!(reader
             .decode((&view, None), &[quad], refine, &mut found)

@@ -33,6 +33,10 @@ pub struct Quad {
     /// trace the centres of the region's boundary pixels, half a pixel of
     /// the level they were found on (full-resolution pixels).
     pub inset_px: f64,
+    /// Only an exact code counts: the quad was pieced together from a
+    /// larger region's outline ([`quads_of_long_edges`]), which has more
+    /// ways to frame a code by chance.
+    pub exact_only: bool,
 }
 
 impl Quad {
@@ -252,26 +256,33 @@ fn quads_of_level(
             for c in contours.iter() {
                 let shape =
                     contour_quad(params, (level, &mut table), scale, &c, &mut approx, window)?;
-                let (q, list) = match shape {
-                    Shape::Quad(q) => (q, &mut found.quads),
-                    Shape::Blob(q) => (q, &mut found.blobs),
+                let (shapes, list, exact_only) = match shape {
+                    Shape::Quad(q) => (vec![q], &mut found.quads, false),
+                    Shape::Joined(qs) => (qs, &mut found.quads, true),
+                    Shape::Blob(q) => (vec![q], &mut found.blobs, false),
                     Shape::Neither => continue,
                 };
-                // Level pixel centres to full-resolution pixel centres.
-                let q = q.map(|c| {
-                    [
-                        (c[0] + 0.5) * scale - 0.5 + offset[0],
-                        (c[1] + 0.5) * scale - 0.5 + offset[1],
-                    ]
-                });
-                // The same square found by another threshold window: keep one.
-                if list.iter().any(|o| o.same_as(&q)) {
-                    continue;
+                for q in shapes {
+                    // Level pixel centres to full-resolution pixel centres.
+                    let q = q.map(|c| {
+                        [
+                            (c[0] + 0.5) * scale - 0.5 + offset[0],
+                            (c[1] + 0.5) * scale - 0.5 + offset[1],
+                        ]
+                    });
+                    // The same square found by another threshold window (or
+                    // as a quad of its own and joined): keep one, read as a
+                    // quad of its own where it was one.
+                    if let Some(o) = list.iter_mut().find(|o| o.same_as(&q)) {
+                        o.exact_only &= exact_only;
+                        continue;
+                    }
+                    list.push(Quad {
+                        pts: q,
+                        inset_px: 0.5 * scale,
+                        exact_only,
+                    });
                 }
-                list.push(Quad {
-                    pts: q,
-                    inset_px: 0.5 * scale,
-                });
             }
         }
     }
@@ -667,6 +678,9 @@ const FLAT_EXTRA_TILES: usize = 2;
 enum Shape {
     Quad([Px; 4]),
     Blob([Px; 4]),
+    /// Quads whose sides are long straight runs of a larger region's
+    /// outline ([`quads_of_long_edges`]): read only on an exact code.
+    Joined(Vec<[Px; 4]>),
     Neither,
 }
 
@@ -735,10 +749,12 @@ impl<'a> SumTable<'a> {
 
 /// The contour `c` of `level` as a convex quad, clockwise, in level
 /// pixels ([`Shape::Quad`]), or, on a downsampled level, as a blob's
-/// convex hull ([`Shape::Blob`]); [`Shape::Neither`] when it is neither, is
-/// too small or too large, or comes
-/// closer than [`DetectParams::border_margin_px`] to the border. `approx`
-/// is scratch space for the polygon.
+/// convex hull ([`Shape::Blob`]); where it is neither (or its region is
+/// cut by the level's or window's edge), the quads pieced from its
+/// straight runs ([`Shape::Joined`], [`quads_of_long_edges`]);
+/// [`Shape::Neither`] when there are none, the region is too small or too
+/// large, or a corner comes closer than [`DetectParams::border_margin_px`]
+/// to the border. `approx` is scratch space for the polygon.
 fn contour_quad(
     params: &DetectParams,
     (level, table): (&impl MatTraitConst, &mut SumTable<'_>),
@@ -753,29 +769,49 @@ fn contour_quad(
         return Ok(Shape::Neither);
     }
     let perim = imgproc::arc_length(c, true)?;
+    // One longer than the level's own outline is background (a marker
+    // joined to it is not looked for: on the tank video that search cost
+    // 0.12 ms a frame and read nothing).
     if perim < 4.0 * min_side_lvl || perim > 2.0 * (w + h) {
         return Ok(Shape::Neither);
     }
-    // A region that reaches the image's outermost row or column is cut by
-    // it: its outline follows the border, not the square.
-    let (wi, hi) = (level.cols() - 1, level.rows() - 1);
-    if c.iter()
-        .any(|p| p.x <= 0 || p.y <= 0 || p.x >= wi || p.y >= hi)
-    {
-        return Ok(Shape::Neither);
-    }
-    // So is one that reaches the edge of the window it was traced in
-    // ([`find_quads_and_blobs_within`]): it may go on outside.
-    if let Some(r) = window {
-        let (x1, y1) = (r.x + r.width - 1, r.y + r.height - 1);
-        if c.iter()
-            .any(|p| p.x <= r.x || p.y <= r.y || p.x >= x1 || p.y >= y1)
-        {
-            return Ok(Shape::Neither);
+    // The rectangle the contour was traced in: the level, or the window
+    // ([`find_quads_and_blobs_within`]).
+    let bounds = window.unwrap_or(Rect::new(0, 0, level.cols(), level.rows()));
+    // A region that reaches the outermost row or column of the level or
+    // window is cut by it (its outline follows the cut, not a square, and
+    // may go on outside): no quad, but a marker joined to it may be.
+    let (x1, y1) = (bounds.x + bounds.width - 1, bounds.y + bounds.height - 1);
+    let cut = c
+        .as_slice()
+        .iter()
+        .any(|p| p.x <= bounds.x || p.y <= bounds.y || p.x >= x1 || p.y >= y1);
+    let joined = || -> Shape {
+        let margin = params.border_margin_px / scale;
+        let quads: Vec<[Px; 4]> = quads_of_long_edges(c.as_slice(), min_side_lvl, bounds)
+            .into_iter()
+            .filter(|q| within_margin(q, margin, [w, h]))
+            .map(|mut q| {
+                if signed_area2(&q) < 0.0 {
+                    q.swap(1, 3);
+                }
+                q
+            })
+            .collect();
+        if quads.is_empty() {
+            Shape::Neither
+        } else {
+            Shape::Joined(quads)
         }
+    };
+    if cut {
+        return Ok(joined());
     }
     imgproc::approx_poly_dp(c, approx, params.approx_epsilon * perim, true)?;
     let blob = approx.len() != 4 || !imgproc::is_contour_convex(&*approx)?;
+    if blob && (scale <= 1.0 || perim > 4.0 * params.full_res_region_max_side_px / scale) {
+        return Ok(joined());
+    }
     if blob {
         // Only on a downsampled level, and only of a size the full-resolution
         // search is for: its convex hull nearly a quadrilateral.
@@ -819,6 +855,251 @@ fn contour_quad(
     Ok(if blob { Shape::Blob(q) } else { Shape::Quad(q) })
 }
 
+/// The corner margin: every corner of `q` at least `margin` inside a level
+/// of `size` (width, height).
+fn within_margin(q: &[Px; 4], margin: f64, [w, h]: [f64; 2]) -> bool {
+    q.iter().all(|c| {
+        c[0] >= margin && c[1] >= margin && c[0] <= w - 1.0 - margin && c[1] <= h - 1.0 - margin
+    })
+}
+
+/// How far (level pixels) an outline's points may stray from the line of
+/// the straight run they belong to ([`straight_runs`]): a square's side,
+/// blurred and sampled, stays within a pixel or so of its line, and a long
+/// one bows by a pixel and a half (the rotation steps' +70° tag, 98 px).
+const JOINED_EPS_PX: f64 = 1.5;
+/// Each side's straight run covers at least this share of it…
+const JOINED_MIN_COVER: f64 = 0.5;
+/// …and reaches no further than this share beyond either corner.
+const JOINED_MAX_OVERHANG: f64 = 0.15;
+/// The sine of the sharpest corner a joined quad may have (20°).
+const JOINED_MIN_CORNER_SIN: f64 = 0.342;
+/// At most this many quads tried per outline (bounds the cost on a
+/// region of texture; a marker's four runs link to few others).
+const JOINED_MAX_TRIED: usize = 4096;
+
+/// Convex quads whose four sides are straight runs of the outline `c`
+/// (in the outline's order), for a region that is no quad itself: a
+/// marker whose black border touches a dark neighbour (a card's shaded
+/// edge, its stand, a shadow, texture reaching the frame's edge) is one
+/// region with it, whose outline still runs along most of the marker's
+/// four sides. The outline is cut into straight runs
+/// ([`straight_runs`]); runs along the
+/// edge of `bounds` (where the region was cut) and shorter than
+/// `min_side` are left out. Four runs, in the outline's order, each
+/// crossing the next at a corner ahead of its own end and behind the
+/// next's start, are the sides; their lines' crossings the corners
+/// ([`quad_of_runs`]). Of quads sharing a run, the one whose runs cover
+/// the most of its sides is kept.
+fn quads_of_long_edges(c: &[Point], min_side: f64, bounds: Rect) -> Vec<[Px; 4]> {
+    use super::geom::dist;
+    let (x0, y0) = (f64::from(bounds.x), f64::from(bounds.y));
+    let (x1, y1) = (
+        x0 + f64::from(bounds.width - 1),
+        y0 + f64::from(bounds.height - 1),
+    );
+    let on_cut = |a: Px, b: Px| {
+        (a[0] <= x0 && b[0] <= x0)
+            || (a[1] <= y0 && b[1] <= y0)
+            || (a[0] >= x1 && b[0] >= x1)
+            || (a[1] >= y1 && b[1] >= y1)
+    };
+    // A region that cannot hold a square of `min_side` holds no marker.
+    let (mut lo, mut hi) = ([i32::MAX; 2], [i32::MIN; 2]);
+    for p in c {
+        lo = [lo[0].min(p.x), lo[1].min(p.y)];
+        hi = [hi[0].max(p.x), hi[1].max(p.y)];
+    }
+    if f64::from(hi[0] - lo[0]).min(f64::from(hi[1] - lo[1])) + 1.0 < min_side {
+        return Vec::new();
+    }
+    let runs: Vec<(Px, Px, f64)> = straight_runs(c, min_side)
+        .into_iter()
+        .filter(|&(a, b)| !on_cut(a, b))
+        .map(|(a, b)| (a, b, dist(a, b)))
+        .collect();
+    let m = runs.len();
+    if m < 4 {
+        return Vec::new();
+    }
+    // Run j may follow run i as the quad's next side: their lines cross at
+    // a corner ahead of i's end and behind j's start, each run covering
+    // its share of the side up to it ([`JOINED_MIN_COVER`],
+    // [`JOINED_MAX_OVERHANG`]), at a corner no sharper than
+    // [`JOINED_MIN_CORNER_SIN`]. `quad_of_runs` checks the whole quad.
+    let reach = 1.0 / JOINED_MIN_COVER;
+    let slack = JOINED_MAX_OVERHANG * reach;
+    let links = |i: usize, j: usize| -> bool {
+        let ((a, b, li), (c, e, lj)) = (runs[i], runs[j]);
+        let u = [(b[0] - a[0]) / li, (b[1] - a[1]) / li];
+        let v = [(e[0] - c[0]) / lj, (e[1] - c[1]) / lj];
+        let sin = u[0] * v[1] - u[1] * v[0];
+        if sin.abs() < JOINED_MIN_CORNER_SIN {
+            return false;
+        }
+        // The corner a + t u = c + s v.
+        let w = [c[0] - a[0], c[1] - a[1]];
+        let t = (w[0] * v[1] - w[1] * v[0]) / sin / li;
+        let s = (w[0] * u[1] - w[1] * u[0]) / sin / lj;
+        (1.0 - slack..=reach + slack).contains(&t) && (-reach - slack..=slack).contains(&s)
+    };
+    let next: Vec<Vec<usize>> = (0..m)
+        .map(|i| (0..m).filter(|&j| j != i && links(i, j)).collect())
+        .collect();
+    let mut found: Vec<(f64, [usize; 4], [Px; 4])> = Vec::new();
+    let mut tried = 0;
+    // Each quad once: from its first run in the outline's order.
+    'search: for a in 0..m {
+        for &b in next[a].iter().filter(|&&b| b > a) {
+            for &c2 in next[b].iter().filter(|&&c2| c2 > b) {
+                for &d in next[c2].iter().filter(|&&d| d > c2) {
+                    if !next[d].contains(&a) {
+                        continue;
+                    }
+                    tried += 1;
+                    if tried > JOINED_MAX_TRIED {
+                        break 'search;
+                    }
+                    let sides = [a, b, c2, d].map(|k| (runs[k].0, runs[k].1));
+                    if let Some((q, cover)) = quad_of_runs(&sides, min_side) {
+                        found.push((cover, [a, b, c2, d], q));
+                    }
+                }
+            }
+        }
+    }
+    found.sort_by(|x, y| y.0.total_cmp(&x.0));
+    let mut used = vec![false; m];
+    let mut quads = Vec::new();
+    for (_, ks, q) in found {
+        if ks.iter().any(|&k| used[k]) {
+            continue;
+        }
+        ks.iter().for_each(|&k| used[k] = true);
+        quads.push(q);
+    }
+    quads
+}
+
+/// The straight runs of the closed outline `pts` at least `min_len` long,
+/// in its order: from each
+/// run's first point, the run goes on while every point so far lies within
+/// [`JOINED_EPS_PX`] of the line from it to the newest point (the
+/// directions that keep all of them that close form a cone, narrowed at
+/// each point; a point outside it ends the run, and the next starts where
+/// this one ended). Scanned from where a first run ends, so that no run is
+/// cut by where the outline happens to begin.
+fn straight_runs(pts: &[Point], min_len: f64) -> Vec<(Px, Px)> {
+    let n = pts.len();
+    if n < 2 {
+        return Vec::new();
+    }
+    let at = |k: usize| {
+        let p = pts[if k < n { k } else { k % n }];
+        [f64::from(p.x), f64::from(p.y)]
+    };
+    let cross = |u: Px, v: Px| u[0] * v[1] - u[1] * v[0];
+    let eps2 = JOINED_EPS_PX * JOINED_EPS_PX;
+    // The index (from `from`, at most `n` on) of the last point of the run starting there.
+    let run_end = |from: usize| -> usize {
+        let a = at(from);
+        // The cone: its clockwise and counter-clockwise edge directions
+        // (not unit vectors), or none yet.
+        let mut cone: Option<(Px, Px)> = None;
+        let mut last = from + 1;
+        let mut idx = from % n;
+        for k in from + 1..=from + n {
+            idx += 1;
+            if idx == n {
+                idx = 0;
+            }
+            let p = pts[idx];
+            let d = [f64::from(p.x) - a[0], f64::from(p.y) - a[1]];
+            let r2 = d[0] * d[0] + d[1] * d[1];
+            if r2 <= eps2 {
+                last = k;
+                continue;
+            }
+            if let Some((lo, hi)) = cone {
+                if cross(lo, d) < 0.0 || cross(d, hi) < 0.0 {
+                    break;
+                }
+            }
+            // d turned either way by asin(eps / r), scaled by r.
+            let c = (r2 - eps2).sqrt();
+            let e = JOINED_EPS_PX;
+            let lo2 = [d[0] * c + d[1] * e, d[1] * c - d[0] * e];
+            let hi2 = [d[0] * c - d[1] * e, d[1] * c + d[0] * e];
+            cone = Some(match cone {
+                None => (lo2, hi2),
+                Some((lo, hi)) => (
+                    if cross(lo, lo2) > 0.0 { lo2 } else { lo },
+                    if cross(hi2, hi) > 0.0 { hi2 } else { hi },
+                ),
+            });
+            last = k;
+        }
+        last
+    };
+    let start = run_end(0) % n;
+    let mut runs = Vec::new();
+    let mut i = start;
+    while i < start + n {
+        let j = run_end(i).min(start + n);
+        let (a, b) = (at(i), at(j));
+        if (b[0] - a[0]).powi(2) + (b[1] - a[1]).powi(2) >= min_len * min_len {
+            runs.push((a, b));
+        }
+        i = j;
+    }
+    runs
+}
+
+/// The quad whose sides lie on the lines of the four runs `sides` (each
+/// from its first point to its second, in order around the quad) and the
+/// share of its sides the runs cover, when it is convex with no corner
+/// sharper than [`JOINED_MIN_CORNER_SIN`], every side at least `min_side`
+/// long, and each run covering [`JOINED_MIN_COVER`] of its side, in the
+/// side's direction, within [`JOINED_MAX_OVERHANG`] of it.
+fn quad_of_runs(sides: &[(Px, Px); 4], min_side: f64) -> Option<([Px; 4], f64)> {
+    use super::geom::{dist, Line};
+    let lines: Vec<Line> = sides
+        .iter()
+        .map(|&(p, q)| Line::through(p, q))
+        .collect::<Option<_>>()?;
+    // Corner i is where side i-1 meets side i.
+    let mut q = [[0.0; 2]; 4];
+    for i in 0..4 {
+        q[i] = lines[(i + 3) % 4].intersect(&lines[i])?;
+    }
+    let turn = |i: usize| {
+        let (a, b, c) = (q[i], q[(i + 1) % 4], q[(i + 2) % 4]);
+        (b[0] - a[0]) * (c[1] - b[1]) - (b[1] - a[1]) * (c[0] - b[0])
+    };
+    let turns = [turn(0), turn(1), turn(2), turn(3)];
+    if !(turns.iter().all(|&t| t > 0.0) || turns.iter().all(|&t| t < 0.0)) {
+        return None;
+    }
+    let mut cover = 0.0;
+    for (i, &(p0, p1)) in sides.iter().enumerate() {
+        let (a, b, c) = (q[i], q[(i + 1) % 4], q[(i + 2) % 4]);
+        let len = dist(a, b);
+        // Four runs of one ragged line cross in slivers.
+        if len < min_side || turns[i].abs() < JOINED_MIN_CORNER_SIN * len * dist(b, c) {
+            return None;
+        }
+        let along =
+            |p: Px| ((p[0] - a[0]) * (b[0] - a[0]) + (p[1] - a[1]) * (b[1] - a[1])) / (len * len);
+        let (t0, t1) = (along(p0), along(p1));
+        if t1 - t0 < JOINED_MIN_COVER || t0 < -JOINED_MAX_OVERHANG || t1 > 1.0 + JOINED_MAX_OVERHANG
+        {
+            return None;
+        }
+        cover += t1.min(1.0) - t0.max(0.0);
+    }
+    Some((q, cover / 4.0))
+}
+
 /// The per-marker pyramid level: on a downsampled frame a small marker's
 /// code square (a module of 2 px or less) blurs into its frame and no
 /// contour separates them, while the frame's outline is still found. Every
@@ -843,7 +1124,13 @@ pub fn full_res_quads(
         .map(|q| (mean_side(&q.pts), q))
         .filter(|(s, _)| *s <= max_side)
         .collect();
-    small.sort_by(|a, b| a.0.total_cmp(&b.0));
+    // Quads pieced from a larger region's outline last: they are many on
+    // a textured frame, and rarely a marker.
+    small.sort_by(|a, b| {
+        (a.1.exact_only, a.0)
+            .partial_cmp(&(b.1.exact_only, b.0))
+            .unwrap_or(std::cmp::Ordering::Equal)
+    });
     let (cols, rows) = (view.width as i32, view.height as i32);
     let mut done: Vec<opencv::core::Rect> = Vec::new();
     let mut extra: Vec<Quad> = Vec::new();
@@ -1431,5 +1718,95 @@ mod tests {
         let mut t = SumTable::new(GrayView::new(&mat).unwrap());
         assert_eq!(t.contrast([15, 8, 6, 6]), 80.0);
         assert_eq!(t.contrast([2, 2, 6, 6]), 0.0);
+    }
+
+    /// The outer contour of the dark polygons `polys` (drawn filled on a
+    /// light `w` x `h` image) that contains `inside`.
+    fn outline_around(w: i32, h: i32, polys: &[Vec<(i32, i32)>], inside: (i32, i32)) -> Vec<Point> {
+        use opencv::core::{Scalar, CV_8UC1};
+        let mut img = Mat::new_rows_cols_with_default(h, w, CV_8UC1, Scalar::all(0.0)).unwrap();
+        let polys: Vector<Vector<Point>> = polys
+            .iter()
+            .map(|p| p.iter().map(|&(x, y)| Point::new(x, y)).collect())
+            .collect();
+        imgproc::fill_poly(
+            &mut img,
+            &polys,
+            Scalar::all(255.0),
+            imgproc::LINE_8,
+            0,
+            Point::default(),
+        )
+        .unwrap();
+        let mut contours: Vector<Vector<Point>> = Vector::new();
+        imgproc::find_contours(
+            &img,
+            &mut contours,
+            imgproc::RETR_EXTERNAL,
+            imgproc::CHAIN_APPROX_SIMPLE,
+            Point::new(0, 0),
+        )
+        .unwrap();
+        let p = opencv::core::Point2f::new(inside.0 as f32, inside.1 as f32);
+        contours
+            .iter()
+            .find(|c| imgproc::point_polygon_test(c, p, false).unwrap() > 0.0)
+            .expect("a region around the point")
+            .to_vec()
+    }
+
+    fn near(a: Px, b: Px, tol: f64) -> bool {
+        super::super::geom::dist(a, b) < tol
+    }
+
+    #[test]
+    fn the_straight_runs_of_a_turned_squares_outline_are_its_sides() {
+        let sq = [(60, 20), (115, 45), (90, 100), (35, 75)];
+        let outline = outline_around(160, 130, &[sq.to_vec()], (75, 60));
+        let runs = straight_runs(&outline, 20.0);
+        assert_eq!(runs.len(), 4, "{runs:?}");
+        // Each side's run spans it within a pixel or two at either end.
+        let corners: Vec<Px> = sq
+            .iter()
+            .map(|&(x, y)| [f64::from(x), f64::from(y)])
+            .collect();
+        for (a, b) in &runs {
+            assert!(corners.iter().any(|c| near(*a, *c, 2.5)), "run {a:?}–{b:?}");
+            assert!(corners.iter().any(|c| near(*b, *c, 2.5)), "run {a:?}–{b:?}");
+        }
+    }
+
+    #[test]
+    fn a_square_joined_to_a_bar_is_found_on_its_outline_and_a_side_along_a_cut_is_none() {
+        let sq = vec![(60, 20), (115, 45), (90, 100), (35, 75)];
+        let corners: Vec<Px> = sq
+            .iter()
+            .map(|&(x, y)| [f64::from(x), f64::from(y)])
+            .collect();
+        let bounds = Rect::new(0, 0, 160, 130);
+        // A bar from near the bottom corner down to the frame's last row.
+        let bar = vec![(80, 90), (90, 94), (95, 129), (85, 129)];
+        let outline = outline_around(160, 130, &[sq.clone(), bar], (75, 60));
+        assert!(
+            outline.iter().any(|p| p.y == 129),
+            "the premise: the region is cut"
+        );
+        let quads = quads_of_long_edges(&outline, 9.0, bounds);
+        assert_eq!(quads.len(), 1, "{quads:?}");
+        for c in &corners {
+            assert!(
+                quads[0].iter().any(|q| near(*q, *c, 1.5)),
+                "{c:?} not in {quads:?}"
+            );
+        }
+        // A square whose fourth side lies along the frame's top row has
+        // three sides: its outline's run there is the cut, not a side.
+        let cut = vec![(30, 0), (90, 0), (90, 50), (30, 50)];
+        let outline = outline_around(160, 130, &[cut], (60, 20));
+        assert!(quads_of_long_edges(&outline, 9.0, bounds).is_empty());
+        // The same square a row lower is found.
+        let whole = vec![(30, 1), (90, 1), (90, 50), (30, 50)];
+        let outline = outline_around(160, 130, &[whole], (60, 20));
+        assert_eq!(quads_of_long_edges(&outline, 9.0, bounds).len(), 1);
     }
 }
