@@ -883,10 +883,9 @@ const JOINED_MAX_TRIED: usize = 4096;
 /// marker whose black border touches a dark neighbour (a card's shaded
 /// edge, its stand, a shadow, texture reaching the frame's edge) is one
 /// region with it, whose outline still runs along most of the marker's
-/// four sides. The outline is cut into straight runs
-/// ([`straight_runs`]); runs along the
-/// edge of `bounds` (where the region was cut) and shorter than
-/// `min_side` are left out. Four runs, in the outline's order, each
+/// four sides. The outline is cut into straight runs ([`straight_runs`]);
+/// runs along the edge of `bounds` (where the region was cut) and shorter
+/// than `min_side` are left out. Four runs, in the outline's order, each
 /// crossing the next at a corner ahead of its own end and behind the
 /// next's start, are the sides; their lines' crossings the corners
 /// ([`quad_of_runs`]). Of quads sharing a run, the one whose runs cover
@@ -904,15 +903,6 @@ fn quads_of_long_edges(c: &[Point], min_side: f64, bounds: Rect) -> Vec<[Px; 4]>
             || (a[0] >= x1 && b[0] >= x1)
             || (a[1] >= y1 && b[1] >= y1)
     };
-    // A region that cannot hold a square of `min_side` holds no marker.
-    let (mut lo, mut hi) = ([i32::MAX; 2], [i32::MIN; 2]);
-    for p in c {
-        lo = [lo[0].min(p.x), lo[1].min(p.y)];
-        hi = [hi[0].max(p.x), hi[1].max(p.y)];
-    }
-    if f64::from(hi[0] - lo[0]).min(f64::from(hi[1] - lo[1])) + 1.0 < min_side {
-        return Vec::new();
-    }
     let runs: Vec<(Px, Px, f64)> = straight_runs(c, min_side)
         .into_iter()
         .filter(|&(a, b)| !on_cut(a, b))
@@ -982,13 +972,12 @@ fn quads_of_long_edges(c: &[Point], min_side: f64, bounds: Rect) -> Vec<[Px; 4]>
 }
 
 /// The straight runs of the closed outline `pts` at least `min_len` long,
-/// in its order: from each
-/// run's first point, the run goes on while every point so far lies within
-/// [`JOINED_EPS_PX`] of the line from it to the newest point (the
-/// directions that keep all of them that close form a cone, narrowed at
-/// each point; a point outside it ends the run, and the next starts where
-/// this one ended). Scanned from where a first run ends, so that no run is
-/// cut by where the outline happens to begin.
+/// in its order: from each run's first point, the run goes on while every
+/// point so far lies within [`JOINED_EPS_PX`] of the line from it to the
+/// newest point (the directions that keep all of them that close form a
+/// cone, narrowed at each point; a point outside it ends the run, and the
+/// next starts where this one ended). Scanned from where a first run ends,
+/// so that no run is cut by where the outline happens to begin.
 fn straight_runs(pts: &[Point], min_len: f64) -> Vec<(Px, Px)> {
     let n = pts.len();
     if n < 2 {
