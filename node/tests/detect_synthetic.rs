@@ -493,7 +493,7 @@ fn a_search_within_windows_reads_the_markers_inside_them_as_the_whole_frame_sear
 /// touching the corner — blurred by a Gaussian of 1 px. Returns the frame
 /// and the black square's outer corners (TL, TR, BR, BL; pixel edges).
 fn tag_with_a_wedge_at_one_corner(tip: (i32, i32)) -> (GrayImage, [[f64; 2]; 4]) {
-    use opencv::core::{Mat, Point, Size, Vector, BORDER_REPLICATE, CV_8UC1};
+    use opencv::core::{Mat, Point, Vector, CV_8UC1};
     use opencv::prelude::*;
     const MODULE_PX: i32 = 12;
     let (size, x0, y0) = (200, 52, 48);
@@ -534,24 +534,30 @@ fn tag_with_a_wedge_at_one_corner(tip: (i32, i32)) -> (GrayImage, [[f64; 2]; 4])
         Point::default(),
     )
     .unwrap();
-    let mut blurred = Mat::default();
-    opencv::imgproc::gaussian_blur(
-        &img,
-        &mut blurred,
-        Size::new(0, 0),
-        1.0,
-        1.0,
-        BORDER_REPLICATE,
-    )
-    .unwrap();
     let (l, t) = (f64::from(x0) - 0.5, f64::from(y0) - 0.5);
     let (r, b) = (l + f64::from(m * MODULE_PX), t + f64::from(m * MODULE_PX));
-    let frame = GrayImage {
-        width: size as u32,
-        height: size as u32,
+    (blurred_by_a_pixel(&img), [[l, t], [r, t], [r, b], [l, b]])
+}
+
+/// `img` (8-bit grey) blurred by a Gaussian of 1 px, as a frame.
+fn blurred_by_a_pixel(img: &opencv::core::Mat) -> GrayImage {
+    use opencv::prelude::*;
+    let mut blurred = opencv::core::Mat::default();
+    opencv::imgproc::gaussian_blur(
+        img,
+        &mut blurred,
+        opencv::core::Size::new(0, 0),
+        1.0,
+        1.0,
+        opencv::core::BORDER_REPLICATE,
+    )
+    .unwrap();
+    assert_eq!(blurred.typ(), opencv::core::CV_8UC1);
+    GrayImage {
+        width: blurred.cols() as u32,
+        height: blurred.rows() as u32,
         data: blurred.data_bytes().unwrap().to_vec(),
-    };
-    (frame, [[l, t], [r, t], [r, b], [l, b]])
+    }
 }
 
 #[test]
@@ -684,23 +690,7 @@ fn tag_joined_to(neighbour: Neighbour, flip: bool, turn_deg: f64) -> (GrayImage,
             ]
         });
     }
-    let mut blurred = Mat::default();
-    opencv::imgproc::gaussian_blur(
-        &turned,
-        &mut blurred,
-        Size::new(0, 0),
-        1.0,
-        1.0,
-        BORDER_REPLICATE,
-    )
-    .unwrap();
-    debug_assert_eq!(blurred.typ(), CV_8UC1);
-    let frame = GrayImage {
-        width: size as u32,
-        height: size as u32,
-        data: blurred.data_bytes().unwrap().to_vec(),
-    };
-    (frame, corners)
+    (blurred_by_a_pixel(&turned), corners)
 }
 
 /// The largest distance from a corner of `truth` to the nearest of `q`.
