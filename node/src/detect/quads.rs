@@ -256,10 +256,10 @@ fn quads_of_level(
             for c in contours.iter() {
                 let shape =
                     contour_quad(params, (level, &mut table), scale, &c, &mut approx, window)?;
-                let (shapes, list, exact_only) = match shape {
-                    Shape::Quad(q) => (vec![q], &mut found.quads, false),
-                    Shape::Joined(qs) => (qs, &mut found.quads, true),
-                    Shape::Blob(q) => (vec![q], &mut found.blobs, false),
+                let (shapes, list, exact_only) = match &shape {
+                    Shape::Quad(q) => (std::slice::from_ref(q), &mut found.quads, false),
+                    Shape::Joined(qs) => (qs.as_slice(), &mut found.quads, true),
+                    Shape::Blob(q) => (std::slice::from_ref(q), &mut found.blobs, false),
                     Shape::Neither => continue,
                 };
                 for q in shapes {
