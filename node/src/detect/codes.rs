@@ -253,7 +253,8 @@ impl CodeReader {
     /// at 1.5–2 px per module, or on a contour merged with a neighbouring
     /// shadow, the polygon's corners are off by more than half a module
     /// (AprilTag 3 refines every quad's edges before decoding for the same
-    /// reason).
+    /// reason). A quad pieced from a larger outline ([`Quad::exact_only`])
+    /// counts only when its first read is exact.
     fn read(&self, view: &GrayView<'_>, quad: &Quad) -> Option<Code> {
         let side = mean_side(&quad.pts);
         let grow = (side + 2.0 * quad.inset_px) / side;

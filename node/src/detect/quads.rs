@@ -836,10 +836,7 @@ fn contour_quad(
     for (i, pt) in approx.iter().enumerate() {
         q[i] = [f64::from(pt.x), f64::from(pt.y)];
     }
-    let margin = params.border_margin_px / scale;
-    if q.iter().any(|c| {
-        c[0] < margin || c[1] < margin || c[0] > w - 1.0 - margin || c[1] > h - 1.0 - margin
-    }) {
+    if !within_margin(&q, params.border_margin_px / scale, [w, h]) {
         return Ok(Shape::Neither);
     }
     // The polygon traces the centres of the region's boundary pixels, half a
