@@ -113,7 +113,9 @@ type Tally = (BTreeSet<(usize, u32)>, usize, Vec<f64>);
 
 /// What one method read of what the truth knows: `(frame, key)` where the
 /// key is the marker ID, or with [`Truth::Corners`] the reference marker's
-/// index in its image's list; the false reads; the corner errors (px).
+/// index in its image's list; the false reads (with a layout or rotation
+/// truth: an ID it does not know, or one read a second time in a frame);
+/// the corner errors (px).
 fn tally(m: &Manifest, run: &MethodRun) -> Tally {
     let known = known_ids(&m.truth);
     let mut good = BTreeSet::new();
@@ -141,10 +143,10 @@ fn tally(m: &Manifest, run: &MethodRun) -> Tally {
                 }
             }
         } else {
+            // Every known ID is one marker in one place: a second read of
+            // it in the same frame is a read of something else.
             for r in reads.iter().filter(|r| !m.unlisted_ids.contains(&r.id)) {
-                if known.contains(&r.id) {
-                    good.insert((*idx, r.id));
-                } else {
+                if !known.contains(&r.id) || !good.insert((*idx, r.id)) {
                     false_reads += 1;
                 }
             }
@@ -451,7 +453,7 @@ mod tests {
     }
 
     #[test]
-    fn an_id_read_twice_in_a_frame_is_not_paired() {
+    fn an_id_read_twice_in_a_frame_is_not_paired_and_counts_as_a_false_read() {
         let centres: BTreeMap<u32, [f64; 3]> = [
             (1, [0.0, 0.0, 0.0]),
             (2, [0.5, 0.0, 0.0]),
@@ -473,6 +475,20 @@ mod tests {
         };
         let d = pair_distances(&centres, &run);
         assert_eq!(d.keys().copied().collect::<Vec<_>>(), vec![(0, 1, 3)]);
+        // Scored: tag 2 read once, and once as a false read (so is an ID
+        // the layout does not know, 9); in the next frame tag 2 again.
+        let m: Manifest = serde_json::from_value(serde_json::json!({
+            "name": "layout", "underwater": false, "codes": "apriltag16h5", "side_m": 0.1,
+            "images": ["0", "1"], "splits": {"dev": [0, 2]},
+            "truth": {"layout": {"centres_m": {"1": [0.0, 0.0, 0.0], "2": [0.5, 0.0, 0.0], "3": [1.0, 0.0, 0.0]}}}
+        }))
+        .unwrap();
+        let mut run = run;
+        run.frames[0].2.push(read(9, 2.0, None));
+        run.frames.push((1, "1".into(), vec![read(2, 0.5, None)]));
+        let (good, false_reads, _) = tally(&m, &run);
+        assert_eq!(good, [(0, 1), (0, 2), (0, 3), (1, 2)].into());
+        assert_eq!(false_reads, 2);
     }
 
     #[test]
