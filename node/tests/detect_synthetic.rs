@@ -756,3 +756,106 @@ fn a_joined_tag_reads_only_on_an_exact_code() {
         assert!(found.is_empty(), "{neighbour:?}: {found:?}");
     }
 }
+
+/// A 1100x800 frame (searched at half size): a small tag36h11 tag (ID 7,
+/// 3 px modules) hanging 2 px below a post that comes down from a dark
+/// border around the frame's top and sides, so that at half size the gap
+/// closes and the tag is part of that border's region (longer than the
+/// frame's own outline); beside it, `cells` light cells of a dark grid
+/// (quads that read nothing). Blurred by a Gaussian of 1 px. Returns the
+/// frame and the tag's outer corners.
+fn small_tag_below_a_post(cells: i32) -> (GrayImage, [[f64; 2]; 4]) {
+    use opencv::core::{Mat, Rect, Scalar, CV_8UC1};
+    use opencv::prelude::*;
+    const MODULE_PX: i32 = 3;
+    let (w, h) = (1100, 800);
+    let codes = CodeSet::AprilTag36h11;
+    let m = codes.modules() as i32;
+    let grid = codes.module_grid(7).unwrap();
+    let (dark, light) = (Scalar::all(50.0), Scalar::all(190.0));
+    let mut img = Mat::new_rows_cols_with_default(h, w, CV_8UC1, light).unwrap();
+    let fill = |img: &mut Mat, r: Rect, v: Scalar| {
+        opencv::imgproc::rectangle(img, r, v, -1, opencv::imgproc::LINE_8, 0).unwrap();
+    };
+    // The border: a band along the top, down both sides.
+    fill(&mut img, Rect::new(0, 0, w, 60), dark);
+    fill(&mut img, Rect::new(0, 0, 40, h), dark);
+    fill(&mut img, Rect::new(w - 40, 0, 40, h), dark);
+    // The tag, and the post ending two pixels above it (from an odd row:
+    // each half-size pixel over the gap takes half of the post or tag).
+    let (x0, y0) = (400, 203);
+    for y in 0..m * MODULE_PX {
+        for x in 0..m * MODULE_PX {
+            let white = grid[((y / MODULE_PX) * m + x / MODULE_PX) as usize];
+            *img.at_2d_mut::<u8>(y0 + y, x0 + x).unwrap() = if white { 190 } else { 50 };
+        }
+    }
+    let side = m * MODULE_PX;
+    fill(&mut img, Rect::new(x0 + 6, 60, 2, y0 - 2 - 60), dark);
+    // The grid: 2 px lines, cells of 26 px, in rows of ten.
+    let (gx, gy, pitch) = (120, 420, 28);
+    let (cols, rows) = (10.min(cells), (cells + 9) / 10);
+    for r in 0..=rows {
+        fill(
+            &mut img,
+            Rect::new(gx, gy + r * pitch, cols * pitch + 2, 2),
+            dark,
+        );
+    }
+    for c in 0..=cols {
+        fill(
+            &mut img,
+            Rect::new(gx + c * pitch, gy, 2, rows * pitch + 2),
+            dark,
+        );
+    }
+    let (l, t) = (f64::from(x0) - 0.5, f64::from(y0) - 0.5);
+    let (r, b) = (l + f64::from(side), t + f64::from(side));
+    (blurred_by_a_pixel(&img), [[l, t], [r, t], [r, b], [l, b]])
+}
+
+#[test]
+fn a_small_tag_joined_to_the_background_at_half_size_is_read_ahead_of_light_cells() {
+    // The public rotation steps' +70° tag: at half size its border meets
+    // the shelf's post behind it, and so the dark background that reaches
+    // round the frame, whose outline was not searched; and the light
+    // cells of the paper grid in front filled every full-resolution window
+    // (docs/detector.md, "A marker joined to the background").
+    let (frame, truth) = small_tag_below_a_post(40);
+    let params = DetectParams::default();
+    assert!(frame.width as i32 > params.full_res_max_width);
+    // The premises: at full size the tag's square is a quad of its own…
+    let mat = shoal_node::mat::gray_as_mat(&frame).unwrap();
+    let full = DetectParams {
+        full_res_max_width: 2000,
+        ..DetectParams::default()
+    };
+    let quads = shoal_node::detect::quads::find_quads(&full, &mat).unwrap();
+    assert!(
+        quads
+            .iter()
+            .any(|q| !q.exact_only && worst_corner(&q.pts, &truth) < 3.0),
+        "no quad of its own at full size"
+    );
+    // …at half size only one pieced from the background's outline, and the
+    // grid's cells outnumber the full-resolution windows.
+    let quads = shoal_node::detect::quads::find_quads(&params, &mat).unwrap();
+    let on_tag: Vec<_> = quads
+        .iter()
+        .filter(|q| worst_corner(&q.pts, &truth) < 4.0)
+        .collect();
+    assert!(!on_tag.is_empty(), "no quad on the tag at half size");
+    assert!(on_tag.iter().all(|q| q.exact_only), "{on_tag:?}");
+    let cells = quads
+        .iter()
+        .filter(|q| !q.exact_only && q.pts.iter().all(|c| c[1] > 400.0))
+        .count();
+    assert!(cells > params.max_full_res_regions, "{cells} cells");
+    let mut det = ShoalDetector::new(CodeSet::AprilTag36h11, params);
+    let found = det.detect_gray(&frame).unwrap();
+    assert_eq!(found.len(), 1, "{found:?}");
+    assert_eq!((found[0].id, found[0].hamming), (7, 0));
+    let corners: [[f64; 2]; 4] = std::array::from_fn(|i| found[0].corners_px[i]);
+    let err = worst_corner(&corners, &truth);
+    assert!(err < 0.5, "a corner {err:.2} px off: {corners:?}");
+}

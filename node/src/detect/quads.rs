@@ -103,8 +103,15 @@ fn search_level(
     found: &mut Found,
 ) -> Result<(), DetectError> {
     match half_level(params, img)? {
-        Some(half) => quads_of_level(params, &half, 2.0, [0.0, 0.0], None, windows, found),
-        None => quads_of_level(params, img, 1.0, [0.0, 0.0], None, windows, found),
+        Some(half) => quads_of_level(
+            params,
+            &half,
+            Place::whole(&half, 2.0),
+            None,
+            windows,
+            found,
+        ),
+        None => quads_of_level(params, img, Place::whole(img, 1.0), None, windows, found),
     }
 }
 
@@ -216,14 +223,34 @@ fn without_edge_artefacts(gray: &impl MatTraitConst) -> Result<Option<Mat>, Dete
     Ok(Some(c))
 }
 
-/// The quads of one image (`level`, `scale` full-resolution pixels per
-/// pixel, its top-left at `offset` in full-resolution pixels), appended to
-/// `quads` unless already there.
+/// Where a searched image lies in the frame: `scale` full-resolution
+/// pixels per pixel, its top-left at `offset` (full-resolution pixels),
+/// and the frame's own outline at that scale (`2 (w + h)`, in the image's
+/// pixels; an outline longer is the background's, [`contour_quad`]).
+#[derive(Debug, Clone, Copy)]
+struct Place {
+    scale: f64,
+    offset: Px,
+    frame_outline: f64,
+}
+
+impl Place {
+    /// `level` is the whole frame at `scale`.
+    fn whole(level: &impl MatTraitConst, scale: f64) -> Self {
+        Place {
+            scale,
+            offset: [0.0, 0.0],
+            frame_outline: 2.0 * f64::from(level.cols() + level.rows()),
+        }
+    }
+}
+
+/// The quads of one image (`level`, placed in the frame at `at`),
+/// appended to `found` unless already there.
 fn quads_of_level(
     params: &DetectParams,
     level: &(impl MatTraitConst + ToInputArray),
-    scale: f64,
-    offset: Px,
+    at: Place,
     noise_dn: Option<f64>,
     windows: Option<&[Rect]>,
     found: &mut Found,
@@ -240,6 +267,7 @@ fn quads_of_level(
     };
     let mut table = SumTable::new(view);
     // The windows at this level (pixels of the level, within it, merged).
+    let (scale, offset) = (at.scale, at.offset);
     let level_windows =
         windows.map(|ws| level_rects(ws, scale, offset, [level.cols(), level.rows()]));
     for &win in &params.threshold_windows {
@@ -255,7 +283,7 @@ fn quads_of_level(
             let contours = trace_contours(&bin, window)?;
             for c in contours.iter() {
                 let shape =
-                    contour_quad(params, (level, &mut table), scale, &c, &mut approx, window)?;
+                    contour_quad(params, (level, &mut table), &at, &c, &mut approx, window)?;
                 let (shapes, list, exact_only) = match &shape {
                     Shape::Quad(q) => (std::slice::from_ref(q), &mut found.quads, false),
                     Shape::Joined(qs) => (qs.as_slice(), &mut found.quads, true),
@@ -758,21 +786,30 @@ impl<'a> SumTable<'a> {
 fn contour_quad(
     params: &DetectParams,
     (level, table): (&impl MatTraitConst, &mut SumTable<'_>),
-    scale: f64,
+    at: &Place,
     c: &Vector<Point>,
     approx: &mut Vector<Point>,
     window: Option<Rect>,
 ) -> Result<Shape, DetectError> {
     let (w, h) = (f64::from(level.cols()), f64::from(level.rows()));
+    let scale = at.scale;
     let min_side_lvl = params.min_code_side_px / scale;
     if c.len() < 4 {
         return Ok(Shape::Neither);
     }
     let perim = imgproc::arc_length(c, true)?;
-    // One longer than the level's own outline is background (a marker
-    // joined to it is not looked for: on the tank video that search cost
-    // 0.12 ms a frame and read nothing).
-    if perim < 4.0 * min_side_lvl || perim > 2.0 * (w + h) {
+    if perim < 4.0 * min_side_lvl {
+        return Ok(Shape::Neither);
+    }
+    // One longer than the frame's own outline is background: no quad, and
+    // at full resolution no marker joined to it is looked for either (on
+    // the tank video that search cost 0.12 ms a frame and read nothing).
+    // On a downsampled level it is: there the pixel or two between a
+    // marker and what stands behind it closes, and the marker becomes part
+    // of the background's dark region (the rotation steps' +70° tag, whose
+    // border meets a shelf's post at half size and not at full size).
+    let background = perim > at.frame_outline;
+    if background && scale <= 1.0 {
         return Ok(Shape::Neither);
     }
     // The rectangle the contour was traced in: the level, or the window
@@ -804,7 +841,7 @@ fn contour_quad(
             Shape::Joined(quads)
         }
     };
-    if cut {
+    if cut || background {
         return Ok(joined());
     }
     imgproc::approx_poly_dp(c, approx, params.approx_epsilon * perim, true)?;
@@ -1086,6 +1123,37 @@ fn quad_of_runs(sides: &[(Px, Px); 4], min_side: f64) -> Option<([Px; 4], f64)> 
     Some((q, cover / 4.0))
 }
 
+/// Where a quad's sides stand out as a marker's do: the image just inside
+/// them (a twentieth of the quad in, within any code's black border, but
+/// at least a pixel) darker, on the mean over the middle of every side,
+/// than just outside (as far out: the quiet zone) by `min_contrast` grey
+/// levels or more. A light cell of a grid or a hole in a dark region
+/// (its outline traced along the dark around it) is not.
+fn dark_inside(view: &GrayView<'_>, q: &[Px; 4], min_contrast: f64) -> bool {
+    let depth = (1.0 / min_side(q).max(1.0)).max(0.05);
+    // The quad's bilinear map: (0, 0) at q[0], (1, 0) at q[1], (1, 1) at q[2].
+    let at = |u: f64, v: f64| {
+        let w = [(1.0 - u) * (1.0 - v), u * (1.0 - v), u * v, (1.0 - u) * v];
+        let x: f64 = (0..4).map(|k| w[k] * q[k][0]).sum();
+        let y: f64 = (0..4).map(|k| w[k] * q[k][1]).sum();
+        view.sample(x, y)
+    };
+    let (mut inside, mut outside) = (0.0, 0.0);
+    for t in [0.3, 0.4, 0.5, 0.6, 0.7] {
+        // The four sides: v = 0, u = 1, v = 1, u = 0; inside at ±depth.
+        for (uv_in, uv_out) in [
+            ((t, depth), (t, -depth)),
+            ((1.0 - depth, t), (1.0 + depth, t)),
+            ((t, 1.0 - depth), (t, 1.0 + depth)),
+            ((depth, t), (-depth, t)),
+        ] {
+            inside += at(uv_in.0, uv_in.1);
+            outside += at(uv_out.0, uv_out.1);
+        }
+    }
+    (outside - inside) / 20.0 >= min_contrast
+}
+
 /// The per-marker pyramid level: on a downsampled frame a small marker's
 /// code square (a module of 2 px or less) blurs into its frame and no
 /// contour separates them, while the frame's outline is still found. Every
@@ -1105,23 +1173,26 @@ pub fn full_res_quads(
     quads: &[Quad],
 ) -> Result<Vec<Quad>, DetectError> {
     let max_side = params.full_res_region_max_side_px;
-    let mut small: Vec<(f64, &Quad)> = undecoded
+    let mut small: Vec<(bool, f64, &Quad)> = undecoded
         .iter()
         .map(|q| (mean_side(&q.pts), q))
         .filter(|(s, _)| *s <= max_side)
+        .map(|(s, q)| (!dark_inside(view, &q.pts, params.min_contrast), s, q))
         .collect();
-    // Quads pieced from a larger region's outline last: they are many on
-    // a textured frame, and rarely a marker.
+    // Quads not darker inside than around last (the light cells of a
+    // grid, holes in a dark region: no marker's outer square), then those
+    // pieced from a larger region's outline (many on a textured frame,
+    // and rarely a marker); smallest first.
     small.sort_by(|a, b| {
-        (a.1.exact_only, a.0)
-            .partial_cmp(&(b.1.exact_only, b.0))
+        (a.0, a.2.exact_only, a.1)
+            .partial_cmp(&(b.0, b.2.exact_only, b.1))
             .unwrap_or(std::cmp::Ordering::Equal)
     });
     let (cols, rows) = (view.width as i32, view.height as i32);
     let mut done: Vec<opencv::core::Rect> = Vec::new();
     let mut extra: Vec<Quad> = Vec::new();
     let mut frame_noise: Option<f64> = None;
-    for (side, q) in small.into_iter().take(params.max_full_res_regions) {
+    for (_, side, q) in small.into_iter().take(params.max_full_res_regions) {
         let pad = 0.5 * side + 4.0;
         let x0 = q.pts.iter().map(|c| c[0]).fold(f64::INFINITY, f64::min) - pad;
         let y0 = q.pts.iter().map(|c| c[1]).fold(f64::INFINITY, f64::min) - pad;
@@ -1151,16 +1222,25 @@ pub fn full_res_quads(
         // The frame's noise, not the window's: a far marker's 2 px modules
         // fill its window with edges a local estimate would take for noise.
         let noise = *frame_noise.get_or_insert_with(|| noise_sigma_dn(view));
-        quads_of_level(
-            params,
-            &roi,
-            1.0,
-            [f64::from(x0), f64::from(y0)],
-            Some(noise),
-            None,
-            &mut found,
-        )?;
-        for f in found.quads {
+        // A region the window cuts is measured against the frame's outline,
+        // not the window's: a marker joined to the background at half size
+        // is still joined to some of it here.
+        let at = Place {
+            scale: 1.0,
+            offset: [f64::from(x0), f64::from(y0)],
+            frame_outline: 2.0 * f64::from(cols + rows),
+        };
+        quads_of_level(params, &roi, at, Some(noise), None, &mut found)?;
+        // A quad pieced from an outline here is either the queued quad
+        // found again (sharper; a joined one's corners move by a few
+        // pixels, so: the two overlapping by half or more) or a piece of
+        // something the window's edge cuts (a neighbour's half, read by
+        // chance): only the former counts.
+        for f in found
+            .quads
+            .into_iter()
+            .filter(|f| !f.exact_only || box_overlap(&q.pts, &f.pts) >= 0.5)
+        {
             let known = quads.iter().any(|o| o.same_as(&f.pts))
                 && !undecoded.iter().any(|o| o.same_as(&f.pts));
             if !known && !extra.iter().any(|o| o.same_as(&f.pts)) {
@@ -1169,6 +1249,43 @@ pub fn full_res_quads(
         }
     }
     Ok(extra)
+}
+
+/// The intersection over union of the two quads' bounding boxes (0 when
+/// apart, 1 when the same).
+fn box_overlap(a: &[Px; 4], b: &[Px; 4]) -> f64 {
+    let bounds = |q: &[Px; 4]| {
+        q.iter().fold(
+            [
+                f64::INFINITY,
+                f64::INFINITY,
+                f64::NEG_INFINITY,
+                f64::NEG_INFINITY,
+            ],
+            |r, c| {
+                [
+                    r[0].min(c[0]),
+                    r[1].min(c[1]),
+                    r[2].max(c[0]),
+                    r[3].max(c[1]),
+                ]
+            },
+        )
+    };
+    let (p, q) = (bounds(a), bounds(b));
+    let area = |r: [f64; 4]| (r[2] - r[0]).max(0.0) * (r[3] - r[1]).max(0.0);
+    let inter = area([
+        p[0].max(q[0]),
+        p[1].max(q[1]),
+        p[2].min(q[2]),
+        p[3].min(q[3]),
+    ]);
+    let union = area(p) + area(q) - inter;
+    if union > 0.0 {
+        inter / union
+    } else {
+        0.0
+    }
 }
 
 /// True when two quads have the same corners (in any cyclic order) within `tol`.
@@ -1459,7 +1576,8 @@ mod tests {
         );
         // Without the guard (the same search on the frame as it is).
         let mut unguarded = Found::default();
-        quads_of_level(&params, &img, 1.0, [0.0, 0.0], None, None, &mut unguarded).unwrap();
+        let at = Place::whole(&img, 1.0);
+        quads_of_level(&params, &img, at, None, None, &mut unguarded).unwrap();
         assert!(
             !found(&unguarded.quads),
             "the line's dark band merges with the square"
@@ -1589,7 +1707,7 @@ mod tests {
         // black square would pass for an edge-line artefact here.
         let search = |params: &DetectParams, img: &Mat| {
             let mut found = Found::default();
-            quads_of_level(params, img, 1.0, [0.0, 0.0], None, None, &mut found).unwrap();
+            quads_of_level(params, img, Place::whole(img, 1.0), None, None, &mut found).unwrap();
             found.quads
         };
         let whole = frame(1);
@@ -1794,5 +1912,89 @@ mod tests {
         let whole = vec![(30, 1), (90, 1), (90, 50), (30, 50)];
         let outline = outline_around(160, 130, &[whole], (60, 20));
         assert_eq!(quads_of_long_edges(&outline, 9.0, bounds).len(), 1);
+    }
+
+    /// A light frame with dark rectangles (x, y, width, height) and light
+    /// ones drawn over them, in order.
+    fn rects_frame(w: i32, h: i32, dark: &[[i32; 4]], light: &[[i32; 4]]) -> Mat {
+        use opencv::core::{Scalar, CV_8UC1};
+        let mut img = Mat::new_rows_cols_with_default(h, w, CV_8UC1, Scalar::all(190.0)).unwrap();
+        for (rects, v) in [(dark, 50.0), (light, 190.0)] {
+            for &[x, y, rw, rh] in rects {
+                let r = Rect::new(x, y, rw, rh);
+                imgproc::rectangle(&mut img, r, Scalar::all(v), -1, imgproc::LINE_8, 0).unwrap();
+            }
+        }
+        img
+    }
+
+    #[test]
+    fn a_dark_square_is_dark_inside_and_a_light_cell_of_a_grid_is_not() {
+        // A dark square, and a light cell between 2 px lines of a grid.
+        let img = rects_frame(
+            200,
+            100,
+            &[
+                [20, 20, 50, 50],
+                [100, 18, 2, 56],
+                [154, 18, 2, 56],
+                [100, 18, 56, 2],
+                [100, 72, 56, 2],
+            ],
+            &[],
+        );
+        let view = GrayView::new(&img).unwrap();
+        let square = [[20.0, 20.0], [69.0, 20.0], [69.0, 69.0], [20.0, 69.0]];
+        let cell = [[101.0, 19.0], [154.0, 19.0], [154.0, 72.0], [101.0, 72.0]];
+        assert!(dark_inside(&view, &square, 6.0));
+        assert!(!dark_inside(&view, &cell, 6.0));
+        // The square is 140 levels darker: not at a contrast above that.
+        assert!(!dark_inside(&view, &square, 141.0));
+    }
+
+    #[test]
+    fn a_window_keeps_no_piece_of_what_its_edge_cuts() {
+        // A dark square read nothing at half size; its full-resolution
+        // window cuts into a dark neighbour to its left through a light bar
+        // (a marker's white module), whose edge and the neighbour's three
+        // other sides make a quad: on a 4x4 code set it read as a marker by
+        // chance (the ChArUco board of `photonvision-charuco-lifecam`).
+        let img = rects_frame(
+            700,
+            700,
+            &[[510, 486, 72, 68], [445, 494, 56, 53]],
+            &[[455, 505, 19, 26]],
+        );
+        let view = GrayView::new(&img).unwrap();
+        let params = DetectParams::default();
+        let square = Quad {
+            pts: [
+                [510.0, 486.0],
+                [581.0, 486.0],
+                [581.0, 553.0],
+                [510.0, 553.0],
+            ],
+            inset_px: 1.0,
+            exact_only: false,
+        };
+        let piece = |q: &Quad| q.exact_only && q.pts.iter().all(|c| c[0] > 465.0 && c[0] < 505.0);
+        // The premise: the window (as `full_res_quads` takes it) gives the piece.
+        let pad = 0.5 * mean_side(&square.pts) + 4.0;
+        let (x0, y0) = ((510.0 - pad).floor() as i32, (486.0 - pad).floor() as i32);
+        let (x1, y1) = ((581.0 + pad).ceil() as i32, (553.0 + pad).ceil() as i32);
+        let roi = Mat::roi(&img, Rect::new(x0, y0, x1 - x0, y1 - y0))
+            .unwrap()
+            .try_clone()
+            .unwrap();
+        let mut found = Found::default();
+        let at = Place {
+            scale: 1.0,
+            offset: [f64::from(x0), f64::from(y0)],
+            frame_outline: 2800.0,
+        };
+        quads_of_level(&params, &roi, at, Some(0.5), None, &mut found).unwrap();
+        assert!(found.quads.iter().any(piece), "{:?}", found.quads);
+        let extra = full_res_quads(&params, &view, &[square], &[square]).unwrap();
+        assert!(!extra.iter().any(piece), "{extra:?}");
     }
 }
