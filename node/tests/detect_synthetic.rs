@@ -761,10 +761,10 @@ fn a_joined_tag_reads_only_on_an_exact_code() {
 /// 3 px modules) hanging 2 px below a post that comes down from a dark
 /// border around the frame's top and sides, so that at half size the gap
 /// closes and the tag is part of that border's region (longer than the
-/// frame's own outline); beside it, `cells` light cells of a dark grid
-/// (quads that read nothing). Blurred by a Gaussian of 1 px. Returns the
-/// frame and the tag's outer corners.
-fn small_tag_below_a_post(cells: i32) -> (GrayImage, [[f64; 2]; 4]) {
+/// frame's own outline); below it, the 40 light cells (10 x 4) of a dark
+/// grid (quads that read nothing). Blurred by a Gaussian of 1 px. Returns
+/// the frame and the tag's outer corners.
+fn small_tag_below_a_post() -> (GrayImage, [[f64; 2]; 4]) {
     use opencv::core::{Mat, Rect, Scalar, CV_8UC1};
     use opencv::prelude::*;
     const MODULE_PX: i32 = 3;
@@ -792,9 +792,8 @@ fn small_tag_below_a_post(cells: i32) -> (GrayImage, [[f64; 2]; 4]) {
     }
     let side = m * MODULE_PX;
     fill(&mut img, Rect::new(x0 + 6, 60, 2, y0 - 2 - 60), dark);
-    // The grid: 2 px lines, cells of 26 px, in rows of ten.
-    let (gx, gy, pitch) = (120, 420, 28);
-    let (cols, rows) = (10.min(cells), (cells + 9) / 10);
+    // The grid: 2 px lines, cells of 26 px.
+    let (gx, gy, pitch, cols, rows) = (120, 420, 28, 10, 4);
     for r in 0..=rows {
         fill(
             &mut img,
@@ -820,8 +819,8 @@ fn a_small_tag_joined_to_the_background_at_half_size_is_read_ahead_of_light_cell
     // the shelf's post behind it, and so the dark background that reaches
     // round the frame, whose outline was not searched; and the light
     // cells of the paper grid in front filled every full-resolution window
-    // (docs/detector.md, "A marker joined to the background").
-    let (frame, truth) = small_tag_below_a_post(40);
+    // (docs/detector.md, "A marker joined to the background at half size").
+    let (frame, truth) = small_tag_below_a_post();
     let params = DetectParams::default();
     assert!(frame.width as i32 > params.full_res_max_width);
     // The premises: at full size the tag's square is a quad of its own…

@@ -778,11 +778,13 @@ impl<'a> SumTable<'a> {
 /// The contour `c` of `level` as a convex quad, clockwise, in level
 /// pixels ([`Shape::Quad`]), or, on a downsampled level, as a blob's
 /// convex hull ([`Shape::Blob`]); where it is neither (or its region is
-/// cut by the level's or window's edge), the quads pieced from its
-/// straight runs ([`Shape::Joined`], [`quads_of_long_edges`]);
-/// [`Shape::Neither`] when there are none, the region is too small or too
-/// large, or a corner comes closer than [`DetectParams::border_margin_px`]
-/// to the border. `approx` is scratch space for the polygon.
+/// cut by the level's or window's edge, or on a downsampled level is the
+/// background's: an outline longer than the frame's, [`Place`]), the quads
+/// pieced from its straight runs ([`Shape::Joined`], [`quads_of_long_edges`]);
+/// [`Shape::Neither`] when there are none, the region is too small or (at
+/// full resolution) the background's, or a corner comes closer than
+/// [`DetectParams::border_margin_px`] to the border. `approx` is scratch
+/// space for the polygon; `at` places `level` in the frame.
 fn contour_quad(
     params: &DetectParams,
     (level, table): (&impl MatTraitConst, &mut SumTable<'_>),
