@@ -927,7 +927,6 @@ const JOINED_MAX_TRIED: usize = 4096;
 /// ([`quad_of_runs`]). Of quads sharing a run, the one whose runs cover
 /// the most of its sides is kept.
 fn quads_of_long_edges(c: &[Point], min_side: f64, bounds: Rect) -> Vec<[Px; 4]> {
-    use super::geom::dist;
     let (x0, y0) = (f64::from(bounds.x), f64::from(bounds.y));
     let (x1, y1) = (
         x0 + f64::from(bounds.width - 1),
@@ -939,39 +938,16 @@ fn quads_of_long_edges(c: &[Point], min_side: f64, bounds: Rect) -> Vec<[Px; 4]>
             || (a[0] >= x1 && b[0] >= x1)
             || (a[1] >= y1 && b[1] >= y1)
     };
-    let runs: Vec<(Px, Px, f64)> = straight_runs(c, min_side)
+    let runs: Vec<Run> = straight_runs(c, min_side)
         .into_iter()
         .filter(|&(a, b)| !on_cut(a, b))
-        .map(|(a, b)| (a, b, dist(a, b)))
+        .map(|(a, b)| Run::new(a, b))
         .collect();
     let m = runs.len();
     if m < 4 {
         return Vec::new();
     }
-    // Run j may follow run i as the quad's next side: their lines cross at
-    // a corner ahead of i's end and behind j's start, each run covering
-    // its share of the side up to it ([`JOINED_MIN_COVER`],
-    // [`JOINED_MAX_OVERHANG`]), at a corner no sharper than
-    // [`JOINED_MIN_CORNER_SIN`]. `quad_of_runs` checks the whole quad.
-    let reach = 1.0 / JOINED_MIN_COVER;
-    let slack = JOINED_MAX_OVERHANG * reach;
-    let links = |i: usize, j: usize| -> bool {
-        let ((a, b, li), (c, e, lj)) = (runs[i], runs[j]);
-        let u = [(b[0] - a[0]) / li, (b[1] - a[1]) / li];
-        let v = [(e[0] - c[0]) / lj, (e[1] - c[1]) / lj];
-        let sin = u[0] * v[1] - u[1] * v[0];
-        if sin.abs() < JOINED_MIN_CORNER_SIN {
-            return false;
-        }
-        // The corner a + t u = c + s v.
-        let w = [c[0] - a[0], c[1] - a[1]];
-        let t = (w[0] * v[1] - w[1] * v[0]) / sin / li;
-        let s = (w[0] * u[1] - w[1] * u[0]) / sin / lj;
-        (1.0 - slack..=reach + slack).contains(&t) && (-reach - slack..=slack).contains(&s)
-    };
-    let next: Vec<Vec<usize>> = (0..m)
-        .map(|i| (0..m).filter(|&j| j != i && links(i, j)).collect())
-        .collect();
+    let next = linked_runs(&runs, JOINED_REACH, |i, j| follows(&runs, i, j));
     let mut found: Vec<(f64, [usize; 4], [Px; 4])> = Vec::new();
     let mut tried = 0;
     // Each quad once: from its first run in the outline's order.
@@ -986,7 +962,7 @@ fn quads_of_long_edges(c: &[Point], min_side: f64, bounds: Rect) -> Vec<[Px; 4]>
                     if tried > JOINED_MAX_TRIED {
                         break 'search;
                     }
-                    let sides = [a, b, c2, d].map(|k| (runs[k].0, runs[k].1));
+                    let sides = [a, b, c2, d].map(|k| (runs[k].a, runs[k].b));
                     if let Some((q, cover)) = quad_of_runs(&sides, min_side) {
                         found.push((cover, [a, b, c2, d], q));
                     }
@@ -1005,6 +981,131 @@ fn quads_of_long_edges(c: &[Point], min_side: f64, bounds: Rect) -> Vec<[Px; 4]>
         quads.push(q);
     }
     quads
+}
+
+/// A straight run of an outline: from `a` to `b`, `len` long, along the
+/// unit vector `dir`.
+#[derive(Debug, Clone, Copy)]
+struct Run {
+    a: Px,
+    b: Px,
+    len: f64,
+    dir: Px,
+}
+
+impl Run {
+    fn new(a: Px, b: Px) -> Self {
+        let len = super::geom::dist(a, b);
+        let dir = [(b[0] - a[0]) / len, (b[1] - a[1]) / len];
+        Self { a, b, len, dir }
+    }
+}
+
+/// How far, in lengths of a run, the corner it meets the next side at may
+/// lie from its start (the cover's reach and the overhang beyond it).
+const JOINED_REACH: f64 = (1.0 + JOINED_MAX_OVERHANG) / JOINED_MIN_COVER;
+
+/// Whether run `j` of `runs` may follow run `i` as a
+/// quad's next side: their lines cross at a corner ahead of i's end and
+/// behind j's start, each run covering its share of the side up to it
+/// ([`JOINED_MIN_COVER`], [`JOINED_MAX_OVERHANG`]), at a corner no sharper
+/// than [`JOINED_MIN_CORNER_SIN`]. [`quad_of_runs`] checks the whole quad.
+fn follows(runs: &[Run], i: usize, j: usize) -> bool {
+    let reach = 1.0 / JOINED_MIN_COVER;
+    let slack = JOINED_MAX_OVERHANG * reach;
+    let (
+        Run {
+            a, len: li, dir: u, ..
+        },
+        Run {
+            a: c,
+            len: lj,
+            dir: v,
+            ..
+        },
+    ) = (runs[i], runs[j]);
+    let sin = u[0] * v[1] - u[1] * v[0];
+    if sin.abs() < JOINED_MIN_CORNER_SIN {
+        return false;
+    }
+    // The corner a + t·l_i·u = c + s·l_j·v.
+    let w = [c[0] - a[0], c[1] - a[1]];
+    let t = (w[0] * v[1] - w[1] * v[0]) / sin / li;
+    let s = (w[0] * u[1] - w[1] * u[0]) / sin / lj;
+    (1.0 - slack..=reach + slack).contains(&t) && (-reach - slack..=slack).contains(&s)
+}
+
+/// For each of `runs`, the runs that may follow it
+/// (`links(i, j)`), ascending. `links` is asked only of pairs whose starts
+/// lie within `reach·(l_i + l_j)` of each other, which every linked pair
+/// does (the corner lies within `reach·l_i` of run i's start, run j's
+/// start within `reach·l_j` of the corner): a grid of the starts, and each
+/// pair looked up from its longer run. An outline of texture or noise has
+/// thousands of short runs, and asking every pair cost up to ~0.3 s on one
+/// outline (a frame through the realistic camera after HOIRM).
+fn linked_runs(runs: &[Run], reach: f64, links: impl Fn(usize, usize) -> bool) -> Vec<Vec<usize>> {
+    const CELL_PX: f64 = 16.0;
+    let m = runs.len();
+    let mut next = vec![Vec::new(); m];
+    let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+    for Run { a, .. } in runs {
+        for k in 0..2 {
+            lo[k] = lo[k].min(a[k]);
+            hi[k] = hi[k].max(a[k]);
+        }
+    }
+    if m == 0 || !(lo[0].is_finite() && lo[1].is_finite() && hi[0].is_finite() && hi[1].is_finite())
+    {
+        return next;
+    }
+    let cells = |k: usize| ((hi[k] - lo[k]) / CELL_PX) as usize + 1;
+    let (nx, ny) = (cells(0), cells(1));
+    let cell_of = |p: Px| {
+        let c = |k: usize| ((p[k].clamp(lo[k], hi[k]) - lo[k]) / CELL_PX) as usize;
+        (c(0).min(nx - 1), c(1).min(ny - 1))
+    };
+    let mut grid: Vec<Vec<usize>> = vec![Vec::new(); nx * ny];
+    for (k, r) in runs.iter().enumerate() {
+        let (cx, cy) = cell_of(r.a);
+        grid[cy * nx + cx].push(k);
+    }
+    // Runs ordered by length (ties by index): the longer of a pair looks the other up.
+    let mut by_length: Vec<usize> = (0..m).collect();
+    by_length.sort_unstable_by(|&i, &j| runs[i].len.total_cmp(&runs[j].len).then(i.cmp(&j)));
+    let mut rank = vec![0; m];
+    for (r, &k) in by_length.iter().enumerate() {
+        rank[k] = r;
+    }
+    // A little over the bound, so that rounding never drops a pair.
+    let within = |d2: f64, r: f64| d2 <= (r * (1.0 + 1e-9) + 1e-6).powi(2);
+    for (i, &Run { a, len: li, .. }) in runs.iter().enumerate() {
+        let r = 2.0 * reach * li;
+        let (cx0, cy0) = cell_of([a[0] - r, a[1] - r]);
+        let (cx1, cy1) = cell_of([a[0] + r, a[1] + r]);
+        for cy in cy0..=cy1 {
+            for &j in grid[cy * nx + cx0..=cy * nx + cx1].iter().flatten() {
+                // Each pair once, from its longer run (ties by index).
+                if rank[j] >= rank[i] {
+                    continue;
+                }
+                let Run { a: c, len: lj, .. } = runs[j];
+                let d2 = (c[0] - a[0]).powi(2) + (c[1] - a[1]).powi(2);
+                if !within(d2, reach * (li + lj)) {
+                    continue;
+                }
+                if links(i, j) {
+                    next[i].push(j);
+                }
+                if links(j, i) {
+                    next[j].push(i);
+                }
+            }
+        }
+    }
+    for n in &mut next {
+        n.sort_unstable();
+    }
+    next
 }
 
 /// The straight runs of the closed outline `pts` at least `min_len` long,
@@ -1880,6 +1981,66 @@ mod tests {
             assert!(corners.iter().any(|c| near(*a, *c, 2.5)), "run {a:?}–{b:?}");
             assert!(corners.iter().any(|c| near(*b, *c, 2.5)), "run {a:?}–{b:?}");
         }
+    }
+
+    #[test]
+    fn the_runs_looked_up_near_each_other_are_every_pair_that_links() {
+        // Runs of every length from a few pixels to hundreds, some starting
+        // on one point, many linking; the grid's answer against asking
+        // every pair.
+        let mut rng = shoal_proto::splitmix::SplitMix64::new(17);
+        let mut linked_pairs = 0;
+        for trial in 0..40 {
+            let m = 20 + trial * 10;
+            let spread = if trial % 2 == 0 { 60.0 } else { 600.0 };
+            let runs: Vec<Run> = (0..m)
+                .map(|k| {
+                    let a = if k % 7 == 3 {
+                        [10.0, 10.0]
+                    } else {
+                        [rng.unit() * spread, rng.unit() * spread]
+                    };
+                    let len = 3.0 + rng.unit().powi(3) * 300.0;
+                    let ang = rng.unit() * std::f64::consts::TAU;
+                    Run::new(a, [a[0] + len * ang.cos(), a[1] + len * ang.sin()])
+                })
+                .collect();
+            let every: Vec<Vec<usize>> = (0..m)
+                .map(|i| (0..m).filter(|&j| j != i && follows(&runs, i, j)).collect())
+                .collect();
+            let near = linked_runs(&runs, JOINED_REACH, |i, j| follows(&runs, i, j));
+            assert_eq!(near, every, "trial {trial}");
+            linked_pairs += every.iter().map(Vec::len).sum::<usize>();
+        }
+        // Premise: the runs do link, many times.
+        assert!(linked_pairs > 1000, "{linked_pairs}");
+    }
+
+    #[test]
+    fn a_run_may_follow_another_only_from_nearby() {
+        // Every linked pair starts within JOINED_REACH·(l_i + l_j): the
+        // bound `linked_runs` looks runs up by, at its limits.
+        let mut rng = shoal_proto::splitmix::SplitMix64::new(23);
+        let mut worst: f64 = 0.0;
+        let mut linked = 0;
+        for _ in 0..200_000 {
+            let mut run = || {
+                let a = [rng.unit() * 200.0, rng.unit() * 200.0];
+                let len = 2.0 + rng.unit() * 100.0;
+                let ang = rng.unit() * std::f64::consts::TAU;
+                Run::new(a, [a[0] + len * ang.cos(), a[1] + len * ang.sin()])
+            };
+            let runs = [run(), run()];
+            if follows(&runs, 0, 1) {
+                linked += 1;
+                let d = super::super::geom::dist(runs[0].a, runs[1].a);
+                worst = worst.max(d / (JOINED_REACH * (runs[0].len + runs[1].len)));
+            }
+        }
+        assert!(linked > 1000, "{linked}");
+        assert!(worst <= 1.0, "{worst}");
+        // …and the bound is not loose by much (links reach ~half of it).
+        assert!(worst > 0.4, "{worst}");
     }
 
     #[test]
