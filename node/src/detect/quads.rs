@@ -949,27 +949,12 @@ fn quads_of_long_edges(c: &[Point], min_side: f64, bounds: Rect) -> Vec<[Px; 4]>
     }
     let next = linked_runs(&runs, JOINED_REACH, |i, j| follows(&runs, i, j));
     let mut found: Vec<(f64, [usize; 4], [Px; 4])> = Vec::new();
-    let mut tried = 0;
-    // Each quad once: from its first run in the outline's order.
-    'search: for a in 0..m {
-        for &b in next[a].iter().filter(|&&b| b > a) {
-            for &c2 in next[b].iter().filter(|&&c2| c2 > b) {
-                for &d in next[c2].iter().filter(|&&d| d > c2) {
-                    if !next[d].contains(&a) {
-                        continue;
-                    }
-                    tried += 1;
-                    if tried > JOINED_MAX_TRIED {
-                        break 'search;
-                    }
-                    let sides = [a, b, c2, d].map(|k| (runs[k].a, runs[k].b));
-                    if let Some((q, cover)) = quad_of_runs(&sides, min_side) {
-                        found.push((cover, [a, b, c2, d], q));
-                    }
-                }
-            }
+    four_cycles(&next, |ks| {
+        let sides = ks.map(|k| (runs[k].a, runs[k].b));
+        if let Some((q, cover)) = quad_of_runs(&sides, min_side) {
+            found.push((cover, ks, q));
         }
-    }
+    });
     found.sort_by(|x, y| y.0.total_cmp(&x.0));
     let mut used = vec![false; m];
     let mut quads = Vec::new();
@@ -981,6 +966,43 @@ fn quads_of_long_edges(c: &[Point], min_side: f64, bounds: Rect) -> Vec<[Px; 4]>
         quads.push(q);
     }
     quads
+}
+
+/// At most this many paths of three links followed per outline: a
+/// bound on the search's time where the runs link densely (texture, a
+/// regular grid). Through the realistic camera after HOIRM the most an
+/// outline took was ~24 000 (`eval node-rate --profile realistic`), on the
+/// real recordings ~3 700.
+const JOINED_MAX_PATHS: usize = 1 << 20;
+
+/// Every cycle `a → b → c → d → a` of `next` (each run's possible
+/// successors, ascending) with `a < b < c < d`, in order, given to
+/// `visit`: each quad once, from its first run in the outline's order. At
+/// most [`JOINED_MAX_TRIED`] cycles and [`JOINED_MAX_PATHS`] paths; returns
+/// the paths followed.
+fn four_cycles(next: &[Vec<usize>], mut visit: impl FnMut([usize; 4])) -> usize {
+    let (mut tried, mut paths) = (0, 0);
+    'search: for (a, after_a) in next.iter().enumerate() {
+        for &b in after_a.iter().filter(|&&b| b > a) {
+            for &c in next[b].iter().filter(|&&c| c > b) {
+                for &d in next[c].iter().filter(|&&d| d > c) {
+                    paths += 1;
+                    if paths > JOINED_MAX_PATHS {
+                        break 'search;
+                    }
+                    if !next[d].contains(&a) {
+                        continue;
+                    }
+                    tried += 1;
+                    if tried > JOINED_MAX_TRIED {
+                        break 'search;
+                    }
+                    visit([a, b, c, d]);
+                }
+            }
+        }
+    }
+    paths
 }
 
 /// A straight run of an outline: from `a` to `b`, `len` long, along the
@@ -2014,6 +2036,42 @@ mod tests {
         }
         // Premise: the runs do link, many times.
         assert!(linked_pairs > 1000, "{linked_pairs}");
+    }
+
+    #[test]
+    fn the_quad_search_finds_each_cycle_once_and_stops_where_everything_links() {
+        // Two quads' runs, 0-1-2-3 and 4-5-6-7, and a run (8) that links on
+        // to 0 but closes nothing.
+        let mut next = vec![
+            vec![1],
+            vec![2],
+            vec![3],
+            vec![0],
+            vec![5],
+            vec![6],
+            vec![7],
+        ];
+        next.push(vec![4]);
+        next.push(vec![0]);
+        let mut seen = Vec::new();
+        four_cycles(&next, |ks| seen.push(ks));
+        assert_eq!(seen, vec![[0, 1, 2, 3], [4, 5, 6, 7]]);
+        // Every run linked to every other: ~C(400, 4) cycles and more paths
+        // without the bounds.
+        let m = 400;
+        let every: Vec<Vec<usize>> = (0..m)
+            .map(|i| (0..m).filter(|&j| j != i).collect())
+            .collect();
+        let mut visits = 0;
+        let paths = four_cycles(&every, |_| visits += 1);
+        assert_eq!(visits, JOINED_MAX_TRIED);
+        assert!(paths <= JOINED_MAX_PATHS, "{paths}");
+        // Cycles close rarely where the links go only forward: the paths bound it.
+        let forward: Vec<Vec<usize>> = (0..m).map(|i| (i + 1..m).collect()).collect();
+        let mut visits = 0;
+        let paths = four_cycles(&forward, |_| visits += 1);
+        assert_eq!(visits, 0);
+        assert_eq!(paths, JOINED_MAX_PATHS + 1);
     }
 
     #[test]
