@@ -39,12 +39,15 @@
 //! half the kernel radius on each side before the DFT so the circular
 //! convolution does not wrap the opposite border in. Filter spectra are
 //! cached per (DFT size, p, σ, direct share, K) with sizes rounded up to multiples of 32
-//! and `K` quantized to steps of 25 %, so consecutive frames reuse them.
+//! and `K` quantized to steps of 25 %, so consecutive frames reuse them; `K`
+//! is measured per region, so the PSF's own spectrum is cached apart
+//! (`Transfer`) and each filter is written straight into the packed layout
+//! (`wiener_spectrum`).
 
 use super::RestoreError;
 use opencv::core::{
-    self, Mat, Rect, Scalar, Vec2f, BORDER_REFLECT_101, CV_32F, CV_32FC1, CV_8U,
-    DFT_COMPLEX_OUTPUT, DFT_REAL_OUTPUT, DFT_SCALE,
+    self, Mat, Rect, Scalar, BORDER_REFLECT_101, CV_32F, CV_32FC1, CV_8U, DFT_REAL_OUTPUT,
+    DFT_SCALE,
 };
 use opencv::prelude::*;
 use std::collections::HashMap;
@@ -160,10 +163,18 @@ type FilterKey = (i32, i32, (u32, u32, u32), i32);
 #[derive(Debug, Default)]
 pub struct Wiener {
     cache: HashMap<FilterKey, Mat>,
+    /// The PSF spectra the filters are made from, per (DFT size, PSF): the
+    /// noise-to-signal ratio differs from region to region.
+    transfers: HashMap<TransferKey, Transfer>,
 }
 
 /// Filters kept in the cache before it is cleared.
 const CACHE_LIMIT: usize = 24;
+
+/// PSF spectra kept before that cache is cleared.
+const TRANSFER_LIMIT: usize = 12;
+
+type TransferKey = (i32, i32, (u32, u32, u32));
 
 /// `K` is quantized to `1.25^k`.
 fn quantize_nsr(nsr: f64) -> (i32, f64) {
@@ -195,7 +206,14 @@ impl Wiener {
             if self.cache.len() >= CACHE_LIMIT {
                 self.cache.clear();
             }
-            let spectrum = wiener_spectrum(rows, cols, psf, k)?;
+            let tkey = (rows, cols, psf.key());
+            if !self.transfers.contains_key(&tkey) {
+                if self.transfers.len() >= TRANSFER_LIMIT {
+                    self.transfers.clear();
+                }
+                self.transfers.insert(tkey, Transfer::new(rows, cols, psf)?);
+            }
+            let spectrum = wiener_spectrum(&self.transfers[&tkey], k)?;
             self.cache.insert(key, spectrum);
         }
         Ok(&self.cache[&key])
@@ -260,70 +278,117 @@ fn round_dft(n: i32) -> Result<i32, RestoreError> {
     Ok(core::get_optimal_dft_size(m)?)
 }
 
-/// `W = H*/(|H|² + K)` for the PSF wrapped around the origin of a
-/// `rows`x`cols` grid, returned in OpenCV's packed (CCS) layout so
-/// `mulSpectrums` can apply it to the packed spectrum of a real image.
-fn wiener_spectrum(rows: i32, cols: i32, psf: &GgPsf, k: f64) -> Result<Mat, RestoreError> {
-    let r = psf.radius_px();
-    let mut grid = Mat::new_rows_cols_with_default(rows, cols, CV_32FC1, Scalar::all(0.0))?;
-    let mut sum = 0.0;
-    for y in 0..rows {
-        let dy = y.min(rows - y);
-        if dy > r {
-            continue;
-        }
-        let row = grid.at_row_mut::<f32>(y)?;
-        for x in 0..cols {
-            let dx = x.min(cols - x);
-            if dx > r {
+/// What every Wiener filter of one DFT size and PSF shares
+/// ([`wiener_spectrum`]): the PSF's spectrum and the signal model's shape.
+#[derive(Debug)]
+struct Transfer {
+    /// The DFT of the PSF wrapped around the origin of the grid, packed (CCS).
+    h: Mat,
+    /// `(f/ρ0)²` of each row's and each column's frequency (`f` folded to
+    /// the nearer of ±f, cycles per pixel).
+    row_term: Vec<f64>,
+    col_term: Vec<f64>,
+    /// Mean over the grid of the signal spectrum's shape
+    /// `g(ρ) = 1/(1 + (ρ/ρ0)²)`.
+    mean_g: f64,
+}
+
+impl Transfer {
+    fn new(rows: i32, cols: i32, psf: &GgPsf) -> Result<Transfer, RestoreError> {
+        let r = psf.radius_px();
+        let mut grid = Mat::new_rows_cols_with_default(rows, cols, CV_32FC1, Scalar::all(0.0))?;
+        let mut sum = 0.0;
+        for y in 0..rows {
+            let dy = y.min(rows - y);
+            if dy > r {
                 continue;
             }
-            let v = psf.profile((dx as f64).hypot(dy as f64));
-            row[x as usize] = v as f32;
-            sum += v;
+            let row = grid.at_row_mut::<f32>(y)?;
+            for x in 0..cols {
+                let dx = x.min(cols - x);
+                if dx > r {
+                    continue;
+                }
+                let v = psf.profile((dx as f64).hypot(dy as f64));
+                row[x as usize] = v as f32;
+                sum += v;
+            }
         }
+        let mut h = Mat::default();
+        let direct = psf.direct_share();
+        grid.convert_to(&mut h, CV_32F, (1.0 - direct) / sum, 0.0)?;
+        *h.at_2d_mut::<f32>(0, 0)? += direct as f32;
+        let mut packed = Mat::default();
+        core::dft(&h, &mut packed, 0, 0)?;
+        let term = |n: i32| -> Vec<f64> {
+            (0..n)
+                .map(|u| {
+                    let f = f64::from(u.min(n - u)) / f64::from(n) / SIGNAL_CORNER_CYCLES_PER_PX;
+                    f * f
+                })
+                .collect()
+        };
+        let (row_term, col_term) = (term(rows), term(cols));
+        let mut mean_g = 0.0;
+        for a in &row_term {
+            for b in &col_term {
+                mean_g += 1.0 / (1.0 + a + b);
+            }
+        }
+        mean_g /= f64::from(rows) * f64::from(cols);
+        Ok(Transfer {
+            h: packed,
+            row_term,
+            col_term,
+            mean_g,
+        })
     }
-    let mut h = Mat::default();
-    let direct = psf.direct_share();
-    grid.convert_to(&mut h, CV_32F, (1.0 - direct) / sum, 0.0)?;
-    *h.at_2d_mut::<f32>(0, 0)? += direct as f32;
-    let mut hc = Mat::default();
-    core::dft(&h, &mut hc, DFT_COMPLEX_OUTPUT, 0)?;
-    // Signal spectrum shape g(ρ) = 1/(1 + (ρ/ρ0)²), scaled so its mean is
-    // the measured signal variance: K(ρ) = K·mean(g)/g(ρ).
-    let shape = |u: i32, v: i32| {
-        let fu = u.min(rows - u) as f64 / rows as f64;
-        let fv = v.min(cols - v) as f64 / cols as f64;
-        1.0 / (1.0
-            + (fu * fu + fv * fv) / (SIGNAL_CORNER_CYCLES_PER_PX * SIGNAL_CORNER_CYCLES_PER_PX))
+}
+
+/// `W = H*/(|H|² + K(ρ))` for the PSF of `t`, in OpenCV's packed (CCS)
+/// layout so `mulSpectrums` can apply it to the packed spectrum of a real
+/// image. The signal spectrum's shape `g` is scaled so its mean is the
+/// measured signal variance: `K(ρ) = K·mean(g)/g(ρ)`. `W` is computed where
+/// the packed layout stores each frequency: its inner columns hold
+/// `(Re, Im)` of the row's frequencies `1..⌈cols/2⌉`, its first column (and
+/// its last, for an even width: the column's Nyquist frequency) the
+/// spectrum of one column, packed along the rows the same way, with the
+/// row frequencies 0 (and `rows/2`, for an even height) real.
+fn wiener_spectrum(t: &Transfer, k: f64) -> Result<Mat, RestoreError> {
+    let (rows, cols) = (t.h.rows(), t.h.cols());
+    let km = k * t.mean_g;
+    let gain = |(re, im): (f32, f32), u: usize, v: usize| -> (f32, f32) {
+        let (re, im) = (f64::from(re), f64::from(im));
+        let d = re * re + im * im + km * (1.0 + t.row_term[u] + t.col_term[v]);
+        ((re / d) as f32, (-im / d) as f32)
     };
-    let mut mean_g = 0.0;
+    let mut w = Mat::new_rows_cols_with_default(rows, cols, CV_32FC1, Scalar::all(0.0))?;
+    let inner = ((cols - 1) / 2) as usize;
     for u in 0..rows {
-        for v in 0..cols {
-            mean_g += shape(u, v);
+        let hr = t.h.at_row::<f32>(u)?;
+        let wr = w.at_row_mut::<f32>(u)?;
+        for v in 1..=inner {
+            (wr[2 * v - 1], wr[2 * v]) = gain((hr[2 * v - 1], hr[2 * v]), u as usize, v);
         }
     }
-    mean_g /= (rows * cols) as f64;
-    for u in 0..rows {
-        let row = hc.at_row_mut::<Vec2f>(u)?;
-        for v in 0..cols {
-            let e = &mut row[v as usize];
-            let (re, im) = (e[0] as f64, e[1] as f64);
-            let d = re * re + im * im + k * mean_g / shape(u, v);
-            e[0] = (re / d) as f32;
-            e[1] = (-im / d) as f32;
+    let mut packed_columns = vec![(0, 0usize)];
+    if cols % 2 == 0 && cols > 1 {
+        packed_columns.push((cols - 1, (cols / 2) as usize));
+    }
+    for (col, v) in packed_columns {
+        let at = |y: i32| -> Result<f32, RestoreError> { Ok(*t.h.at_2d::<f32>(y, col)?) };
+        *w.at_2d_mut::<f32>(0, col)? = gain((at(0)?, 0.0), 0, v).0;
+        for u in 1..=((rows - 1) / 2) {
+            let (re, im) = gain((at(2 * u - 1)?, at(2 * u)?), u as usize, v);
+            *w.at_2d_mut::<f32>(2 * u - 1, col)? = re;
+            *w.at_2d_mut::<f32>(2 * u, col)? = im;
+        }
+        if rows % 2 == 0 && rows > 1 {
+            *w.at_2d_mut::<f32>(rows - 1, col)? =
+                gain((at(rows - 1)?, 0.0), (rows / 2) as usize, v).0;
         }
     }
-    let mut w = Mat::default();
-    core::dft(
-        &hc,
-        &mut w,
-        core::DFT_INVERSE | DFT_REAL_OUTPUT | DFT_SCALE,
-        0,
-    )?;
-    let mut packed = Mat::default();
-    core::dft(&w, &mut packed, 0, 0)?;
-    Ok(packed)
+    Ok(w)
 }
 
 /// Largest side (pixels) of the central window [`edge_blur_sigma_px`] looks at.
@@ -405,8 +470,131 @@ pub fn edge_blur_sigma_px(img: &Mat, noise_sigma: f64) -> Result<Option<f64>, Re
 #[cfg(test)]
 mod tests {
     use super::*;
-    use opencv::core::{Point, Size, CV_8UC1};
+    use opencv::core::{Point, Size, Vec2f, CV_8UC1, DFT_COMPLEX_OUTPUT};
     use opencv::imgproc;
+
+    /// [`wiener_spectrum`] as sessions 1–37 made it: `W` on the full complex
+    /// spectrum, packed by a round trip through the image domain (two more
+    /// DFTs); the reference the packed construction must equal.
+    fn wiener_spectrum_by_round_trip(
+        rows: i32,
+        cols: i32,
+        psf: &GgPsf,
+        k: f64,
+    ) -> Result<Mat, RestoreError> {
+        let r = psf.radius_px();
+        let mut grid = Mat::new_rows_cols_with_default(rows, cols, CV_32FC1, Scalar::all(0.0))?;
+        let mut sum = 0.0;
+        for y in 0..rows {
+            let dy = y.min(rows - y);
+            if dy > r {
+                continue;
+            }
+            let row = grid.at_row_mut::<f32>(y)?;
+            for x in 0..cols {
+                let dx = x.min(cols - x);
+                if dx > r {
+                    continue;
+                }
+                let v = psf.profile((dx as f64).hypot(dy as f64));
+                row[x as usize] = v as f32;
+                sum += v;
+            }
+        }
+        let mut h = Mat::default();
+        let direct = psf.direct_share();
+        grid.convert_to(&mut h, CV_32F, (1.0 - direct) / sum, 0.0)?;
+        *h.at_2d_mut::<f32>(0, 0)? += direct as f32;
+        let mut hc = Mat::default();
+        core::dft(&h, &mut hc, DFT_COMPLEX_OUTPUT, 0)?;
+        // Signal spectrum shape g(ρ) = 1/(1 + (ρ/ρ0)²), scaled so its mean is
+        // the measured signal variance: K(ρ) = K·mean(g)/g(ρ).
+        let shape = |u: i32, v: i32| {
+            let fu = u.min(rows - u) as f64 / rows as f64;
+            let fv = v.min(cols - v) as f64 / cols as f64;
+            1.0 / (1.0
+                + (fu * fu + fv * fv) / (SIGNAL_CORNER_CYCLES_PER_PX * SIGNAL_CORNER_CYCLES_PER_PX))
+        };
+        let mut mean_g = 0.0;
+        for u in 0..rows {
+            for v in 0..cols {
+                mean_g += shape(u, v);
+            }
+        }
+        mean_g /= (rows * cols) as f64;
+        for u in 0..rows {
+            let row = hc.at_row_mut::<Vec2f>(u)?;
+            for v in 0..cols {
+                let e = &mut row[v as usize];
+                let (re, im) = (e[0] as f64, e[1] as f64);
+                let d = re * re + im * im + k * mean_g / shape(u, v);
+                e[0] = (re / d) as f32;
+                e[1] = (-im / d) as f32;
+            }
+        }
+        let mut w = Mat::default();
+        core::dft(
+            &hc,
+            &mut w,
+            core::DFT_INVERSE | DFT_REAL_OUTPUT | DFT_SCALE,
+            0,
+        )?;
+        let mut packed = Mat::default();
+        core::dft(&w, &mut packed, 0, 0)?;
+        Ok(packed)
+    }
+
+    #[test]
+    fn the_packed_filter_is_the_one_made_on_the_full_spectrum() {
+        // Even sizes (every size `round_dft` gives) and odd ones (the packed
+        // layout without the Nyquist row or column); a Gaussian halo and a
+        // heavy-tailed one with unscattered light; a low and a high K.
+        let psfs = [
+            GgPsf {
+                p: 2.0,
+                sigma_px: 2.7,
+                direct: 0.0,
+            },
+            GgPsf {
+                p: 0.9,
+                sigma_px: 5.1,
+                direct: 0.35,
+            },
+        ];
+        for (rows, cols) in [(96, 96), (160, 192), (64, 90), (45, 63), (33, 40), (40, 33)] {
+            for psf in &psfs {
+                for k in [2e-3, 0.1] {
+                    let packed =
+                        wiener_spectrum(&Transfer::new(rows, cols, psf).unwrap(), k).unwrap();
+                    let reference = wiener_spectrum_by_round_trip(rows, cols, psf, k).unwrap();
+                    let mut diff = Mat::default();
+                    core::absdiff(&packed, &reference, &mut diff).unwrap();
+                    let (mut worst, mut largest) = (0.0, 0.0);
+                    core::min_max_loc(&diff, None, Some(&mut worst), None, None, &core::no_array())
+                        .unwrap();
+                    let mut abs = Mat::default();
+                    core::absdiff(&reference, &Scalar::all(0.0), &mut abs).unwrap();
+                    core::min_max_loc(
+                        &abs,
+                        None,
+                        Some(&mut largest),
+                        None,
+                        None,
+                        &core::no_array(),
+                    )
+                    .unwrap();
+                    assert!(
+                        largest > 0.5,
+                        "{rows}x{cols}: the filter is not empty ({largest})"
+                    );
+                    assert!(
+                        worst < 2e-5 * largest,
+                        "{rows}x{cols}, {psf:?}, K {k}: differs by {worst} (largest {largest})"
+                    );
+                }
+            }
+        }
+    }
 
     #[test]
     fn gamma_matches_known_values() {
