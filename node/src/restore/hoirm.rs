@@ -617,14 +617,14 @@ fn restore_region_with(
     })
 }
 
-/// Wiener deconvolution of a region at pyramid level `deconv_level`:
-/// the region is `pyrDown`-ed, deconvolved with the PSF scaled to that
-/// level, and the correction (restored − blurred) is up-sampled and
-/// added to the full-resolution region. Forward scatter is a
+/// Wiener deconvolution of a region at pyramid level `level`: the region
+/// is `pyrDown`-ed, deconvolved with the PSF scaled to that level, and
+/// up-sampled; the DFTs are 4x smaller per level. Forward scatter is a
 /// low-frequency degradation (a halo of σ ≈ 5 px at working range), so
-/// the correction it needs lies well below the 1/2 level's Nyquist
-/// frequency, while the frequencies above it — mostly noise — are left
-/// alone rather than amplified; the DFTs are 4x smaller per level.
+/// what it needs undone lies well below the 1/2 level's Nyquist
+/// frequency; the band above it (mostly CLAHE-amplified noise in a
+/// denoised region) is dropped, not kept: docs/restoration.md,
+/// "Deconvolution level".
 fn deconvolve_with(
     wiener: &mut Wiener,
     params: &RestoreParams,
