@@ -37,12 +37,12 @@
 //! where a real image has little power and the noise all of it); the mean is taken out so the filter's
 //! DC gain `1/(1+K)` does not darken the image. The region is reflected by
 //! half the kernel radius on each side before the DFT so the circular
-//! convolution does not wrap the opposite border in. Filter spectra are
-//! cached per (DFT size, p, σ, direct share, K) with sizes rounded up to multiples of 32
-//! and `K` quantized to steps of 25 %, so consecutive frames reuse them; `K`
-//! is measured per region, so the PSF's own spectrum is cached apart
-//! (`Transfer`) and each filter is written straight into the packed layout
-//! (`wiener_spectrum`).
+//! convolution does not wrap the opposite border in. DFT sizes are rounded
+//! up to multiples of 32 and the PSF's spectrum is cached per (DFT size, p,
+//! σ, direct share) (`Transfer`), so consecutive frames reuse it; `K`
+//! (quantized to steps of 25 %) is measured per region, so the filter is
+//! made from that spectrum on each call, written straight into the packed
+//! layout (`wiener_spectrum`).
 
 use super::RestoreError;
 use opencv::core::{
@@ -157,29 +157,26 @@ impl GgPsf {
     }
 }
 
-type FilterKey = (i32, i32, (u32, u32, u32), i32);
-
-/// Wiener deconvolution with a cache of filter spectra.
+/// Wiener deconvolution with a cache of the PSF spectra its filters are
+/// made from.
 #[derive(Debug, Default)]
 pub struct Wiener {
-    cache: HashMap<FilterKey, Mat>,
-    /// The PSF spectra the filters are made from, per (DFT size, PSF): the
-    /// noise-to-signal ratio differs from region to region.
+    /// Per (DFT size, PSF). The filter itself also depends on the
+    /// noise-to-signal ratio, measured per region, and is made from the
+    /// spectrum on each call (one pass over it, against the two DFTs of
+    /// the deconvolution).
     transfers: HashMap<TransferKey, Transfer>,
 }
 
-/// Filters kept in the cache before it is cleared.
-const CACHE_LIMIT: usize = 24;
-
-/// PSF spectra kept before that cache is cleared.
+/// PSF spectra kept before the cache is cleared.
 const TRANSFER_LIMIT: usize = 12;
 
 type TransferKey = (i32, i32, (u32, u32, u32));
 
 /// `K` is quantized to `1.25^k`.
-fn quantize_nsr(nsr: f64) -> (i32, f64) {
+fn quantize_nsr(nsr: f64) -> f64 {
     let k = (nsr.max(1e-9).ln() / 1.25f64.ln()).round() as i32;
-    (k, 1.25f64.powi(k))
+    1.25f64.powi(k)
 }
 
 impl Wiener {
@@ -187,36 +184,21 @@ impl Wiener {
         Self::default()
     }
 
-    /// Number of cached filter spectra.
-    pub fn cached_filters(&self) -> usize {
-        self.cache.len()
+    /// Number of cached PSF spectra.
+    pub fn cached_spectra(&self) -> usize {
+        self.transfers.len()
     }
 
     /// The packed (CCS) spectrum of the Wiener filter for a `rows`x`cols` DFT.
-    fn filter(
-        &mut self,
-        rows: i32,
-        cols: i32,
-        psf: &GgPsf,
-        nsr: f64,
-    ) -> Result<&Mat, RestoreError> {
-        let (kq, k) = quantize_nsr(nsr);
-        let key = (rows, cols, psf.key(), kq);
-        if !self.cache.contains_key(&key) {
-            if self.cache.len() >= CACHE_LIMIT {
-                self.cache.clear();
+    fn filter(&mut self, rows: i32, cols: i32, psf: &GgPsf, nsr: f64) -> Result<Mat, RestoreError> {
+        let key = (rows, cols, psf.key());
+        if !self.transfers.contains_key(&key) {
+            if self.transfers.len() >= TRANSFER_LIMIT {
+                self.transfers.clear();
             }
-            let tkey = (rows, cols, psf.key());
-            if !self.transfers.contains_key(&tkey) {
-                if self.transfers.len() >= TRANSFER_LIMIT {
-                    self.transfers.clear();
-                }
-                self.transfers.insert(tkey, Transfer::new(rows, cols, psf)?);
-            }
-            let spectrum = wiener_spectrum(&self.transfers[&tkey], k)?;
-            self.cache.insert(key, spectrum);
+            self.transfers.insert(key, Transfer::new(rows, cols, psf)?);
         }
-        Ok(&self.cache[&key])
+        wiener_spectrum(&self.transfers[&key], quantize_nsr(nsr))
     }
 
     /// Deconvolve an 8-bit image (any size ≥ 1x1) with `psf` and noise-to-signal ratio `nsr`.
@@ -256,7 +238,7 @@ impl Wiener {
         core::dft(&f, &mut spec, 0, 0)?;
         let filt = self.filter(rows, cols, psf, nsr)?;
         let mut prod = Mat::default();
-        core::mul_spectrums(&spec, filt, &mut prod, 0, false)?;
+        core::mul_spectrums(&spec, &filt, &mut prod, 0, false)?;
         let mut g = Mat::default();
         core::dft(
             &prod,
@@ -689,7 +671,7 @@ mod tests {
         assert!(e_rest < 0.5 * e_blur, "blurred {e_blur}, restored {e_rest}");
         // Same size and parameters again: served from the cache.
         wiener.deconvolve(&blurred, &psf, 1e-3).unwrap();
-        assert_eq!(wiener.cached_filters(), 1);
+        assert_eq!(wiener.cached_spectra(), 1);
     }
 
     /// 3-px bars (a far marker's modules) seen through water that scatters
@@ -775,9 +757,9 @@ mod tests {
         let cut = wiener.deconvolve(&blurred, &halo, 0.2).unwrap();
         assert!(bars(&cut) < 0.25 * bars(&blurred), "{}", bars(&cut));
         assert_eq!(
-            wiener.cached_filters(),
-            8,
-            "the share is part of the filter's key"
+            wiener.cached_spectra(),
+            2,
+            "the share is part of the spectrum's key, the NSR is not"
         );
     }
 
