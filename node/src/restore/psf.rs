@@ -260,6 +260,35 @@ fn round_dft(n: i32) -> Result<i32, RestoreError> {
     Ok(core::get_optimal_dft_size(m)?)
 }
 
+/// The PSF (its halo `1 − direct` of the mass, the unscattered `direct`
+/// at the origin) wrapped around the origin of a `rows`x`cols` grid, f32.
+fn wrapped_psf(rows: i32, cols: i32, psf: &GgPsf) -> Result<Mat, RestoreError> {
+    let r = psf.radius_px();
+    let mut grid = Mat::new_rows_cols_with_default(rows, cols, CV_32FC1, Scalar::all(0.0))?;
+    let mut sum = 0.0;
+    for y in 0..rows {
+        let dy = y.min(rows - y);
+        if dy > r {
+            continue;
+        }
+        let row = grid.at_row_mut::<f32>(y)?;
+        for x in 0..cols {
+            let dx = x.min(cols - x);
+            if dx > r {
+                continue;
+            }
+            let v = psf.profile((dx as f64).hypot(dy as f64));
+            row[x as usize] = v as f32;
+            sum += v;
+        }
+    }
+    let mut h = Mat::default();
+    let direct = psf.direct_share();
+    grid.convert_to(&mut h, CV_32F, (1.0 - direct) / sum, 0.0)?;
+    *h.at_2d_mut::<f32>(0, 0)? += direct as f32;
+    Ok(h)
+}
+
 /// What every Wiener filter of one DFT size and PSF shares
 /// ([`wiener_spectrum`]): the PSF's spectrum and the signal model's shape.
 #[derive(Debug)]
@@ -277,31 +306,8 @@ struct Transfer {
 
 impl Transfer {
     fn new(rows: i32, cols: i32, psf: &GgPsf) -> Result<Transfer, RestoreError> {
-        let r = psf.radius_px();
-        let mut grid = Mat::new_rows_cols_with_default(rows, cols, CV_32FC1, Scalar::all(0.0))?;
-        let mut sum = 0.0;
-        for y in 0..rows {
-            let dy = y.min(rows - y);
-            if dy > r {
-                continue;
-            }
-            let row = grid.at_row_mut::<f32>(y)?;
-            for x in 0..cols {
-                let dx = x.min(cols - x);
-                if dx > r {
-                    continue;
-                }
-                let v = psf.profile((dx as f64).hypot(dy as f64));
-                row[x as usize] = v as f32;
-                sum += v;
-            }
-        }
-        let mut h = Mat::default();
-        let direct = psf.direct_share();
-        grid.convert_to(&mut h, CV_32F, (1.0 - direct) / sum, 0.0)?;
-        *h.at_2d_mut::<f32>(0, 0)? += direct as f32;
         let mut packed = Mat::default();
-        core::dft(&h, &mut packed, 0, 0)?;
+        core::dft(&wrapped_psf(rows, cols, psf)?, &mut packed, 0, 0)?;
         let term = |n: i32| -> Vec<f64> {
             (0..n)
                 .map(|u| {
@@ -456,39 +462,22 @@ mod tests {
     use opencv::imgproc;
 
     /// [`wiener_spectrum`] as sessions 1–37 made it: `W` on the full complex
-    /// spectrum, packed by a round trip through the image domain (two more
-    /// DFTs); the reference the packed construction must equal.
+    /// spectrum of the same PSF grid, packed by a round trip through the
+    /// image domain (two more DFTs); the reference the packed construction
+    /// must equal.
     fn wiener_spectrum_by_round_trip(
         rows: i32,
         cols: i32,
         psf: &GgPsf,
         k: f64,
     ) -> Result<Mat, RestoreError> {
-        let r = psf.radius_px();
-        let mut grid = Mat::new_rows_cols_with_default(rows, cols, CV_32FC1, Scalar::all(0.0))?;
-        let mut sum = 0.0;
-        for y in 0..rows {
-            let dy = y.min(rows - y);
-            if dy > r {
-                continue;
-            }
-            let row = grid.at_row_mut::<f32>(y)?;
-            for x in 0..cols {
-                let dx = x.min(cols - x);
-                if dx > r {
-                    continue;
-                }
-                let v = psf.profile((dx as f64).hypot(dy as f64));
-                row[x as usize] = v as f32;
-                sum += v;
-            }
-        }
-        let mut h = Mat::default();
-        let direct = psf.direct_share();
-        grid.convert_to(&mut h, CV_32F, (1.0 - direct) / sum, 0.0)?;
-        *h.at_2d_mut::<f32>(0, 0)? += direct as f32;
         let mut hc = Mat::default();
-        core::dft(&h, &mut hc, DFT_COMPLEX_OUTPUT, 0)?;
+        core::dft(
+            &wrapped_psf(rows, cols, psf)?,
+            &mut hc,
+            DFT_COMPLEX_OUTPUT,
+            0,
+        )?;
         // Signal spectrum shape g(ρ) = 1/(1 + (ρ/ρ0)²), scaled so its mean is
         // the measured signal variance: K(ρ) = K·mean(g)/g(ρ).
         let shape = |u: i32, v: i32| {
