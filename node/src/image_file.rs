@@ -536,7 +536,8 @@ fn pnm_truncation(bytes: &[u8], w: u64, h: u64) -> Option<String> {
                     at += 1;
                 }
             }
-            at += 1;
+            // A comment may run to the end of the file: never past it.
+            at = (at + 1).min(bytes.len());
         }
         let start = at;
         while at < bytes.len() && !bytes[at].is_ascii_whitespace() {
@@ -560,6 +561,24 @@ fn pnm_truncation(bytes: &[u8], w: u64, h: u64) -> Option<String> {
 
 #[cfg(test)]
 mod tests {
+    /// Found by `fuzz_image`'s random bytes (session 39): a header comment
+    /// that runs to the end of the file walked one byte past it and
+    /// panicked on the slice; it is no truncation to report (the decoder
+    /// then refuses the header).
+    #[test]
+    fn a_pnm_header_comment_to_the_end_of_the_file_is_not_a_panic() {
+        for bytes in [&b"P5 #"[..], b"P5 4 #", b"P6 4 4 #x", b"P5\n#"] {
+            assert_eq!(pnm_truncation(bytes, 4, 4), None, "{bytes:?}");
+        }
+        // P4 has no maxval to parse: its fields run out and the pixels it
+        // needs are reported missing.
+        assert_eq!(
+            pnm_truncation(b"P4 #\n#", 4, 4).as_deref(),
+            Some("its pixels need 11 bytes, the file has 6")
+        );
+        assert!(pnm_truncation(b"P5 4 4 255 ", 4, 4).is_some());
+    }
+
     use super::*;
     use opencv::core::{Scalar, CV_16UC1};
 
