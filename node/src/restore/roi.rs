@@ -9,8 +9,7 @@
 //! (σ 3 coarse px), so that the veil's slopes and the 8-bit level's rounding
 //! rings do not count — we take the morphological gradient (3x3 max − min),
 //! keep pixels above `max(k·σ_noise, rel·max_gradient, floor,
-//! k_bg·median)` (σ_noise the larger of what the frame's noise predicts for
-//! white noise and what the detail itself shows, [`detail_noise`]), grow them by hysteresis over neighbours above a fraction of
+//! k_bg·median)`, grow them by hysteresis over neighbours above a fraction of
 //! that, join neighbours, and return the bounding boxes of the connected
 //! groups, scaled to full resolution, grown by a margin and merged where
 //! they overlap.
@@ -32,10 +31,10 @@ const BACKGROUND_SIGMA_PX: f64 = 3.0;
 /// Coarse components smaller than this many coarse pixels are noise specks.
 const MIN_COMPONENT_AREA: i32 = 8;
 
-/// The coarse level's detail (lightly smoothed, less its local mean) and
-/// its morphological gradient, with a frame of [`BORDER_PX`] coarse pixels
-/// cleared from the gradient.
-fn detail_gradient(coarse: &Mat, kernel: &Mat) -> Result<(Mat, Mat), RestoreError> {
+/// The morphological gradient of the coarse level's detail (lightly
+/// smoothed, less its local mean), with a frame of [`BORDER_PX`] coarse
+/// pixels cleared.
+fn detail_gradient(coarse: &Mat, kernel: &Mat) -> Result<Mat, RestoreError> {
     // In f32 and lightly smoothed: the 8-bit coarse level's rounding turns a
     // smooth veil into 1-level steps, as strong as a turbid marker's edges.
     let mut coarse_f = Mat::default();
@@ -68,9 +67,10 @@ fn detail_gradient(coarse: &Mat, kernel: &Mat) -> Result<(Mat, Mat), RestoreErro
         &opencv::core::no_array(),
         -1,
     )?;
+    let smooth = detail;
     let mut grad = Mat::default();
     imgproc::morphology_ex(
-        &detail,
+        &smooth,
         &mut grad,
         imgproc::MORPH_GRADIENT,
         kernel,
@@ -91,30 +91,7 @@ fn detail_gradient(coarse: &Mat, kernel: &Mat) -> Result<(Mat, Mat), RestoreErro
         imgproc::LINE_8,
         0,
     )?;
-    Ok((detail, grad))
-}
-
-/// Standard deviation of the noise in the coarse level's detail, measured
-/// on it: the median absolute value inside the cleared border over 0.6745
-/// (the half-normal's median). A marker, a hull or a snow particle covers a
-/// small part of the frame and leaves the median to the water.
-fn detail_noise(detail: &Mat) -> Result<f64, RestoreError> {
-    let (rows, cols) = (detail.rows().max(0), detail.cols().max(0) as usize);
-    let border = BORDER_PX as usize;
-    let (x0, x1) = (
-        border.min(cols),
-        cols.saturating_sub(border).max(border.min(cols)),
-    );
-    let mut v = Vec::with_capacity(rows as usize * cols);
-    for y in BORDER_PX..rows - BORDER_PX {
-        v.extend(detail.at_row::<f32>(y)?[x0..x1].iter().map(|d| d.abs()));
-    }
-    if v.is_empty() {
-        return Ok(0.0);
-    }
-    let mid = v.len() / 2;
-    let (_, median, _) = v.select_nth_unstable_by(mid, f32::total_cmp);
-    Ok(f64::from(*median) / 0.6745)
+    Ok(grad)
 }
 
 /// Regions of interest at full resolution (`full` is the frame size,
@@ -131,7 +108,7 @@ pub fn find_rois(
 ) -> Result<Vec<Rect>, RestoreError> {
     let kernel =
         imgproc::get_structuring_element(imgproc::MORPH_RECT, Size::new(3, 3), Point::new(-1, -1))?;
-    let (detail, grad) = detail_gradient(coarse, &kernel)?;
+    let grad = detail_gradient(coarse, &kernel)?;
     let mut max_grad = 0.0;
     opencv::core::min_max_loc(
         &grad,
@@ -141,14 +118,10 @@ pub fn find_rois(
         None,
         &opencv::core::no_array(),
     )?;
-    // Noise of the coarse level, then of its smoothed copy, as the frame's
-    // noise predicts it for white noise; but a camera's noise is not white
-    // (demosaicing, the codec's 8x8 blocks, the gamma, marine snow) and
-    // averages down less: at least what the detail itself shows.
-    let predicted = noise_full
+    // Noise of the coarse level, then of its smoothed copy.
+    let noise_coarse = noise_full
         / factor as f64
         / (2.0 * std::f64::consts::PI.sqrt() * COARSE_SMOOTH_PX).max(1.0);
-    let noise_coarse = predicted.max(detail_noise(&detail)?);
     let thr = (params.roi_noise_k * noise_coarse)
         .max(params.roi_rel_threshold * max_grad)
         .max(params.roi_min_gradient)
@@ -344,54 +317,19 @@ mod tests {
                 *v = 110.0 + 40.0 * y as f32 / 135.0 + 10.0 * x as f32 / 180.0;
             }
         }
-        no_region_but_a_square_darkened_by(&mut coarse, 2.0, &params);
-    }
-
-    /// `coarse` (135x180, frame noise σ 1) has no region; darkened by `step`
-    /// over coarse x 70..100, y 50..80, it has one, around the square.
-    fn no_region_but_a_square_darkened_by(coarse: &mut Mat, step: f32, params: &RestoreParams) {
         let full = Size::new(1440, 1080);
-        let empty = find_rois(coarse, 8, full, 1.0, 16, params).unwrap();
-        assert!(empty.is_empty(), "{empty:?}");
+        assert!(find_rois(&coarse, 8, full, 1.0, 16, &params)
+            .unwrap()
+            .is_empty());
         for y in 50..80 {
             for v in &mut coarse.at_row_mut::<f32>(y).unwrap()[70..100] {
-                *v -= step;
+                *v -= 2.0;
             }
         }
-        let rois = find_rois(coarse, 8, full, 1.0, 16, params).unwrap();
+        let rois = find_rois(&coarse, 8, full, 1.0, 16, &params).unwrap();
         assert_eq!(rois.len(), 1, "{rois:?}");
         let r = rois[0];
         assert!(r.x <= 560 && r.x + r.width >= 800, "{r:?}");
         assert!(r.y <= 400 && r.y + r.height >= 640, "{r:?}");
-    }
-
-    /// Noise that averaging does not divide by the block side (a codec's
-    /// 8x8 blocks, demosaicing, snow): on the coarse level it is several
-    /// times what the frame's σ predicts for white noise. Thresholded at the
-    /// prediction, such a frame with nothing in it was all "regions" (the
-    /// realistic camera's empty views restored whole); measured on the
-    /// detail, it is none, and a marker's faint square on it is still one.
-    #[test]
-    fn coarse_noise_above_the_white_prediction_is_no_region_but_a_square_on_it_is() {
-        let params = RestoreParams::default();
-        // Gaussian noise of σ 0.8 grey levels on the coarse level (twelve
-        // uniform draws of an LCG, summed), where white noise of the
-        // frame's σ 1 would leave 1/8.
-        let mut state = 0x2545_f491_4f6c_dd1du64;
-        let mut uniform = || {
-            state = state
-                .wrapping_mul(6_364_136_223_846_793_005)
-                .wrapping_add(1_442_695_040_888_963_407);
-            (state >> 40) as f32 / (1u64 << 24) as f32
-        };
-        let mut coarse =
-            Mat::new_rows_cols_with_default(135, 180, CV_32FC1, Scalar::all(0.0)).unwrap();
-        for y in 0..135 {
-            for v in coarse.at_row_mut::<f32>(y).unwrap().iter_mut() {
-                let g: f32 = (0..12).map(|_| uniform()).sum::<f32>() - 6.0;
-                *v = 120.0 + 0.8 * g;
-            }
-        }
-        no_region_but_a_square_darkened_by(&mut coarse, 8.0, &params);
     }
 }
