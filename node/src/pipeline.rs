@@ -160,6 +160,10 @@ pub struct FrameOutput {
     pub fine_searched: bool,
     /// Detections dropped: PnP failed, or the marker size is unknown.
     pub pose_failures: Vec<String>,
+    /// Detections of a marker the observing vehicle carries itself, dropped
+    /// (a misread, or a camera that sees its own hull: no relative pose to
+    /// report, and fusion would refuse it as a self-observation).
+    pub own_marker_reads: usize,
     pub restore_ms: f64,
     pub detect_ms: f64,
     pub pose_ms: f64,
@@ -254,6 +258,10 @@ impl CameraPipeline {
         };
         let mut seen = Vec::new();
         for det in &detections {
+            if self.fleet.marker_owner(det.codes, det.id) == MarkerOwner::Vehicle(self.observer) {
+                out.own_marker_reads += 1;
+                continue;
+            }
             let quality = marker_quality(gray, det, frame_quality);
             match self.observation(det, stamp_ns, frame_seq, quality) {
                 Ok(obs) => {

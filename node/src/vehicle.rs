@@ -133,6 +133,8 @@ struct CameraCounters {
     frames_dropped: AtomicU64,
     frames_invalid: AtomicU64,
     detections: AtomicU64,
+    /// Reads of a marker this vehicle carries itself, dropped by the pipeline.
+    own_marker_reads: AtomicU64,
     /// The input's [`StampSource`] (`as u8`), once it gave a frame.
     stamp_source: AtomicU8,
     frames_missed: AtomicU64,
@@ -193,6 +195,14 @@ impl NodeStats {
         self.cameras
             .iter()
             .map(|c| c.2.frames_invalid.load(Ordering::Relaxed))
+            .sum()
+    }
+
+    /// Reads of the vehicle's own markers, dropped before pose (all cameras).
+    pub fn own_marker_reads(&self) -> u64 {
+        self.cameras
+            .iter()
+            .map(|c| c.2.own_marker_reads.load(Ordering::Relaxed))
             .sum()
     }
 
@@ -345,6 +355,18 @@ pub fn spawn_camera<E: std::fmt::Display>(
                     }
                     for reason in &out.pose_failures {
                         tracing::debug!("camera {i}: {reason}");
+                    }
+                    if out.own_marker_reads > 0 {
+                        let before = counters
+                            .own_marker_reads
+                            .fetch_add(out.own_marker_reads as u64, Ordering::Relaxed);
+                        // Once a camera, then quietly (the count stays in the stats).
+                        if before == 0 {
+                            tracing::warn!(
+                                "camera {i}: frame {} read a marker vehicle {vehicle} carries itself — dropped (further ones counted, not logged)",
+                                frame.seq
+                            );
+                        }
                     }
                     for obs in &out.observations {
                         match publish(obs) {

@@ -342,6 +342,56 @@ fn hoirm_reads_the_100_mm_marker_at_5_m_on_its_detail_keeping_restoration() {
     }
 }
 
+/// The fine pass is for regions that stood out and read nothing; a frame
+/// restored whole because its regions passed `roi_max_fraction` (through
+/// the realistic camera: empty views, whose correlated noise passes as
+/// regions) is searched once, unless `fine_pass_whole_frame`. The 4.5 m
+/// frame above, its fallback forced by a `roi_max_fraction` its one region
+/// exceeds.
+#[test]
+fn a_frame_restored_whole_is_searched_again_only_when_asked() {
+    use shoal_node::restore::{restorer, Method, RestoreParams};
+    let pose = facing(-0.4, -0.1, 4.5, 0.0, 15.0);
+    let scene = Scene::single_marker(CodeSet::Shoal, 15, SIDE_M, pose);
+    let img = Renderer::new()
+        .render(
+            &CameraModel::vehicle_1440(),
+            &Pose::identity(),
+            &scene,
+            &WaterParams::preset(0.5),
+            0.0,
+            200,
+        )
+        .unwrap()
+        .image;
+    let raw = shoal_node::mat::gray_to_mat(&img).unwrap();
+    let fine_regions = |params: RestoreParams| {
+        let restored = restorer(Method::Hoirm, &params).restore(&raw, 0).unwrap();
+        let whole = restored.rois.len() == 1 && restored.rois[0].area() == 1440 * 1080;
+        (whole, restored.fine.map(|f| f.regions))
+    };
+    let (whole, regions) = fine_regions(RestoreParams::default());
+    assert!(!whole, "the marker's region is a region");
+    assert!(
+        regions.is_some_and(|r| !r.is_empty() && r.iter().all(|r| r.area() < 1440 * 1080 / 4)),
+        "its region is searched again"
+    );
+    let forced = RestoreParams {
+        roi_max_fraction: 1e-4,
+        ..RestoreParams::default()
+    };
+    assert_eq!(fine_regions(forced.clone()), (true, None));
+    let (whole, regions) = fine_regions(RestoreParams {
+        fine_pass_whole_frame: true,
+        ..forced
+    });
+    assert!(whole);
+    assert_eq!(
+        regions.map(|r| r.iter().map(|r| r.area()).collect::<Vec<_>>()),
+        Some(vec![1440 * 1080])
+    );
+}
+
 /// What `vehicle`'s starboard camera sees of the paper's fleet line abreast
 /// `spacing_m` apart at 0.5 /m, `time_s` into the run (seed 7, as `shoal
 /// sim render --spacing S --time T --vehicle V`): one frame whose only

@@ -66,7 +66,7 @@ pub fn apply(params: &mut RestoreParams, assignment: &str) -> Result<(), EvalErr
             roi_min_gradient, roi_background_k, roi_hysteresis, roi_max_fraction,
             baseline_clahe_clip, dcp_omega, dcp_t0, dcp_guided_eps;
         bool: keep_stages, roi_only, psf_sigma_from_image, deconv_when_denoised,
-            psf_unscattered, fine_pass;
+            psf_unscattered, fine_pass, fine_pass_whole_frame;
         u32: denoised_deconv_level, deconv_level, max_pyramid_level;
         i32: clahe_tile_px, min_roi_side_at_level_px, baseline_clahe_grid, dcp_patch,
             dcp_guided_radius

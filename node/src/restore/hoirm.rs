@@ -34,7 +34,7 @@ use super::{
     check_input, clahe, coarse_level, roi, snapshot, Method, RestoreError, RestoreParams, Restored,
     Restorer, StageOrder,
 };
-use opencv::core::{self, Mat, Rect, CV_32F, CV_8U};
+use opencv::core::{self, Mat, Rect, Size, CV_32F, CV_8U};
 use opencv::imgproc;
 use opencv::prelude::*;
 use std::sync::{Arc, Mutex, PoisonError};
@@ -400,6 +400,20 @@ impl Hoirm {
         Ok((measured_sigma, detail_lost))
     }
 
+    /// Whether the regions that gave up detail, `detail_lost`, are to be
+    /// searched again ([`RestoreParams::fine_pass`]). A frame restored whole
+    /// because nothing in it stood out from the noise (`roi::find_rois`'
+    /// fallback) is searched once, as restored for the water, unless
+    /// [`RestoreParams::fine_pass_whole_frame`].
+    fn fine_pass_wanted(&self, rois: &[Rect], detail_lost: &[Rect], full: Size) -> bool {
+        let whole_fallback = self.params.roi_only
+            && rois.len() == 1
+            && (rois[0].width, rois[0].height) == (full.width, full.height);
+        self.params.fine_pass
+            && !detail_lost.is_empty()
+            && (self.params.fine_pass_whole_frame || !whole_fallback)
+    }
+
     /// The [`FineRestoration`] of `regions` in water of attenuation `c`:
     /// the frame's ambient light, gain and undenoised clip limit (over the
     /// gain), `psf` with its unscattered part.
@@ -538,7 +552,7 @@ impl Hoirm {
                 stages.push((format!("pyramid level {pyramid_level}"), up));
             }
         }
-        let fine = (self.params.fine_pass && !detail_lost.is_empty()).then(|| {
+        let fine = self.fine_pass_wanted(&rois, &detail_lost, full).then(|| {
             self.fine_restoration(
                 detail_lost,
                 bl_coarse_f,
