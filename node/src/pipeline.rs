@@ -131,6 +131,14 @@ pub fn detect_restoration<D: MarkerDetector + ?Sized>(
 /// the markers that search is for are far ones, tens of pixels wide.
 const FINE_SEARCH_MARGIN_PX: i32 = 48;
 
+/// Share of `frame` that `rois` (disjoint, as restorations give them) cover.
+fn restored_fraction(rois: &[Rect], frame: &Mat) -> f64 {
+    use opencv::prelude::MatTraitConst;
+    let whole = Rect::new(0, 0, frame.cols(), frame.rows());
+    let area: f64 = rois.iter().map(|r| f64::from((*r & whole).area())).sum();
+    (area / f64::from(whole.area().max(1))).min(1.0)
+}
+
 /// Whether the centre of `d`'s corners lies in `r`.
 fn inside(d: &Detection, r: Rect) -> bool {
     let n = d.corners_px.len().max(1) as f64;
@@ -158,6 +166,11 @@ pub struct FrameOutput {
     pub fine_reads: usize,
     /// Whether the detail-keeping restoration was made and searched.
     pub fine_searched: bool,
+    /// Share of the frame the restoration's regions cover (1: restored whole).
+    pub restored_fraction: f64,
+    /// The water the restoration worked for (its estimate, or the
+    /// override), 1/m; 0 for methods that estimate none.
+    pub water_c_per_m: f64,
     /// Detections dropped: PnP failed, or the marker size is unknown.
     pub pose_failures: Vec<String>,
     /// Detections of a marker the observing vehicle carries itself, dropped
@@ -247,6 +260,8 @@ impl CameraPipeline {
         out.detections = detections.len();
         out.fine_reads = found.fine_reads;
         out.fine_searched = found.fine_searched;
+        out.restored_fraction = restored_fraction(&restored.rois, gray);
+        out.water_c_per_m = restored.estimated_c_per_m;
         out.corner_fits = detections.iter().collect();
         // The frame's figures; the marker's own contrast is added per
         // detection (and stays 0 on predictions, where no marker was seen).

@@ -141,8 +141,52 @@ struct CameraCounters {
     reconnects: AtomicU64,
     /// Detections since start by the corner fit that ran.
     corner_fits: Mutex<CornerFitCounts>,
+    /// What the restoration did, since start.
+    restoration: Mutex<RestorationTally>,
     /// Sums over the current status period: (frames, restore, detect, pose ms).
     period: Mutex<(u64, f64, f64, f64)>,
+}
+
+/// What one camera's restoration did over the frames it processed
+/// ([`NodeStats::restoration`]): where its time goes (issue #18).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct RestorationTally {
+    /// Frames processed.
+    pub frames: u64,
+    /// Of them, restored whole (no region stood out, or a whole-frame method).
+    pub restored_whole: u64,
+    /// Sum over the frames of the share of the frame restored.
+    pub restored_fraction_sum: f64,
+    /// Frames whose detail-keeping restoration was searched too.
+    pub fine_searches: u64,
+    /// The water the restoration worked for (1/m): sum, least and most.
+    pub water_c_sum: f64,
+    pub water_c_min: f64,
+    pub water_c_max: f64,
+}
+
+impl RestorationTally {
+    fn add(&mut self, out: &crate::pipeline::FrameOutput) {
+        let c = out.water_c_per_m;
+        if self.frames == 0 {
+            (self.water_c_min, self.water_c_max) = (c, c);
+        }
+        self.frames += 1;
+        self.restored_whole += u64::from(out.restored_fraction >= 1.0);
+        self.restored_fraction_sum += out.restored_fraction;
+        self.fine_searches += u64::from(out.fine_searched);
+        self.water_c_sum += c;
+        self.water_c_min = self.water_c_min.min(c);
+        self.water_c_max = self.water_c_max.max(c);
+    }
+    /// Mean share of the frame restored (0 before any frame).
+    pub fn mean_restored_fraction(&self) -> f64 {
+        self.restored_fraction_sum / self.frames.max(1) as f64
+    }
+    /// Mean water the restoration worked for, 1/m (0 before any frame).
+    pub fn mean_water_c_per_m(&self) -> f64 {
+        self.water_c_sum / self.frames.max(1) as f64
+    }
 }
 
 /// Live counters of a running node (also what its status messages report).
@@ -196,6 +240,17 @@ impl NodeStats {
             .iter()
             .map(|c| c.2.frames_invalid.load(Ordering::Relaxed))
             .sum()
+    }
+
+    /// Per camera (name, in fleet-file order): what its restoration did since start.
+    pub fn restoration(&self) -> Vec<(String, RestorationTally)> {
+        self.cameras
+            .iter()
+            .map(|(_, name, c)| {
+                let tally = c.restoration.lock().map(|t| t.clone()).unwrap_or_default();
+                (name.clone(), tally)
+            })
+            .collect()
     }
 
     /// Reads of the vehicle's own markers, dropped before pose (all cameras).
@@ -352,6 +407,9 @@ pub fn spawn_camera<E: std::fmt::Display>(
                         .fetch_add(out.detections as u64, Ordering::Relaxed);
                     if let Ok(mut fits) = counters.corner_fits.lock() {
                         fits.merge(&out.corner_fits);
+                    }
+                    if let Ok(mut tally) = counters.restoration.lock() {
+                        tally.add(&out);
                     }
                     for reason in &out.pose_failures {
                         tracing::debug!("camera {i}: {reason}");

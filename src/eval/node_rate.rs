@@ -30,7 +30,7 @@ use super::{EvalError, EvalOptions};
 use serde_json::{json, Value};
 use shoal_node::pipeline::{CameraPipeline, PipelineParams};
 use shoal_node::restore::RestoreParams;
-use shoal_node::vehicle::{spawn_camera, LocalInput, NodeStats};
+use shoal_node::vehicle::{spawn_camera, LocalInput, NodeStats, RestorationTally};
 use shoal_proto::config::Fleet;
 use shoal_proto::messages::{CameraFrame, CameraInfo, PixelFormat};
 use shoal_proto::{Observation, VehicleId};
@@ -93,6 +93,8 @@ pub struct RateRun {
     pub detections: u64,
     pub rss_before_kb: Option<u64>,
     pub rss_running_kb: Option<u64>,
+    /// Per camera: what HOIRM did (regions, fine passes, the water it read).
+    pub restoration: Vec<(String, RestorationTally)>,
 }
 
 impl RateRun {
@@ -290,6 +292,7 @@ pub fn run_rate(
         detections: observations.load(Ordering::Relaxed),
         rss_before_kb,
         rss_running_kb,
+        restoration: stats.restoration(),
     })
 }
 
@@ -313,6 +316,9 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
         .map_or(if opts.quick { 2.0 } else { 20.0 }, |f| f as f64 / RATE_HZ);
     let mut table = String::from(
         "| water (1/m) | scene | cameras | offered (frames/s) | processed (frames/s per camera) | dropped | CPU busy (cores) | CPU per frame (ms) | cores needed for every frame | pipeline ms per frame (wall) | observations | resident: process / growth per camera (MB) |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n",
+    );
+    let mut per_camera = String::from(
+        "| water (1/m) | camera | frames | restored whole | share of the frame restored (mean) | fine passes | water read (1/m): least / mean / most |\n|---|---|---|---|---|---|---|\n",
     );
     let mut rows = Vec::new();
     for scene in SCENES {
@@ -347,6 +353,18 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
             opt(r.rss_running_kb.map(|k| k as f64 / 1024.0), 0),
             opt(r.rss_per_camera_kb().map(|k| k / 1024.0), 1),
         ));
+        for (camera, t) in &r.restoration {
+            per_camera.push_str(&format!(
+                "| {c} | {camera} | {} | {} | {:.2} | {} | {:.1} / {:.1} / {:.1} |\n",
+                t.frames,
+                t.restored_whole,
+                t.mean_restored_fraction(),
+                t.fine_searches,
+                t.water_c_min,
+                t.mean_water_c_per_m(),
+                t.water_c_max,
+            ));
+        }
         rows.push(json!({
             "water_c_per_m": c,
             "cameras": r.cameras,
@@ -368,8 +386,23 @@ pub fn run(opts: &EvalOptions) -> Result<Value, EvalError> {
             "rss_before_kb": r.rss_before_kb,
             "rss_running_kb": r.rss_running_kb,
             "rss_per_camera_kb": r.rss_per_camera_kb(),
+            "restoration": r.restoration.iter().map(|(camera, t)| json!({
+                "camera": camera,
+                "frames": t.frames,
+                "restored_whole": t.restored_whole,
+                "mean_restored_fraction": t.mean_restored_fraction(),
+                "fine_searches": t.fine_searches,
+                "water_c_per_m": {
+                    "least": t.water_c_min,
+                    "mean": t.mean_water_c_per_m(),
+                    "most": t.water_c_max,
+                },
+            })).collect::<Vec<_>>(),
         }));
     }
+    let table = format!(
+        "{table}\nWhat HOIRM did per camera (regions of interest, the fine pass, the water it read):\n\n{per_camera}"
+    );
     crate::outln!("{table}");
     let md = opts.out.join("node-rate.md");
     std::fs::write(&md, &table).map_err(|source| EvalError::Io { path: md, source })?;
