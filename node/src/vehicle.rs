@@ -147,6 +147,35 @@ struct CameraCounters {
     period: Mutex<(u64, f64, f64, f64)>,
 }
 
+impl CameraCounters {
+    /// Counts what camera `i` of `vehicle` made of frame `seq`: detections,
+    /// corner fits, the restoration's tally, reads of the vehicle's own
+    /// markers (logged once, then counted), pose failures (logged at debug).
+    fn count(&self, out: &crate::pipeline::FrameOutput, i: usize, vehicle: VehicleId, seq: u64) {
+        self.detections
+            .fetch_add(out.detections as u64, Ordering::Relaxed);
+        if let Ok(mut fits) = self.corner_fits.lock() {
+            fits.merge(&out.corner_fits);
+        }
+        if let Ok(mut tally) = self.restoration.lock() {
+            tally.add(out);
+        }
+        for reason in &out.pose_failures {
+            tracing::debug!("camera {i}: {reason}");
+        }
+        if out.own_marker_reads > 0 {
+            let before = self
+                .own_marker_reads
+                .fetch_add(out.own_marker_reads as u64, Ordering::Relaxed);
+            if before == 0 {
+                tracing::warn!(
+                    "camera {i}: frame {seq} read a marker vehicle {vehicle} carries itself — dropped (further ones counted, not logged)"
+                );
+            }
+        }
+    }
+}
+
 /// What one camera's restoration did over the frames it processed
 /// ([`NodeStats::restoration`]): where its time goes (issue #18).
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -402,30 +431,7 @@ pub fn spawn_camera<E: std::fmt::Display>(
                 });
             match result {
                 Ok(out) => {
-                    counters
-                        .detections
-                        .fetch_add(out.detections as u64, Ordering::Relaxed);
-                    if let Ok(mut fits) = counters.corner_fits.lock() {
-                        fits.merge(&out.corner_fits);
-                    }
-                    if let Ok(mut tally) = counters.restoration.lock() {
-                        tally.add(&out);
-                    }
-                    for reason in &out.pose_failures {
-                        tracing::debug!("camera {i}: {reason}");
-                    }
-                    if out.own_marker_reads > 0 {
-                        let before = counters
-                            .own_marker_reads
-                            .fetch_add(out.own_marker_reads as u64, Ordering::Relaxed);
-                        // Once a camera, then quietly (the count stays in the stats).
-                        if before == 0 {
-                            tracing::warn!(
-                                "camera {i}: frame {} read a marker vehicle {vehicle} carries itself — dropped (further ones counted, not logged)",
-                                frame.seq
-                            );
-                        }
-                    }
+                    counters.count(&out, i, vehicle, frame.seq);
                     for obs in &out.observations {
                         match publish(obs) {
                             Ok(()) => {
