@@ -168,8 +168,8 @@ pub struct FrameOutput {
     pub fine_searched: bool,
     /// Share of the frame the restoration's regions cover (1: restored whole).
     pub restored_fraction: f64,
-    /// The water the restoration worked for (its estimate, or the
-    /// override), 1/m; 0 for methods that estimate none.
+    /// The water the restoration read off the frame (or was given), 1/m
+    /// (`Restored::estimated_c_per_m`).
     pub water_c_per_m: f64,
     /// Detections dropped: PnP failed, or the marker size is unknown.
     pub pose_failures: Vec<String>,

@@ -23,10 +23,15 @@ fn facing(x: f64, y: f64, z: f64, roll_deg: f64, yaw_deg: f64) -> Pose {
 }
 
 fn render(codes: CodeSet, id: u32, pose: Pose, water: &WaterParams) -> GrayImage {
+    render_seeded(codes, id, pose, water, 5)
+}
+
+/// [`render`] with the renderer's noise seed given.
+fn render_seeded(codes: CodeSet, id: u32, pose: Pose, water: &WaterParams, seed: u64) -> GrayImage {
     let cam = CameraModel::vehicle_1440();
     let scene = Scene::single_marker(codes, id, SIDE_M, pose);
     Renderer::new()
-        .render(&cam, &Pose::identity(), &scene, water, 0.0, 5)
+        .render(&cam, &Pose::identity(), &scene, water, 0.0, seed)
         .unwrap()
         .image
 }
@@ -292,18 +297,7 @@ fn hoirm_reads_the_100_mm_marker_at_5_m_on_its_detail_keeping_restoration() {
             let x = -0.4 + 0.142 * k as f64;
             let y = 0.05 * ((k % 5) as f64 - 2.0);
             let pose = facing(x, y, range_m, 14.0 * k as f64, 15.0);
-            let scene = Scene::single_marker(CodeSet::Shoal, 15, SIDE_M, pose);
-            let img = Renderer::new()
-                .render(
-                    &CameraModel::vehicle_1440(),
-                    &Pose::identity(),
-                    &scene,
-                    &water,
-                    0.0,
-                    200 + k,
-                )
-                .unwrap()
-                .image;
+            let img = render_seeded(CodeSet::Shoal, 15, pose, &water, 200 + k);
             let raw = shoal_node::mat::gray_to_mat(&img).unwrap();
             let restored = restorer(Method::Hoirm, &RestoreParams::default())
                 .restore(&raw, 0)
@@ -352,18 +346,7 @@ fn hoirm_reads_the_100_mm_marker_at_5_m_on_its_detail_keeping_restoration() {
 fn a_frame_restored_whole_is_searched_again_only_when_asked() {
     use shoal_node::restore::{restorer, Method, RestoreParams};
     let pose = facing(-0.4, -0.1, 4.5, 0.0, 15.0);
-    let scene = Scene::single_marker(CodeSet::Shoal, 15, SIDE_M, pose);
-    let img = Renderer::new()
-        .render(
-            &CameraModel::vehicle_1440(),
-            &Pose::identity(),
-            &scene,
-            &WaterParams::preset(0.5),
-            0.0,
-            200,
-        )
-        .unwrap()
-        .image;
+    let img = render_seeded(CodeSet::Shoal, 15, pose, &WaterParams::preset(0.5), 200);
     let raw = shoal_node::mat::gray_to_mat(&img).unwrap();
     let fine_regions = |params: RestoreParams| {
         let restored = restorer(Method::Hoirm, &params).restore(&raw, 0).unwrap();
