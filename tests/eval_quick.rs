@@ -905,28 +905,43 @@ fn node_rate_quick_takes_the_realistic_camera() {
 
 /// `nees` (issue #16): the node as shipped on the ideal and realistic
 /// profiles. Fails if the covariance is off: for `ideal`, the mean NEES
-/// (6-DoF) must lie above a quarter of the lower end of the χ² band a
-/// consistent covariance gives (conservative by at most a factor 2 in σ:
-/// the 0.05 px floor makes clear water cautious) and below twice its upper
-/// end (overconfident by at most √2 in σ: fusion gates on it). The band is
-/// the 95 % interval of the mean of the frames read. Measured (2026-12-03):
-/// 3.52 at 1.38 /m (15 reads, band 4.4–7.9) and 4.29 at 3.92 /m (11 reads,
-/// 10 by the whole-pattern fit; band 4.1–8.2). Before the pattern fit's
-/// corner covariance reached the pose (`shoal_node::pose::corner_covariance`)
-/// 3.92 /m read 39.0 and fails here. For `realistic`, the stated
-/// calibration σ must lower the NEES and a scale must be fitted on 1.38 /m.
+/// (6-DoF) of the reads within 3° of the truth must lie above a quarter of
+/// the lower end of the χ² band a consistent covariance gives (conservative
+/// by at most a factor 2 in σ: the 0.05 px floor makes clear water
+/// cautious) and below 1.5 times its upper end (overconfident by at most
+/// 1.22 in σ: fusion gates on it). The band is the 95 % interval of the
+/// mean of those reads. Reads more than 3° off (planar flips and gross
+/// misreads, which fusion settles with the other hypothesis and other
+/// observations) are left out, as every table of `docs/results.md` *nees*
+/// leaves them out, and counted: at most a quarter of the reads. One of
+/// them decides the plain mean: at 3.92 /m a 4-corner read of a 57 px
+/// marker at 1.2 m (contrast 0.015), 5.6° off with NEES 67, took it to
+/// 10.0 on 13 reads, and read 40° off (HOIRM's water estimate less the
+/// noise's share, session 41) to 23.1, while the other reads gave 5.20 and
+/// 4.75 (band 4.1–8.2). Measured (2026-12-06, session 41): 3.28 at 1.38 /m
+/// (15 reads, none off; band 4.4–7.9) and 4.75 at 3.92 /m (11 of 13 reads;
+/// band 4.1–8.2). Without the pattern fit's corner covariance in the pose
+/// (`shoal_node::pose::corner_covariance`) 3.92 /m reads 14.5 on the same
+/// 11 and fails here. For `realistic`, the stated calibration σ must lower
+/// the NEES and a scale must be fitted on 1.38 /m.
 #[test]
 fn nees_quick_covariance_neither_overconfident_nor_far_too_cautious() {
     let (dir, s) = run_quick(Experiment::Nees);
     assert_files(&dir, &["frames.csv", "summary.json"]);
     for c in ["1.38", "3.92"] {
-        let n = &s["results"]["ideal"][c]["nees6"];
+        let cell = &s["results"]["ideal"][c];
+        let (read, flips) = (num(&cell["read"]), num(&cell["flips"]));
+        assert!(
+            4.0 * flips <= read,
+            "ideal {c}: {flips} of {read} reads > 3° off"
+        );
+        let n = &cell["nees6_without_flips"];
         assert!(num(&n["frames"]) >= 5.0, "ideal {c}: {n}");
         let band = &n["chi2_band95"];
         let (lo, hi) = (num(&band[0]), num(&band[1]));
         let mean = num(&n["mean"]);
         assert!(
-            mean > lo / 4.0 && mean < hi * 2.0,
+            mean > lo / 4.0 && mean < hi * 1.5,
             "ideal {c}: mean NEES {mean} vs χ² band {lo}..{hi}"
         );
     }
