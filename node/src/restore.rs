@@ -161,6 +161,11 @@ pub struct RestoreParams {
     pub white_over_veil: f64,
     /// Part of `c` that is small-angle forward scatter (still reaches the camera), for the `c` estimate.
     pub forward_scatter_fraction: f64,
+    /// The `c` estimate's strongest contrast is taken less the noise's own
+    /// share, at least this many times the coarse gradient's median (2: the
+    /// 99.9th percentile of Gaussian noise's 3x3 range; 0: the white-noise
+    /// prediction alone, before session 40). See docs/restoration.md.
+    pub contrast_noise_k: f64,
     /// Deconvolve the PSF mixed with the unscattered light, `e^{−s·c·d_ref}`
     /// of it sharp (`psf::GgPsf::direct`), in the frame's restoration too;
     /// `false` (default): Eq. (14)'s PSF alone, as the paper writes it, whose
@@ -260,6 +265,7 @@ impl Default for RestoreParams {
             reference_range_m: 0.6,
             white_over_veil: 0.5,
             forward_scatter_fraction: 0.3,
+            contrast_noise_k: 2.0,
             psf_unscattered: false,
             fine_pass: true,
             fine_pass_whole_frame: false,
@@ -354,6 +360,7 @@ impl RestoreParams {
             ("psf_min_sigma_px", self.psf_min_sigma_px),
             ("psf_trust_ratio", self.psf_trust_ratio),
             ("ambient_tau_s", self.ambient_tau_s),
+            ("contrast_noise_k", self.contrast_noise_k),
         ]);
         if more.is_some() {
             return more;

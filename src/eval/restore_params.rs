@@ -60,7 +60,7 @@ pub fn apply(params: &mut RestoreParams, assignment: &str) -> Result<(), EvalErr
             clahe_clip_per_c, psf_p_clear, psf_c_half_per_m, psf_px_per_unit,
             psf_min_sigma_px, psf_trust_ratio, deconv_min_c_per_m,
             passthrough_below_c_per_m, nsr_gain, nsr_min, nsr_max, reference_range_m,
-            white_over_veil, forward_scatter_fraction, stretch_target, stretch_max_gain,
+            white_over_veil, forward_scatter_fraction, contrast_noise_k, stretch_target, stretch_max_gain,
             edge_snr_target, level_blur_px, denoise_edge_snr, denoise_min_sigma_px,
             denoise_max_sigma_px, clahe_contrast_target, roi_noise_k, roi_rel_threshold,
             roi_min_gradient, roi_background_k, roi_hysteresis, roi_max_fraction,

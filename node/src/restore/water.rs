@@ -97,8 +97,17 @@ impl WaterEstimate {
             core::BORDER_REPLICATE,
             imgproc::morphology_default_border_value()?,
         )?;
+        // The noise's own part of that percentile: 3σ of the coarse level's
+        // noise as predicted for white noise, or, where the noise does not
+        // average down so (a camera's demosaicing, codec and gamma correlate
+        // it), what the gradient itself shows: its median is the water's
+        // noise in a frame mostly of water, and the 99.9th percentile of a
+        // 3x3 range of Gaussian noise is 2.0x its median.
         let noise_coarse = noise_sigma / COARSE_FACTOR_FOR_NOISE;
-        let local_contrast = (percentile(&histogram(&grad)?, 0.999) - 3.0 * noise_coarse).max(0.0);
+        let grad_hist = histogram(&grad)?;
+        let noise_floor =
+            (3.0 * noise_coarse).max(params.contrast_noise_k * percentile(&grad_hist, 0.5));
+        let local_contrast = (percentile(&grad_hist, 0.999) - noise_floor).max(0.0);
         let t = (params.white_over_veil * local_contrast / backscatter.max(1.0)).clamp(1e-4, 1.0);
         let c_per_m = (-t.ln()
             / ((1.0 - params.forward_scatter_fraction) * params.reference_range_m))
@@ -505,6 +514,39 @@ mod tests {
         )
         .unwrap();
         out
+    }
+
+    /// Coarse-level noise several times what the frame's own noise predicts
+    /// for white noise (σ 3 against 2/8: what a camera's demosaicing, codec
+    /// and gamma leave): without the gradient's own noise floor its 99.9th
+    /// percentile passes for an object's contrast and the water reads
+    /// clearer than it is; with it, noise alone is no contrast, and a dark
+    /// square's 40-level step still is.
+    #[test]
+    fn correlated_noise_is_not_read_as_contrast() {
+        let full = noisy_flat(120.0, 2.0, 1);
+        let mut coarse = noisy_flat(120.0, 3.0, 2);
+        let params = RestoreParams::default();
+        let white_only = RestoreParams {
+            contrast_noise_k: 0.0,
+            ..RestoreParams::default()
+        };
+        let noise = WaterEstimate::from_image(&full, &coarse, &params).unwrap();
+        let noise_white = WaterEstimate::from_image(&full, &coarse, &white_only).unwrap();
+        assert!(noise.local_contrast < 3.0, "{noise:?}");
+        assert!(noise_white.local_contrast > 12.0, "{noise_white:?}");
+        assert!(noise.c_per_m > noise_white.c_per_m + 2.0);
+        for y in 70..130 {
+            for v in &mut coarse.at_row_mut::<u8>(y).unwrap()[120..180] {
+                *v = v.saturating_sub(40);
+            }
+        }
+        let square = WaterEstimate::from_image(&full, &coarse, &params).unwrap();
+        assert!(
+            square.local_contrast > 24.0 && square.local_contrast < 45.0,
+            "{square:?}"
+        );
+        assert!(square.c_per_m < noise.c_per_m - 2.0, "{square:?} {noise:?}");
     }
 
     #[test]
