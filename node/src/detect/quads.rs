@@ -702,6 +702,28 @@ fn tile_offsets(
 /// noise.
 const FLAT_EXTRA_TILES: usize = 2;
 
+/// The length of the closed polygon `pts`, as `cv::arcLength(pts, true)`
+/// computes it for integer points (each step's length in `f32`, summed in
+/// `f64`), so to the bit: without a call into OpenCV per contour, most of
+/// which (noise's speckle) this length alone rejects.
+fn closed_length(pts: &[Point]) -> f64 {
+    let Some(last) = pts.last() else {
+        return 0.0;
+    };
+    if pts.len() <= 1 {
+        return 0.0;
+    }
+    let mut prev = (last.x as f32, last.y as f32);
+    let mut perimeter = 0.0f64;
+    for p in pts {
+        let q = (p.x as f32, p.y as f32);
+        let (dx, dy) = (q.0 - prev.0, q.1 - prev.1);
+        perimeter += f64::from((dx * dx + dy * dy).sqrt());
+        prev = q;
+    }
+    perimeter
+}
+
 /// What a contour is: a quad, a blob ([`find_quads_and_blobs`]) or neither.
 enum Shape {
     Quad([Px; 4]),
@@ -799,7 +821,7 @@ fn contour_quad(
     if c.len() < 4 {
         return Ok(Shape::Neither);
     }
-    let perim = imgproc::arc_length(c, true)?;
+    let perim = closed_length(c.as_slice());
     if perim < 4.0 * min_side_lvl {
         return Ok(Shape::Neither);
     }
@@ -865,7 +887,7 @@ fn contour_quad(
         }
         let mut hull: Vector<Point> = Vector::new();
         imgproc::convex_hull(c, &mut hull, true, true)?;
-        let hull_perim = imgproc::arc_length(&hull, true)?;
+        let hull_perim = closed_length(hull.as_slice());
         imgproc::approx_poly_dp(&hull, approx, params.approx_epsilon * hull_perim, true)?;
         if approx.len() != 4 {
             return Ok(Shape::Neither);
@@ -1545,6 +1567,53 @@ mod tests {
             now.1,
             before.1
         );
+    }
+
+    /// [`closed_length`] is `cv::arcLength(_, true)` to the bit, on the
+    /// contours of a noisy frame (speckle, long outlines, every direction
+    /// of step) and on the degenerate cases.
+    #[test]
+    fn the_closed_length_is_opencvs_arc_length_to_the_bit() {
+        let img = noisy_ramp(360, 270, 6.0, 5);
+        let mut bin = Mat::default();
+        imgproc::adaptive_threshold(
+            &img,
+            &mut bin,
+            255.0,
+            imgproc::ADAPTIVE_THRESH_MEAN_C,
+            imgproc::THRESH_BINARY_INV,
+            19,
+            1.0,
+        )
+        .unwrap();
+        let mut contours: Vector<Vector<Point>> = Vector::new();
+        imgproc::find_contours(
+            &bin,
+            &mut contours,
+            imgproc::RETR_LIST,
+            imgproc::CHAIN_APPROX_SIMPLE,
+            Point::new(0, 0),
+        )
+        .unwrap();
+        assert!(contours.len() > 500, "{} contours", contours.len());
+        let mut long = 0;
+        for c in contours.iter() {
+            let cv = imgproc::arc_length(&c, true).unwrap();
+            assert_eq!(closed_length(c.as_slice()).to_bits(), cv.to_bits(), "{c:?}");
+            long += usize::from(cv > 50.0);
+        }
+        assert!(long > 10, "{long} long contours");
+        assert_eq!(closed_length(&[]), 0.0);
+        for pts in [
+            vec![Point::new(3, 4)],
+            vec![Point::new(0, 0), Point::new(3, 4)],
+        ] {
+            let v: Vector<Point> = pts.iter().copied().collect();
+            assert_eq!(
+                closed_length(&pts).to_bits(),
+                imgproc::arc_length(&v, true).unwrap().to_bits()
+            );
+        }
     }
 
     #[test]
