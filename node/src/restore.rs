@@ -164,7 +164,7 @@ pub struct RestoreParams {
     /// The `c` estimate's strongest contrast is taken less the noise's own
     /// share, at least this many times the coarse gradient's median (2: the
     /// 99.9th percentile of Gaussian noise's 3x3 range; 0: the white-noise
-    /// prediction alone, before session 40). See docs/restoration.md.
+    /// prediction alone, as before session 41). See docs/restoration.md.
     pub contrast_noise_k: f64,
     /// Deconvolve the PSF mixed with the unscattered light, `e^{−s·c·d_ref}`
     /// of it sharp (`psf::GgPsf::direct`), in the frame's restoration too;

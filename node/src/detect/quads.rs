@@ -707,10 +707,10 @@ const FLAT_EXTRA_TILES: usize = 2;
 /// `f64`), so to the bit: without a call into OpenCV per contour, most of
 /// which (noise's speckle) this length alone rejects.
 fn closed_length(pts: &[Point]) -> f64 {
-    let Some(last) = pts.last() else {
+    let [.., last] = pts else {
         return 0.0;
     };
-    if pts.len() <= 1 {
+    if pts.len() == 1 {
         return 0.0;
     }
     let mut prev = (last.x as f32, last.y as f32);
