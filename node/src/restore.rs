@@ -590,17 +590,13 @@ pub(crate) fn coarse_level(gray: &Mat, factor: i32) -> Result<Mat, RestoreError>
     Ok(out)
 }
 
-/// A CLAHE with `clip` and a tile grid of about `tile_px` pixels per tile, applied to `src`.
-pub(crate) fn clahe(
-    src: &(impl MatTraitConst + opencv::core::ToInputArray),
-    clip: f64,
-    tile_px: i32,
-) -> Result<Mat, RestoreError> {
-    let grid = Size::new(
-        ((src.cols() + tile_px - 1) / tile_px).max(1),
-        ((src.rows() + tile_px - 1) / tile_px).max(1),
-    );
-    clahe_grid(src, clip, grid)
+/// The CLAHE tile grid of about `tile_px` pixels per tile over an image of
+/// `size`: `ceil(size / tile)` tiles each way.
+pub(crate) fn clahe_tiles(size: Size, tile_px: i32) -> Size {
+    Size::new(
+        ((size.width + tile_px - 1) / tile_px).max(1),
+        ((size.height + tile_px - 1) / tile_px).max(1),
+    )
 }
 
 /// A CLAHE with `clip` and a `grid` of tiles, applied to `src`.
