@@ -17,9 +17,10 @@ use nalgebra::{DVector, Matrix3};
 
 /// What the geometric derivatives need at each pixel of the window.
 pub(super) struct GeometricFields {
-    /// `disp[j][k]`: how pixel `k`'s model point moves with corner
-    /// coordinate `j` (the displacement field D_j).
-    disp: Vec<Vec<[f64; 2]>>,
+    /// `disp[k][j]`: how pixel `k`'s model point moves with corner
+    /// coordinate `j` (the displacement field D_j), pixel-major: a row
+    /// reads five pixels' fields, not forty scattered values.
+    disp: Vec<[[f64; 2]; GEOM]>,
     /// Σ_kernels G∗E, per pixel.
     along: Vec<[f64; 2]>,
     /// `spread[k][a][b]` = Σ_kernels σ²·∂_b(G∗E_a).
@@ -58,11 +59,13 @@ impl GeometricFields {
     /// inner pixel of the window), negated: the Jacobian's geometric columns.
     pub(super) fn row(&self, k: usize, row: &mut [f64]) {
         let w = self.w;
-        for (j, d) in self.disp.iter().enumerate() {
-            let mut v = d[k][0] * self.along[k][0] + d[k][1] * self.along[k][1];
+        let d = &self.disp;
+        let (here, left, right, up, down) = (&d[k], &d[k - 1], &d[k + 1], &d[k - w], &d[k + w]);
+        for j in 0..GEOM {
+            let mut v = here[j][0] * self.along[k][0] + here[j][1] * self.along[k][1];
             for a in 0..2 {
-                let dbx = 0.5 * (d[k + 1][a] - d[k - 1][a]);
-                let dby = 0.5 * (d[k + w][a] - d[k - w][a]);
+                let dbx = 0.5 * (right[j][a] - left[j][a]);
+                let dby = 0.5 * (down[j][a] - up[j][a]);
                 v += dbx * self.spread[k][a][0] + dby * self.spread[k][a][1];
             }
             row[j] = -v;
@@ -71,13 +74,13 @@ impl GeometricFields {
 }
 
 /// ∂x/∂(corner coordinate) at each pixel's module point `uv`: the
-/// displacement fields D_j, numerically.
+/// displacement fields D_j, numerically, per pixel.
 fn displacement_fields(
     unit: &[Px; 4],
     corners: &[Px; 4],
     h: &Matrix3<f64>,
     uv: &[[f64; 2]],
-) -> Result<Vec<Vec<[f64; 2]>>, PatternFitError> {
+) -> Result<Vec<[[f64; 2]; GEOM]>, PatternFitError> {
     let eps = 1e-3;
     let hj: Vec<Matrix3<f64>> = (0..GEOM)
         .map(|j| {
@@ -86,15 +89,14 @@ fn displacement_fields(
             homography_4(unit, &c).ok_or(PatternFitError::Singular)
         })
         .collect::<Result<_, _>>()?;
-    Ok(hj
+    Ok(uv
         .iter()
-        .map(|hj| {
-            uv.iter()
-                .map(|&p| {
-                    let (a, b) = (apply(hj, p), apply(h, p));
-                    [(a[0] - b[0]) / eps, (a[1] - b[1]) / eps]
-                })
-                .collect()
+        .map(|&p| {
+            let b = apply(h, p);
+            std::array::from_fn(|j| {
+                let a = apply(&hj[j], p);
+                [(a[0] - b[0]) / eps, (a[1] - b[1]) / eps]
+            })
         })
         .collect())
 }
