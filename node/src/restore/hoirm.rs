@@ -640,9 +640,9 @@ fn level_image(image: &Mat, level: u32) -> Result<Option<Mat>, RestoreError> {
     Ok(Some(cur))
 }
 
-/// CLAHE and Wiener deconvolution of one region of the globally
-/// de-attenuated frame, in the configured order; returns
-/// `(after the first stage, after both)`.
+/// CLAHE (clip limit and tile grid `(clip, tiles)`) and Wiener
+/// deconvolution of one region of the globally de-attenuated frame, in the
+/// configured order; returns `(after the first stage, after both)`.
 fn restore_region_with(
     wiener: &mut Wiener,
     params: &RestoreParams,
