@@ -920,7 +920,7 @@ fn feather_into(dst: &mut Mat, region: &Mat, r: Rect, frame: Rect) -> Result<(),
 #[cfg(test)]
 mod tests {
     use super::*;
-    use opencv::core::{Scalar, Size, CV_32FC1, CV_8UC1};
+    use opencv::core::{Scalar, CV_32FC1, CV_8UC1};
 
     /// The veil removed from a region is the full-frame bilinear up-sampling
     /// of the coarse ambient light, in f32: no whole-level steps, which a
@@ -934,25 +934,42 @@ mod tests {
             }
         }
         let gray = Mat::new_rows_cols_with_default(240, 320, CV_8UC1, Scalar::all(150.0)).unwrap();
-        let mut full = Mat::default();
-        imgproc::resize(
-            &bl,
-            &mut full,
-            Size::new(320, 240),
-            0.0,
-            0.0,
-            imgproc::INTER_LINEAR,
-        )
-        .unwrap();
-        let r = Rect::new(37, 53, 101, 77);
-        let (diff, _) = veil_removed_region(&gray, &bl, r).unwrap();
-        for y in 0..r.height {
-            for x in 0..r.width {
-                let want = 150.0 - *full.at_2d::<f32>(r.y + y, r.x + x).unwrap();
-                let got = *diff.at_2d::<f32>(y, x).unwrap();
-                assert!((want - got).abs() < 1e-3, "({x}, {y}): {got} vs {want}");
+        // `frame − veil` on region `r`, and its spread, against the veil
+        // resized to the whole frame by OpenCV and `cv::meanStdDev`.
+        let check = |frame: &Mat, veil: &Mat, r: Rect| -> Mat {
+            let mut full = Mat::default();
+            imgproc::resize(
+                veil,
+                &mut full,
+                frame.size().unwrap(),
+                0.0,
+                0.0,
+                imgproc::INTER_LINEAR,
+            )
+            .unwrap();
+            let (diff, std) = veil_removed_region(frame, veil, r).unwrap();
+            let (mut m, mut want_std) = (Scalar::default(), Scalar::default());
+            core::mean_std_dev(&diff, &mut m, &mut want_std, &core::no_array()).unwrap();
+            assert!(
+                (std - want_std[0]).abs() < 1e-9 * want_std[0],
+                "{std} vs {want_std:?}"
+            );
+            for y in 0..r.height {
+                for x in 0..r.width {
+                    let (fx, fy) = (r.x + x, r.y + y);
+                    let g = f32::from(*frame.at_2d::<u8>(fy, fx).unwrap());
+                    let want = g - *full.at_2d::<f32>(fy, fx).unwrap();
+                    let got = *diff.at_2d::<f32>(y, x).unwrap();
+                    assert!(
+                        (want - got).abs() < 1e-3,
+                        "{r:?} ({x}, {y}): {got} vs {want}"
+                    );
+                }
             }
-        }
+            diff
+        };
+        let r = Rect::new(37, 53, 101, 77);
+        let diff = check(&gray, &bl, r);
         // A veil that is not linear, on a frame that is not flat, and
         // regions at the frame's corners (the edge samples beyond it).
         let mut bumpy = bl.clone();
@@ -967,39 +984,12 @@ mod tests {
                 *v = ((x * 31 + y as usize * 17) % 256) as u8;
             }
         }
-        imgproc::resize(
-            &bumpy,
-            &mut full,
-            Size::new(320, 240),
-            0.0,
-            0.0,
-            imgproc::INTER_LINEAR,
-        )
-        .unwrap();
         for r in [
             Rect::new(0, 0, 45, 33),
             Rect::new(270, 200, 50, 40),
             Rect::new(0, 0, 320, 240),
         ] {
-            let (diff, std) = veil_removed_region(&textured, &bumpy, r).unwrap();
-            let (mut m, mut want_std) = (Scalar::default(), Scalar::default());
-            core::mean_std_dev(&diff, &mut m, &mut want_std, &core::no_array()).unwrap();
-            assert!(
-                (std - want_std[0]).abs() < 1e-9 * want_std[0],
-                "{std} vs {want_std:?}"
-            );
-            for y in 0..r.height {
-                for x in 0..r.width {
-                    let (fx, fy) = (r.x + x, r.y + y);
-                    let g = f32::from(*textured.at_2d::<u8>(fy, fx).unwrap());
-                    let want = g - *full.at_2d::<f32>(fy, fx).unwrap();
-                    let got = *diff.at_2d::<f32>(y, x).unwrap();
-                    assert!(
-                        (want - got).abs() < 1e-3,
-                        "{r:?} ({x}, {y}): {got} vs {want}"
-                    );
-                }
-            }
+            check(&textured, &bumpy, r);
         }
         assert!(veil_removed_region(&gray, &bl, Rect::new(300, 0, 40, 10)).is_err());
         let out = finish_region(diff, 6.0, 0.0).unwrap();
