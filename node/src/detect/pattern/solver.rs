@@ -423,7 +423,7 @@ fn solve_step(
 }
 
 /// Rows gathered before they are added to the normal equations as one
-/// matrix product (a fit adds one row per pixel, ~60 000 of ~30 values).
+/// matrix product (a fit adds one row of 39 values per pixel, tens of thousands of them).
 const BLOCK_ROWS: usize = 128;
 
 /// Normal equations over rows of `cols` values: `AᵀA` and `Aᵀr`, the rows
