@@ -369,7 +369,7 @@ impl Hoirm {
             g.denoise_sigma > 0.0 || deblur.is_some_and(|psf| psf.direct <= 0.0 || level > 0);
         // The tiles of the region at full resolution, whatever level it is
         // stretched on (OpenCV's clip limit is per tile area, so the
-        // stretch is the same).
+        // stretch is nearly the same).
         let tiles = clahe_tiles(r.size(), self.params.clahe_tile_px);
         let (first, last) = if level > 0 && g.denoise_sigma >= 2.0 {
             // …and then it is smoothed and stretched there too: the half
