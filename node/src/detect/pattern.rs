@@ -278,6 +278,11 @@ pub fn fit_pattern(
         let h = homography_4(&unit, &corners).ok_or(PatternFitError::Singular)?;
         let step = evaluate(raw, grid, m, &unit, &corners, &h, &win, &idx, coef.as_ref())?;
         if let Some((at, best)) = &accepted {
+            // A residual that rises by less than `RMS_TOL` is as flat as
+            // one that falls by less: the last accepted point is the fit.
+            if step.rms > best.rms && step.rms - best.rms < RMS_TOL * best.rms {
+                return best.fit(&unit, at, &win, it + 1, lens);
+            }
             if step.rms > best.rms {
                 fraction *= 0.5;
                 if fraction < 0.1 {
