@@ -269,8 +269,8 @@ pub fn fit_pattern(
         &lens,
     )?;
     let idx: Vec<usize> = (0..win.w * win.h).filter(|&k| fitted[k]).collect();
-    // Gauss–Newton with backtracking: a step that raises the residual is
-    // halved from the last accepted point.
+    // Gauss–Newton with backtracking: a step that raises the residual (by
+    // more than `RMS_TOL`) is halved from the last accepted point.
     let mut accepted: Option<([Px; 4], Step)> = None;
     let mut coef: Option<DVector<f64>> = None;
     let mut fraction = 1.0;
