@@ -18,6 +18,7 @@
 //! their neighbour where the neighbour is close to the next) and the search
 //! thresholds a copy with each replaced by its neighbour.
 
+use super::contours::Contours;
 use super::geom::{mean_side, min_side, signed_area2, Px};
 use super::{DetectError, DetectParams};
 use crate::mat::GrayView;
@@ -257,6 +258,7 @@ fn quads_of_level(
 ) -> Result<(), DetectError> {
     let mut bin = Mat::default();
     let mut approx: Vector<Point> = Vector::new();
+    let mut traced = Contours::new();
     let view = GrayView::new(level)?;
     // The noise only matters to the flat test of the relative offset.
     let noise_dn = match (params.contrast_offset, noise_dn) {
@@ -280,10 +282,9 @@ fn quads_of_level(
             Some(rects) => rects.iter().copied().map(Some).collect(),
         };
         for window in searched {
-            let contours = trace_contours(&bin, window)?;
-            for c in contours.iter() {
-                let shape =
-                    contour_quad(params, (level, &mut table), &at, &c, &mut approx, window)?;
+            traced.trace(&GrayView::new(&bin)?, window);
+            for c in traced.iter() {
+                let shape = contour_quad(params, (level, &mut table), &at, c, &mut approx, window)?;
                 let (shapes, list, exact_only) = match &shape {
                     Shape::Quad(q) => (std::slice::from_ref(q), &mut found.quads, false),
                     Shape::Joined(qs) => (qs.as_slice(), &mut found.quads, true),
@@ -315,21 +316,6 @@ fn quads_of_level(
         }
     }
     Ok(())
-}
-
-/// Every contour of the binary image `bin` (`RETR_LIST`, simple chains),
-/// or of its part `window` only (in `bin`'s pixels either way).
-fn trace_contours(bin: &Mat, window: Option<Rect>) -> Result<Vector<Vector<Point>>, DetectError> {
-    let mut contours: Vector<Vector<Point>> = Vector::new();
-    let (mode, chain) = (imgproc::RETR_LIST, imgproc::CHAIN_APPROX_SIMPLE);
-    match window {
-        None => imgproc::find_contours(bin, &mut contours, mode, chain, Point::new(0, 0))?,
-        Some(r) => {
-            let roi = Mat::roi(bin, r)?;
-            imgproc::find_contours(&roi, &mut contours, mode, chain, Point::new(r.x, r.y))?;
-        }
-    }
-    Ok(contours)
 }
 
 /// Full-resolution rectangles `rects` on a level of `scale` full-resolution
@@ -811,7 +797,7 @@ fn contour_quad(
     params: &DetectParams,
     (level, table): (&impl MatTraitConst, &mut SumTable<'_>),
     at: &Place,
-    c: &Vector<Point>,
+    c: &[Point],
     approx: &mut Vector<Point>,
     window: Option<Rect>,
 ) -> Result<Shape, DetectError> {
@@ -821,7 +807,7 @@ fn contour_quad(
     if c.len() < 4 {
         return Ok(Shape::Neither);
     }
-    let perim = closed_length(c.as_slice());
+    let perim = closed_length(c);
     if perim < 4.0 * min_side_lvl {
         return Ok(Shape::Neither);
     }
@@ -844,12 +830,11 @@ fn contour_quad(
     // may go on outside): no quad, but a marker joined to it may be.
     let (x1, y1) = (bounds.x + bounds.width - 1, bounds.y + bounds.height - 1);
     let cut = c
-        .as_slice()
         .iter()
         .any(|p| p.x <= bounds.x || p.y <= bounds.y || p.x >= x1 || p.y >= y1);
     let joined = || -> Shape {
         let margin = params.border_margin_px / scale;
-        let quads: Vec<[Px; 4]> = quads_of_long_edges(c.as_slice(), min_side_lvl, bounds)
+        let quads: Vec<[Px; 4]> = quads_of_long_edges(c, min_side_lvl, bounds)
             .into_iter()
             .filter(|q| within_margin(q, margin, [w, h]))
             .map(|mut q| {
@@ -868,7 +853,9 @@ fn contour_quad(
     if cut || background {
         return Ok(joined());
     }
-    imgproc::approx_poly_dp(c, approx, params.approx_epsilon * perim, true)?;
+    // OpenCV's own copy of the outline, for its polygon functions.
+    let c = Vector::<Point>::from_slice(c);
+    imgproc::approx_poly_dp(&c, approx, params.approx_epsilon * perim, true)?;
     let blob = approx.len() != 4 || !imgproc::is_contour_convex(&*approx)?;
     if blob && (scale <= 1.0 || perim > 4.0 * params.full_res_region_max_side_px / scale) {
         return Ok(joined());
@@ -881,12 +868,12 @@ fn contour_quad(
         }
         // Darker than what surrounds it, as a marker with its quiet zone
         // is and sensor noise's speckle is not.
-        let r = imgproc::bounding_rect(c)?;
+        let r = imgproc::bounding_rect(&c)?;
         if table.contrast([r.x, r.y, r.width, r.height]) < BLOB_CONTRAST * params.min_contrast {
             return Ok(Shape::Neither);
         }
         let mut hull: Vector<Point> = Vector::new();
-        imgproc::convex_hull(c, &mut hull, true, true)?;
+        imgproc::convex_hull(&c, &mut hull, true, true)?;
         let hull_perim = closed_length(hull.as_slice());
         imgproc::approx_poly_dp(&hull, approx, params.approx_epsilon * hull_perim, true)?;
         if approx.len() != 4 {
