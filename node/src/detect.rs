@@ -32,6 +32,7 @@
 
 pub mod assemble;
 pub mod codes;
+pub mod contours;
 pub mod corners;
 pub mod edge_model;
 pub mod geom;

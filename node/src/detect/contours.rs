@@ -119,29 +119,19 @@ impl Contours {
         };
         for y in 1..=h {
             let row = y * step;
-            let mut prev = 0u8;
             let mut x = 1;
-            while x <= w {
-                x = border.next_change(row, x, w + 1, prev);
+            loop {
+                x = border.next_start(row, x, w + 1);
                 if x > w {
                     break;
                 }
-                let p = border.img[row + x];
-                let is_hole = if prev == 0 && p == 1 {
-                    false
-                } else if p == 0 && (prev == 1 || prev == VISITED) {
-                    true
-                } else {
-                    prev = p;
-                    x += 1;
-                    continue;
-                };
+                // The pixel left of a border's start is what the scan has
+                // passed, as it is now (earlier borders marked it).
+                let is_hole = border.img[row + x] == 0;
                 let sx = x - usize::from(is_hole);
                 let start = Point::new(sx as i32 + origin.0, y as i32 + origin.1);
                 border.follow(row + sx, start, is_hole, &mut self.points);
                 self.ends.push(self.points.len());
-                // The scan goes on from the pixel as the border left it.
-                prev = border.img[row + x];
                 x += 1;
             }
         }
@@ -167,21 +157,38 @@ struct Border<'a> {
 }
 
 impl Border<'_> {
-    /// The first `x` in `from..end` of the row starting at `row` whose pixel
-    /// differs from `prev` (`end` when none does), eight pixels at a time.
-    fn next_change(&self, row: usize, from: usize, end: usize, prev: u8) -> usize {
+    /// The first `x` in `from..end` (`from` ≥ 1) of the row starting at
+    /// `row` where a border starts (`end` when none does): an outer border
+    /// at a 0 → 1 step, a hole's at a step from an unmarked or `VISITED`
+    /// pixel to 0 (a `RIGHT` pixel's border has passed on its right). The
+    /// pixels are 0, 1, `VISITED` or `RIGHT`, so eight pairs are tested at
+    /// a time in a `u64`: a byte is non-zero where `nz` has its high bit,
+    /// is 1 where its low bit is set, and is 1 or `VISITED` where it is
+    /// non-zero with its high bit clear.
+    fn next_start(&self, row: usize, from: usize, end: usize) -> usize {
+        const LOW7: u64 = 0x7f7f_7f7f_7f7f_7f7f;
+        const HIGH: u64 = 0x8080_8080_8080_8080;
+        let nz = |v: u64| ((v & LOW7) + LOW7) | v;
         let line = &self.img[row..row + end];
-        let splat = u64::from(prev) * 0x0101_0101_0101_0101;
+        let word = |x: usize| u64::from_le_bytes(line[x..x + 8].try_into().expect("eight bytes"));
         let mut x = from;
         while x + 8 <= end {
-            let chunk = u64::from_le_bytes(line[x..x + 8].try_into().expect("eight bytes"));
-            let diff = chunk ^ splat;
-            if diff != 0 {
-                return x + (diff.trailing_zeros() / 8) as usize;
+            // Byte k of `left` is pixel x + k − 1, of `this` pixel x + k.
+            let (left, this) = (word(x - 1), word(x));
+            let (nz_left, nz_this) = (nz(left), nz(this));
+            let outer = !nz_left & (this << 7);
+            let hole = !nz_this & nz_left & !left;
+            let starts = (outer | hole) & HIGH;
+            if starts != 0 {
+                return x + (starts.trailing_zeros() / 8) as usize;
             }
             x += 8;
         }
-        while x < end && line[x] == prev {
+        while x < end {
+            let (left, this) = (line[x - 1], line[x]);
+            if (left == 0 && this == 1) || (this == 0 && (left == 1 || left == VISITED)) {
+                return x;
+            }
             x += 1;
         }
         x
