@@ -232,9 +232,11 @@ fn fit_step(
     iters: usize,
     cut: f64,
     profile: Profile,
-) -> Option<(Step, MatP)> {
+) -> Option<(Step, StepCovariance)> {
     let mut s = init;
-    let mut cov = MatP::zeros();
+    // The last iteration's factor and residual variance: the covariance
+    // is made from them once, after the loop.
+    let mut last: Option<(nalgebra::Cholesky<f64, nalgebra::Const<NP>>, f64)> = None;
     for _ in 0..iters {
         // Normal equations, upper triangle accumulated by hand (the hot loop).
         let mut h = [0.0f64; NP * (NP + 1) / 2];
@@ -293,8 +295,7 @@ fn fit_step(
         if !step.iter().all(|v| v.is_finite()) {
             return None;
         }
-        // Parameter covariance: residual variance · (JᵀJ)⁻¹.
-        cov = chol.inverse() * (ssr / used.saturating_sub(NP).max(1) as f64);
+        last = Some((chol, ssr / used.saturating_sub(NP).max(1) as f64));
         // Trust region: the line moves at most 1 px (offset) per iteration.
         let k = (1.0 / step[0].abs().max(step[1].abs()).max(1e-12)).min(1.0);
         s.c0 += k * step[0];
@@ -309,7 +310,18 @@ fn fit_step(
             break;
         }
     }
-    (s.c0.abs() <= half && s.c1.abs() <= half).then_some((s, cov))
+    (s.c0.abs() <= half && s.c1.abs() <= half).then_some((s, StepCovariance(last)))
+}
+
+/// The parameter covariance of a [`fit_step`], made only when asked for:
+/// residual variance · (JᵀJ)⁻¹ of its last iteration (zero without one).
+struct StepCovariance(Option<(nalgebra::Cholesky<f64, nalgebra::Const<NP>>, f64)>);
+
+impl StepCovariance {
+    fn matrix(self) -> MatP {
+        self.0
+            .map_or_else(MatP::zeros, |(chol, var)| chol.inverse() * var)
+    }
 }
 
 /// One side's fitted edge in its own frame (`mid`, along `d`, outward `n`).
@@ -433,6 +445,7 @@ fn fit_side_model(
         return None;
     }
     let (step, cov) = fit_step(buf, step, half2, box_w, 3, cut, profile)?;
+    let cov = cov.matrix();
     if sign * (step.b - step.a) < MIN_STEP {
         return None;
     }
