@@ -20,6 +20,7 @@
 
 use super::contours::Contours;
 use super::geom::{mean_side, min_side, signed_area2, Px};
+use super::polygon::approx_closed;
 use super::{DetectError, DetectParams};
 use crate::mat::GrayView;
 use opencv::core::{Mat, Point, Rect, Size, ToInputArray, Vector};
@@ -257,7 +258,7 @@ fn quads_of_level(
     found: &mut Found,
 ) -> Result<(), DetectError> {
     let mut bin = Mat::default();
-    let mut approx: Vector<Point> = Vector::new();
+    let mut approx: Vec<Point> = Vec::new();
     let mut traced = Contours::new();
     let view = GrayView::new(level)?;
     // The noise only matters to the flat test of the relative offset.
@@ -692,7 +693,7 @@ const FLAT_EXTRA_TILES: usize = 2;
 /// computes it for integer points (each step's length in `f32`, summed in
 /// `f64`), so to the bit: without a call into OpenCV per contour, most of
 /// which (noise's speckle) this length alone rejects.
-fn closed_length(pts: &[Point]) -> f64 {
+pub(crate) fn closed_length(pts: &[Point]) -> f64 {
     let [.., last] = pts else {
         return 0.0;
     };
@@ -798,7 +799,7 @@ fn contour_quad(
     (level, table): (&impl MatTraitConst, &mut SumTable<'_>),
     at: &Place,
     c: &[Point],
-    approx: &mut Vector<Point>,
+    approx: &mut Vec<Point>,
     window: Option<Rect>,
 ) -> Result<Shape, DetectError> {
     let (w, h) = (f64::from(level.cols()), f64::from(level.rows()));
@@ -853,10 +854,9 @@ fn contour_quad(
     if cut || background {
         return Ok(joined());
     }
-    // OpenCV's own copy of the outline, for its polygon functions.
-    let c = Vector::<Point>::from_slice(c);
-    imgproc::approx_poly_dp(&c, approx, params.approx_epsilon * perim, true)?;
-    let blob = approx.len() != 4 || !imgproc::is_contour_convex(&*approx)?;
+    approx_closed(c, params.approx_epsilon * perim, approx);
+    let blob =
+        approx.len() != 4 || !imgproc::is_contour_convex(&Vector::<Point>::from_slice(approx))?;
     if blob && (scale <= 1.0 || perim > 4.0 * params.full_res_region_max_side_px / scale) {
         return Ok(joined());
     }
@@ -868,6 +868,8 @@ fn contour_quad(
         }
         // Darker than what surrounds it, as a marker with its quiet zone
         // is and sensor noise's speckle is not.
+        // OpenCV's own copy of the outline, for its hull.
+        let c = Vector::<Point>::from_slice(c);
         let r = imgproc::bounding_rect(&c)?;
         if table.contrast([r.x, r.y, r.width, r.height]) < BLOB_CONTRAST * params.min_contrast {
             return Ok(Shape::Neither);
@@ -875,7 +877,7 @@ fn contour_quad(
         let mut hull: Vector<Point> = Vector::new();
         imgproc::convex_hull(&c, &mut hull, true, true)?;
         let hull_perim = closed_length(hull.as_slice());
-        imgproc::approx_poly_dp(&hull, approx, params.approx_epsilon * hull_perim, true)?;
+        approx_closed(hull.as_slice(), params.approx_epsilon * hull_perim, approx);
         if approx.len() != 4 {
             return Ok(Shape::Neither);
         }
