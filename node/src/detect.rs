@@ -39,6 +39,7 @@ pub mod geom;
 pub mod params;
 pub mod paths;
 pub mod pattern;
+pub mod polygon;
 pub mod quads;
 pub mod refine;
 

@@ -1068,6 +1068,10 @@ fn follows(runs: &[Run], i: usize, j: usize) -> bool {
     (1.0 - slack..=reach + slack).contains(&t) && (-reach - slack..=slack).contains(&s)
 }
 
+/// Up to this many runs [`linked_runs`] asks every pair within reach of each
+/// other directly; beyond, it looks them up in a grid of the starts.
+const FEW_RUNS: usize = 16;
+
 /// For each of `runs`, the runs that may follow it
 /// (`links(i, j)`), ascending. `links` is asked only of pairs whose starts
 /// lie within `reach·(l_i + l_j)` of each other, which every linked pair
@@ -1091,6 +1095,30 @@ fn linked_runs(runs: &[Run], reach: f64, links: impl Fn(usize, usize) -> bool) -
     {
         return next;
     }
+    // A little over the bound, so that rounding never drops a pair.
+    let within = |d2: f64, r: f64| d2 <= (r * (1.0 + 1e-9) + 1e-6).powi(2);
+    // Few runs (most outlines): every pair, without building the grid.
+    if m <= FEW_RUNS {
+        for i in 0..m {
+            for j in i + 1..m {
+                let (a, c) = (runs[i].a, runs[j].a);
+                let d2 = (c[0] - a[0]).powi(2) + (c[1] - a[1]).powi(2);
+                if !within(d2, reach * (runs[i].len + runs[j].len)) {
+                    continue;
+                }
+                if links(i, j) {
+                    next[i].push(j);
+                }
+                if links(j, i) {
+                    next[j].push(i);
+                }
+            }
+        }
+        for n in &mut next {
+            n.sort_unstable();
+        }
+        return next;
+    }
     let cells = |k: usize| ((hi[k] - lo[k]) / CELL_PX) as usize + 1;
     let (nx, ny) = (cells(0), cells(1));
     let cell_of = |p: Px| {
@@ -1109,8 +1137,6 @@ fn linked_runs(runs: &[Run], reach: f64, links: impl Fn(usize, usize) -> bool) -
     for (r, &k) in by_length.iter().enumerate() {
         rank[k] = r;
     }
-    // A little over the bound, so that rounding never drops a pair.
-    let within = |d2: f64, r: f64| d2 <= (r * (1.0 + 1e-9) + 1e-6).powi(2);
     for (i, &Run { a, len: li, .. }) in runs.iter().enumerate() {
         let r = 2.0 * reach * li;
         let (cx0, cy0) = cell_of([a[0] - r, a[1] - r]);
@@ -2070,8 +2096,13 @@ mod tests {
         // every pair.
         let mut rng = shoal_proto::splitmix::SplitMix64::new(17);
         let mut linked_pairs = 0;
-        for trial in 0..40 {
-            let m = 20 + trial * 10;
+        for trial in 0..48 {
+            // Few runs (asked pair by pair) and many (through the grid).
+            let m = if trial < 8 {
+                4 + 2 * trial
+            } else {
+                20 + (trial - 8) * 10
+            };
             let spread = if trial % 2 == 0 { 60.0 } else { 600.0 };
             let runs: Vec<Run> = (0..m)
                 .map(|k| {
