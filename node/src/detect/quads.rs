@@ -197,8 +197,10 @@ fn without_edge_artefacts(gray: &impl MatTraitConst) -> Result<Option<Mat>, Dete
     if !bad.contains(&true) {
         return Ok(None);
     }
+    // A clone is continuous: rows of `w` bytes, one after the other.
     let mut c = gray.try_clone()?;
-    let (w, h) = (c.cols(), c.rows());
+    let (w, h) = (c.cols() as usize, c.rows() as usize);
+    let d = c.data_bytes_mut()?;
     for (k, (rows, edge, n1)) in [
         (true, 0, 1),
         (true, h - 1, h - 2),
@@ -211,15 +213,12 @@ fn without_edge_artefacts(gray: &impl MatTraitConst) -> Result<Option<Mat>, Dete
         if !bad[k] {
             continue;
         }
-        let n = if rows { w } else { h };
-        for i in 0..n {
-            let (from, to) = if rows {
-                ((i, n1), (i, edge))
-            } else {
-                ((n1, i), (edge, i))
-            };
-            let v = *c.at_2d::<u8>(from.1, from.0)?;
-            *c.at_2d_mut::<u8>(to.1, to.0)? = v;
+        if rows {
+            d.copy_within(n1 * w..(n1 + 1) * w, edge * w);
+        } else {
+            for row in d.chunks_exact_mut(w) {
+                row[edge] = row[n1];
+            }
         }
     }
     Ok(Some(c))
@@ -625,9 +624,24 @@ fn tile_offsets(
             }
         }
         let k0 = ty * tw;
-        for (tx, (cl, ch)) in col_lo.chunks(t).zip(col_hi.chunks(t)).enumerate() {
-            lo[k0 + tx] = cl.iter().copied().min().unwrap_or(u8::MAX);
-            hi[k0 + tx] = ch.iter().copied().max().unwrap_or(0);
+        // Whole tiles (a fixed-size fold the compiler unrolls), the last,
+        // narrower one apart.
+        let whole = w / t;
+        for (tx, (cl, ch)) in col_lo
+            .chunks_exact(RANGE_TILE_PX)
+            .zip(col_hi.chunks_exact(RANGE_TILE_PX))
+            .enumerate()
+        {
+            let (cl, ch): (&[u8; RANGE_TILE_PX], &[u8; RANGE_TILE_PX]) = (
+                cl.try_into().expect("a whole tile"),
+                ch.try_into().expect("a whole tile"),
+            );
+            lo[k0 + tx] = cl.iter().fold(u8::MAX, |a, &b| a.min(b));
+            hi[k0 + tx] = ch.iter().fold(0, |a, &b| a.max(b));
+        }
+        if whole < tw {
+            lo[k0 + whole] = col_lo[whole * t..].iter().copied().min().unwrap_or(u8::MAX);
+            hi[k0 + whole] = col_hi[whole * t..].iter().copied().max().unwrap_or(0);
         }
     }
     // Tiles within `r` of a tile, separably: rows, then columns. Whether
@@ -1967,6 +1981,72 @@ mod tests {
         }
         assert_eq!(edge_line_artefacts(&img).unwrap(), [false; 4]);
         assert!(without_edge_artefacts(&img).unwrap().is_none());
+    }
+
+    /// Each artefact line is replaced by its neighbour, rows before columns
+    /// (a corner pixel takes the value its row's replacement left), and
+    /// nothing else changes; a view into a larger image is read as itself.
+    #[test]
+    fn artefact_lines_are_replaced_by_their_neighbours() {
+        use opencv::core::{Rect, Scalar, CV_8UC1};
+        let (w, h) = (37, 23);
+        let mut img = Mat::new_rows_cols_with_default(h, w, CV_8UC1, Scalar::all(0.0)).unwrap();
+        for y in 0..h {
+            for x in 0..w {
+                *img.at_2d_mut::<u8>(y, x).unwrap() = (100 + (x * 5 + y * 3) % 11) as u8;
+            }
+        }
+        // Lines far from the image beside them: all four edges.
+        for x in 0..w {
+            *img.at_2d_mut::<u8>(0, x).unwrap() = 250;
+            *img.at_2d_mut::<u8>(h - 1, x).unwrap() = 5;
+        }
+        for y in 0..h {
+            *img.at_2d_mut::<u8>(y, 0).unwrap() = 240;
+            *img.at_2d_mut::<u8>(y, w - 1).unwrap() = 2;
+        }
+        assert_eq!(edge_line_artefacts(&img).unwrap(), [true; 4]);
+        // The reference: pixel by pixel, in the order top, bottom, left, right.
+        let mut want = img.try_clone().unwrap();
+        for x in 0..w {
+            *want.at_2d_mut::<u8>(0, x).unwrap() = *want.at_2d::<u8>(1, x).unwrap();
+        }
+        for x in 0..w {
+            *want.at_2d_mut::<u8>(h - 1, x).unwrap() = *want.at_2d::<u8>(h - 2, x).unwrap();
+        }
+        for y in 0..h {
+            *want.at_2d_mut::<u8>(y, 0).unwrap() = *want.at_2d::<u8>(y, 1).unwrap();
+        }
+        for y in 0..h {
+            *want.at_2d_mut::<u8>(y, w - 1).unwrap() = *want.at_2d::<u8>(y, w - 2).unwrap();
+        }
+        // Through a view (not continuous), as a cropped frame would come.
+        let mut host =
+            Mat::new_rows_cols_with_default(h + 2, w + 9, CV_8UC1, Scalar::all(7.0)).unwrap();
+        img.copy_to(&mut Mat::roi_mut(&mut host, Rect::new(4, 1, w, h)).unwrap())
+            .unwrap();
+        let view = Mat::roi(&host, Rect::new(4, 1, w, h)).unwrap();
+        let same = |got: Mat| {
+            for y in 0..h {
+                for x in 0..w {
+                    let (g, e) = (
+                        got.at_2d::<u8>(y, x).unwrap(),
+                        want.at_2d::<u8>(y, x).unwrap(),
+                    );
+                    assert_eq!(g, e, "({x}, {y})");
+                }
+            }
+        };
+        same(
+            without_edge_artefacts(&img)
+                .unwrap()
+                .expect("four artefact lines"),
+        );
+        same(
+            without_edge_artefacts(&view)
+                .unwrap()
+                .expect("four artefact lines"),
+        );
     }
 
     #[test]
