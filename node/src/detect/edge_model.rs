@@ -221,6 +221,26 @@ fn collect_band(
     }
 }
 
+/// One pixel's terms added to the normal equations (`h`: their upper
+/// triangle, row by row, of all [`NP`] parameters; `g`: Jᵀr), for the
+/// first `N` parameters only: the rest keep their zeros.
+#[inline(always)]
+fn accumulate<const N: usize>(
+    h: &mut [f64; NP * (NP + 1) / 2],
+    g: &mut [f64; NP],
+    j: &[f64; NP],
+    r: f64,
+) {
+    let mut k = 0;
+    for a in 0..N {
+        g[a] += j[a] * r;
+        for b in a..N {
+            h[k + b - a] += j[a] * j[b];
+        }
+        k += NP - a;
+    }
+}
+
 /// Gauss–Newton on the band (a few iterations, damped); `None` when it diverges.
 /// Plateau pixels whose residual exceeds `cut` are left out (glare,
 /// occluders, a neighbouring edge).
@@ -243,10 +263,7 @@ fn fit_step(
         let mut g = [0.0f64; NP];
         let (mut ssr, mut used) = (0.0, 0usize);
         for p in px {
-            let (m, mut j) = s.eval(p, box_w);
-            if profile == Profile::Blurred {
-                j[6] = 0.0;
-            }
+            let (m, j) = s.eval(p, box_w);
             let r = p.g - m;
             // Outliers only on the plateaus: near the edge a residual as
             // large as the contrast just means the line is not there yet.
@@ -255,13 +272,12 @@ fn fit_step(
             }
             ssr += r * r;
             used += 1;
-            let mut k = 0;
-            for a in 0..NP {
-                g[a] += j[a] * r;
-                for b in a..NP {
-                    h[k] += j[a] * j[b];
-                    k += 1;
-                }
+            // The blurred step has no slope across the edge: its row and
+            // column of the normal equations stay zero (as the products
+            // with a zero derivative left them).
+            match profile {
+                Profile::Blurred => accumulate::<{ NP - 1 }>(&mut h, &mut g, &j, r),
+                Profile::Halo => accumulate::<NP>(&mut h, &mut g, &j, r),
             }
         }
         let mut jtj = MatP::zeros();
