@@ -252,6 +252,23 @@ impl Border<'_> {
     }
 }
 
+/// `m` smoothed by a Gaussian of `sigma` px: thresholded, noise smoothed so
+/// gives regions with holes within holes (the tests' outlines).
+#[cfg(test)]
+pub(crate) fn blurred(m: &opencv::core::Mat, sigma: f64) -> opencv::core::Mat {
+    let mut out = opencv::core::Mat::default();
+    opencv::imgproc::gaussian_blur(
+        m,
+        &mut out,
+        opencv::core::Size::new(0, 0),
+        sigma,
+        sigma,
+        opencv::core::BORDER_REFLECT,
+    )
+    .expect("a Gaussian blur of a grey image");
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -348,17 +365,7 @@ mod tests {
         // Blobs with holes within holes: smoothed noise, thresholded.
         for case in 0..12 {
             let noise = random_image(&mut rng, 240, 180, 0.5);
-            let mut smooth = Mat::default();
-            let sigma = [1.0, 2.0, 4.0][case % 3];
-            imgproc::gaussian_blur(
-                &noise,
-                &mut smooth,
-                opencv::core::Size::new(0, 0),
-                sigma,
-                sigma,
-                opencv::core::BORDER_REFLECT,
-            )
-            .unwrap();
+            let smooth = blurred(&noise, [1.0, 2.0, 4.0][case % 3]);
             let mut bin = Mat::default();
             let level = rng.gen_range(100.0..160.0);
             imgproc::threshold(&smooth, &mut bin, level, 255.0, imgproc::THRESH_BINARY).unwrap();

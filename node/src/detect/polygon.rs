@@ -166,17 +166,7 @@ mod tests {
                         rng.gen_range(0..=255);
                 }
             }
-            let sigma = [1.0, 2.5, 4.0][case % 3];
-            let mut smooth = opencv::core::Mat::default();
-            imgproc::gaussian_blur(
-                &m,
-                &mut smooth,
-                opencv::core::Size::new(0, 0),
-                sigma,
-                sigma,
-                opencv::core::BORDER_REFLECT,
-            )
-            .unwrap();
+            let mut smooth = super::super::contours::blurred(&m, [1.0, 2.5, 4.0][case % 3]);
             let centre = opencv::core::Point2f::new(w as f32 / 2.0, h as f32 / 2.0);
             let size = opencv::core::Size2f::new(w as f32 * 0.4, h as f32 * 0.3);
             let angle = rng.gen_range(0.0..90.0);

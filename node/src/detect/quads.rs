@@ -1095,7 +1095,6 @@ const FEW_RUNS: usize = 16;
 /// thousands of short runs, and asking every pair cost up to ~0.3 s on one
 /// outline (a frame through the realistic camera after HOIRM).
 fn linked_runs(runs: &[Run], reach: f64, links: impl Fn(usize, usize) -> bool) -> Vec<Vec<usize>> {
-    const CELL_PX: f64 = 16.0;
     let m = runs.len();
     let mut next = vec![Vec::new(); m];
     let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
@@ -1111,28 +1110,47 @@ fn linked_runs(runs: &[Run], reach: f64, links: impl Fn(usize, usize) -> bool) -
     }
     // A little over the bound, so that rounding never drops a pair.
     let within = |d2: f64, r: f64| d2 <= (r * (1.0 + 1e-9) + 1e-6).powi(2);
-    // Few runs (most outlines): every pair, without building the grid.
+    // The pair (i, j), each way, when their starts are within reach.
+    let mut ask = |i: usize, j: usize| {
+        let (ri, rj) = (&runs[i], &runs[j]);
+        let d2 = (rj.a[0] - ri.a[0]).powi(2) + (rj.a[1] - ri.a[1]).powi(2);
+        if !within(d2, reach * (ri.len + rj.len)) {
+            return;
+        }
+        if links(i, j) {
+            next[i].push(j);
+        }
+        if links(j, i) {
+            next[j].push(i);
+        }
+    };
     if m <= FEW_RUNS {
+        // Few runs (most outlines): every pair, without building the grid.
         for i in 0..m {
             for j in i + 1..m {
-                let (a, c) = (runs[i].a, runs[j].a);
-                let d2 = (c[0] - a[0]).powi(2) + (c[1] - a[1]).powi(2);
-                if !within(d2, reach * (runs[i].len + runs[j].len)) {
-                    continue;
-                }
-                if links(i, j) {
-                    next[i].push(j);
-                }
-                if links(j, i) {
-                    next[j].push(i);
-                }
+                ask(i, j);
             }
         }
-        for n in &mut next {
-            n.sort_unstable();
-        }
-        return next;
+    } else {
+        linked_by_grid(runs, reach, (lo, hi), &mut ask);
     }
+    for n in &mut next {
+        n.sort_unstable();
+    }
+    next
+}
+
+/// [`linked_runs`]' pairs looked up in a grid of the runs' starts (within
+/// `lo..hi`): each pair near enough to link given to `ask` once, from its
+/// longer run (ties by index).
+fn linked_by_grid(
+    runs: &[Run],
+    reach: f64,
+    (lo, hi): (Px, Px),
+    ask: &mut impl FnMut(usize, usize),
+) {
+    const CELL_PX: f64 = 16.0;
+    let m = runs.len();
     let cells = |k: usize| ((hi[k] - lo[k]) / CELL_PX) as usize + 1;
     let (nx, ny) = (cells(0), cells(1));
     let cell_of = |p: Px| {
@@ -1158,27 +1176,12 @@ fn linked_runs(runs: &[Run], reach: f64, links: impl Fn(usize, usize) -> bool) -
         for cy in cy0..=cy1 {
             for &j in grid[cy * nx + cx0..=cy * nx + cx1].iter().flatten() {
                 // Each pair once, from its longer run (ties by index).
-                if rank[j] >= rank[i] {
-                    continue;
-                }
-                let Run { a: c, len: lj, .. } = runs[j];
-                let d2 = (c[0] - a[0]).powi(2) + (c[1] - a[1]).powi(2);
-                if !within(d2, reach * (li + lj)) {
-                    continue;
-                }
-                if links(i, j) {
-                    next[i].push(j);
-                }
-                if links(j, i) {
-                    next[j].push(i);
+                if rank[j] < rank[i] {
+                    ask(i, j);
                 }
             }
         }
     }
-    for n in &mut next {
-        n.sort_unstable();
-    }
-    next
 }
 
 /// The straight runs of the closed outline `pts` at least `min_len` long,
