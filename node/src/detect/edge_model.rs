@@ -255,8 +255,8 @@ fn fit_step(
 ) -> Option<(Step, StepCovariance)> {
     let mut s = init;
     // The last iteration's factor and residual variance: the covariance
-    // is made from them once, after the loop.
-    let mut last: Option<(nalgebra::Cholesky<f64, nalgebra::Const<NP>>, f64)> = None;
+    // is made from them once, when asked for.
+    let mut last = StepCovariance(None);
     for _ in 0..iters {
         // Normal equations, upper triangle accumulated by hand (the hot loop).
         let mut h = [0.0f64; NP * (NP + 1) / 2];
@@ -311,7 +311,7 @@ fn fit_step(
         if !step.iter().all(|v| v.is_finite()) {
             return None;
         }
-        last = Some((chol, ssr / used.saturating_sub(NP).max(1) as f64));
+        last = StepCovariance(Some((chol, ssr / used.saturating_sub(NP).max(1) as f64)));
         // Trust region: the line moves at most 1 px (offset) per iteration.
         let k = (1.0 / step[0].abs().max(step[1].abs()).max(1e-12)).min(1.0);
         s.c0 += k * step[0];
@@ -326,7 +326,7 @@ fn fit_step(
             break;
         }
     }
-    (s.c0.abs() <= half && s.c1.abs() <= half).then_some((s, StepCovariance(last)))
+    (s.c0.abs() <= half && s.c1.abs() <= half).then_some((s, last))
 }
 
 /// The parameter covariance of a [`fit_step`], made only when asked for:
@@ -461,10 +461,10 @@ fn fit_side_model(
         return None;
     }
     let (step, cov) = fit_step(buf, step, half2, box_w, 3, cut, profile)?;
-    let cov = cov.matrix();
     if sign * (step.b - step.a) < MIN_STEP {
         return None;
     }
+    let cov = cov.matrix();
     let var_sigma = cov[(4, 4)];
     let dc_dsigma = if var_sigma > 0.0 && var_sigma.is_finite() {
         [cov[(0, 4)] / var_sigma, cov[(1, 4)] / var_sigma]
