@@ -19,6 +19,7 @@
 
 pub mod ambient;
 pub mod baselines;
+pub(crate) mod dft2;
 pub mod hoirm;
 pub mod psf;
 pub mod roi;
@@ -475,6 +476,12 @@ pub enum RestoreError {
     FrameMismatch {
         restored: (i32, i32),
         given: (i32, i32),
+    },
+    #[error("DFT of a {rows}x{cols} grid: {reason}")]
+    Dft {
+        rows: usize,
+        cols: usize,
+        reason: String,
     },
     #[error("OpenCV")]
     OpenCv(#[from] opencv::Error),

@@ -41,15 +41,15 @@
 //! up to multiples of 32 and the PSF's spectrum is cached per (DFT size, p,
 //! σ, direct share) (`Transfer`), so consecutive frames reuse it; `K`
 //! (quantized to steps of 25 %) is measured per region, so the filter is
-//! made from that spectrum on each call, written straight into the packed
-//! layout (`wiener_spectrum`).
+//! made from that spectrum on each call, in the pass that applies it to the
+//! region's half spectrum (`apply_wiener`). The DFTs are realfft's and
+//! rustfft's ([`super::dft2`]), a third of OpenCV's time on these sizes.
 
+use super::dft2::{Dft2, Dft2Planner, Dft2Work};
 use super::RestoreError;
-use opencv::core::{
-    self, Mat, Rect, Scalar, BORDER_REFLECT_101, CV_32F, CV_32FC1, CV_8U, DFT_REAL_OUTPUT,
-    DFT_SCALE,
-};
+use opencv::core::{self, Mat, Scalar, BORDER_REFLECT_101, CV_32F, CV_32FC1, CV_8U};
 use opencv::prelude::*;
+use realfft::num_complex::Complex32;
 use std::collections::HashMap;
 
 /// Γ(x) for x > 0 (Lanczos approximation, g = 7, relative error < 1e-13).
@@ -158,20 +158,24 @@ impl GgPsf {
 }
 
 /// Wiener deconvolution with a cache of the PSF spectra its filters are
-/// made from.
+/// made from, and the DFT plans and buffers it runs in ([`dft2`]).
 #[derive(Debug, Default)]
 pub struct Wiener {
     /// Per (DFT size, PSF). The filter itself also depends on the
-    /// noise-to-signal ratio, measured per region, and is made from the
-    /// spectrum on each call (one pass over it, against the two DFTs of
-    /// the deconvolution).
+    /// noise-to-signal ratio, measured per region, and is applied from
+    /// the spectrum in the same pass that multiplies the image's spectrum
+    /// ([`apply_wiener`]).
     transfers: HashMap<TransferKey, Transfer>,
+    planner: Dft2Planner,
+    work: Dft2Work,
+    image: Vec<f32>,
+    spectrum: Vec<Complex32>,
 }
 
 /// PSF spectra kept before the cache is cleared.
 const TRANSFER_LIMIT: usize = 12;
 
-type TransferKey = (i32, i32, (u32, u32, u32));
+type TransferKey = (usize, usize, (u32, u32, u32));
 
 /// `K` is quantized to `1.25^k`.
 fn quantize_nsr(nsr: f64) -> f64 {
@@ -189,16 +193,17 @@ impl Wiener {
         self.transfers.len()
     }
 
-    /// The packed (CCS) spectrum of the Wiener filter for a `rows`x`cols` DFT.
-    fn filter(&mut self, rows: i32, cols: i32, psf: &GgPsf, nsr: f64) -> Result<Mat, RestoreError> {
-        let key = (rows, cols, psf.key());
+    /// The PSF spectrum of a `rows`x`cols` DFT, made when not cached.
+    fn transfer(&mut self, dft: &Dft2, psf: &GgPsf) -> Result<&Transfer, RestoreError> {
+        let key = (dft.rows(), dft.cols(), psf.key());
         if !self.transfers.contains_key(&key) {
             if self.transfers.len() >= TRANSFER_LIMIT {
                 self.transfers.clear();
             }
-            self.transfers.insert(key, Transfer::new(rows, cols, psf)?);
+            let t = Transfer::new(dft, psf, &mut self.work)?;
+            self.transfers.insert(key, t);
         }
-        wiener_spectrum(&self.transfers[&key], quantize_nsr(nsr))
+        Ok(&self.transfers[&key])
     }
 
     /// Deconvolve an 8-bit image (any size ≥ 1x1) with `psf` and noise-to-signal ratio `nsr`.
@@ -232,24 +237,39 @@ impl Wiener {
             Scalar::all(0.0),
         )?;
         let mean = core::mean(&padded, &core::no_array())?[0];
-        let mut f = Mat::default();
-        padded.convert_to(&mut f, CV_32F, 1.0, -mean)?;
-        let mut spec = Mat::default();
-        core::dft(&f, &mut spec, 0, 0)?;
-        let filt = self.filter(rows, cols, psf, nsr)?;
-        let mut prod = Mat::default();
-        core::mul_spectrums(&spec, &filt, &mut prod, 0, false)?;
-        let mut g = Mat::default();
-        core::dft(
-            &prod,
-            &mut g,
-            core::DFT_INVERSE | DFT_REAL_OUTPUT | DFT_SCALE,
-            0,
-        )?;
-        let inner = Mat::roi(&g, Rect::new(r, r, w, h))?;
-        let mut out = Mat::default();
-        inner.convert_to(&mut out, CV_8U, 1.0, mean)?;
-        Ok(out)
+        let dft = self.planner.plan(rows as usize, cols as usize);
+        let mut image = std::mem::take(&mut self.image);
+        let mut spectrum = std::mem::take(&mut self.spectrum);
+        image.clear();
+        let shift = mean as f32;
+        for y in 0..rows {
+            image.extend(
+                padded
+                    .at_row::<u8>(y)?
+                    .iter()
+                    .map(|&v| f32::from(v) - shift),
+            );
+        }
+        spectrum.resize(dft.spectrum_len(), Complex32::default());
+        let done = (|| {
+            dft.forward(&mut image, &mut spectrum, &mut self.work)?;
+            apply_wiener(self.transfer(&dft, psf)?, quantize_nsr(nsr), &mut spectrum);
+            dft.inverse(&mut spectrum, &mut image, &mut self.work)?;
+            // The inverse is unscaled; the mean goes back, rounded as OpenCV's
+            // `convertTo` rounds (half to even) and saturated.
+            let scale = 1.0 / (rows as f32 * cols as f32);
+            let mut out = Mat::new_rows_cols_with_default(h, w, CV_8U, Scalar::all(0.0))?;
+            let (r, w, cols) = (r as usize, w as usize, cols as usize);
+            for y in 0..h as usize {
+                let from = &image[(y + r) * cols + r..][..w];
+                for (o, &v) in out.at_row_mut::<u8>(y as i32)?.iter_mut().zip(from) {
+                    *o = (v * scale + shift).round_ties_even().clamp(0.0, 255.0) as u8;
+                }
+            }
+            Ok(out)
+        })();
+        (self.image, self.spectrum) = (image, spectrum);
+        done
     }
 }
 
@@ -261,71 +281,76 @@ fn round_dft(n: i32) -> Result<i32, RestoreError> {
 }
 
 /// The PSF (its halo `1 − direct` of the mass, the unscattered `direct`
-/// at the origin) wrapped around the origin of a `rows`x`cols` grid, f32.
-fn wrapped_psf(rows: i32, cols: i32, psf: &GgPsf) -> Result<Mat, RestoreError> {
-    let r = psf.radius_px();
-    let mut grid = Mat::new_rows_cols_with_default(rows, cols, CV_32FC1, Scalar::all(0.0))?;
+/// at the origin) wrapped around the origin of a `rows`x`cols` grid,
+/// row-major f32.
+fn wrapped_psf(rows: usize, cols: usize, psf: &GgPsf) -> Vec<f32> {
+    let r = psf.radius_px().max(0) as usize;
+    let mut grid = vec![0f32; rows * cols];
     let mut sum = 0.0;
-    for y in 0..rows {
+    for (y, row) in grid.chunks_exact_mut(cols).enumerate() {
         let dy = y.min(rows - y);
         if dy > r {
             continue;
         }
-        let row = grid.at_row_mut::<f32>(y)?;
-        for x in 0..cols {
+        for (x, cell) in row.iter_mut().enumerate() {
             let dx = x.min(cols - x);
             if dx > r {
                 continue;
             }
             let v = psf.profile((dx as f64).hypot(dy as f64));
-            row[x as usize] = v as f32;
+            *cell = v as f32;
             sum += v;
         }
     }
-    let mut h = Mat::default();
     let direct = psf.direct_share();
-    grid.convert_to(&mut h, CV_32F, (1.0 - direct) / sum, 0.0)?;
-    *h.at_2d_mut::<f32>(0, 0)? += direct as f32;
-    Ok(h)
+    let scale = ((1.0 - direct) / sum) as f32;
+    for v in &mut grid {
+        *v *= scale;
+    }
+    grid[0] += direct as f32;
+    grid
 }
 
 /// What every Wiener filter of one DFT size and PSF shares
-/// ([`wiener_spectrum`]): the PSF's spectrum and the signal model's shape.
+/// ([`apply_wiener`]): the PSF's spectrum and the signal model's shape.
 #[derive(Debug)]
 struct Transfer {
-    /// The DFT of the PSF wrapped around the origin of the grid, packed (CCS).
-    h: Mat,
-    /// `(f/ρ0)²` of each row's and each column's frequency (`f` folded to
-    /// the nearer of ±f, cycles per pixel).
+    /// The half spectrum of the PSF wrapped around the origin of the grid
+    /// (column by column, as [`Dft2::forward`] gives it).
+    h: Vec<Complex32>,
+    /// `(f/ρ0)²` of each row's and each half-spectrum column's frequency
+    /// (`f` folded to the nearer of ±f, cycles per pixel).
     row_term: Vec<f64>,
     col_term: Vec<f64>,
-    /// Mean over the grid of the signal spectrum's shape
+    /// Mean over the whole grid of the signal spectrum's shape
     /// `g(ρ) = 1/(1 + (ρ/ρ0)²)`.
     mean_g: f64,
 }
 
 impl Transfer {
-    fn new(rows: i32, cols: i32, psf: &GgPsf) -> Result<Transfer, RestoreError> {
-        let mut packed = Mat::default();
-        core::dft(&wrapped_psf(rows, cols, psf)?, &mut packed, 0, 0)?;
-        let term = |n: i32| -> Vec<f64> {
+    fn new(dft: &Dft2, psf: &GgPsf, work: &mut Dft2Work) -> Result<Transfer, RestoreError> {
+        let (rows, cols) = (dft.rows(), dft.cols());
+        let mut h = vec![Complex32::default(); dft.spectrum_len()];
+        dft.forward(&mut wrapped_psf(rows, cols, psf), &mut h, work)?;
+        let term = |n: usize| -> Vec<f64> {
             (0..n)
                 .map(|u| {
-                    let f = f64::from(u.min(n - u)) / f64::from(n) / SIGNAL_CORNER_CYCLES_PER_PX;
+                    let f = u.min(n - u) as f64 / n as f64 / SIGNAL_CORNER_CYCLES_PER_PX;
                     f * f
                 })
                 .collect()
         };
-        let (row_term, col_term) = (term(rows), term(cols));
+        let (row_term, all_cols) = (term(rows), term(cols));
         let mut mean_g = 0.0;
         for a in &row_term {
-            for b in &col_term {
+            for b in &all_cols {
                 mean_g += 1.0 / (1.0 + a + b);
             }
         }
-        mean_g /= f64::from(rows) * f64::from(cols);
+        mean_g /= rows as f64 * cols as f64;
+        let col_term = all_cols[..dft.half()].to_vec();
         Ok(Transfer {
-            h: packed,
+            h,
             row_term,
             col_term,
             mean_g,
@@ -333,50 +358,24 @@ impl Transfer {
     }
 }
 
-/// `W = H*/(|H|² + K(ρ))` for the PSF of `t`, in OpenCV's packed (CCS)
-/// layout so `mulSpectrums` can apply it to the packed spectrum of a real
-/// image. The signal spectrum's shape `g` is scaled so its mean is the
-/// measured signal variance: `K(ρ) = K·mean(g)/g(ρ)`. `W` is computed where
-/// the packed layout stores each frequency: its inner columns hold
-/// `(Re, Im)` of the row's frequencies `1..⌈cols/2⌉`, its first column (and
-/// its last, for an even width: the column's Nyquist frequency) the
-/// spectrum of one column, packed along the rows the same way, with the
-/// row frequencies 0 (and `rows/2`, for an even height) real.
-fn wiener_spectrum(t: &Transfer, k: f64) -> Result<Mat, RestoreError> {
-    let (rows, cols) = (t.h.rows(), t.h.cols());
+/// `spectrum` (a half spectrum of the size of `t`, column by column) times
+/// `W = H*/(|H|² + K(ρ))` for the PSF of `t`, the filter made in the same
+/// pass. The signal spectrum's shape `g` is scaled so its mean is the
+/// measured signal variance: `K(ρ) = K·mean(g)/g(ρ)`.
+fn apply_wiener(t: &Transfer, k: f64, spectrum: &mut [Complex32]) {
     let km = k * t.mean_g;
-    let gain = |(re, im): (f32, f32), u: usize, v: usize| -> (f32, f32) {
-        let (re, im) = (f64::from(re), f64::from(im));
-        let d = re * re + im * im + km * (1.0 + t.row_term[u] + t.col_term[v]);
-        ((re / d) as f32, (-im / d) as f32)
-    };
-    let mut w = Mat::new_rows_cols_with_default(rows, cols, CV_32FC1, Scalar::all(0.0))?;
-    let inner = ((cols - 1) / 2) as usize;
-    for u in 0..rows {
-        let hr = t.h.at_row::<f32>(u)?;
-        let wr = w.at_row_mut::<f32>(u)?;
-        for v in 1..=inner {
-            (wr[2 * v - 1], wr[2 * v]) = gain((hr[2 * v - 1], hr[2 * v]), u as usize, v);
+    let rows = t.row_term.len();
+    for ((column, h), ct) in spectrum
+        .chunks_exact_mut(rows)
+        .zip(t.h.chunks_exact(rows))
+        .zip(&t.col_term)
+    {
+        for ((s, h), rt) in column.iter_mut().zip(h).zip(&t.row_term) {
+            let (re, im) = (f64::from(h.re), f64::from(h.im));
+            let d = re * re + im * im + km * (1.0 + rt + ct);
+            *s *= Complex32::new((re / d) as f32, (-im / d) as f32);
         }
     }
-    let mut packed_columns = vec![(0, 0usize)];
-    if cols % 2 == 0 && cols > 1 {
-        packed_columns.push((cols - 1, (cols / 2) as usize));
-    }
-    for (col, v) in packed_columns {
-        let at = |y: i32| -> Result<f32, RestoreError> { Ok(*t.h.at_2d::<f32>(y, col)?) };
-        *w.at_2d_mut::<f32>(0, col)? = gain((at(0)?, 0.0), 0, v).0;
-        for u in 1..=((rows - 1) / 2) {
-            let (re, im) = gain((at(2 * u - 1)?, at(2 * u)?), u as usize, v);
-            *w.at_2d_mut::<f32>(2 * u - 1, col)? = re;
-            *w.at_2d_mut::<f32>(2 * u, col)? = im;
-        }
-        if rows % 2 == 0 && rows > 1 {
-            *w.at_2d_mut::<f32>(rows - 1, col)? =
-                gain((at(rows - 1)?, 0.0), (rows / 2) as usize, v).0;
-        }
-    }
-    Ok(w)
 }
 
 /// Largest side (pixels) of the central window [`edge_blur_sigma_px`] looks at.
@@ -458,26 +457,20 @@ pub fn edge_blur_sigma_px(img: &Mat, noise_sigma: f64) -> Result<Option<f64>, Re
 #[cfg(test)]
 mod tests {
     use super::*;
-    use opencv::core::{Point, Size, Vec2f, CV_8UC1, DFT_COMPLEX_OUTPUT};
+    use opencv::core::{Point, Rect, Size, Vec2f, CV_8UC1, DFT_COMPLEX_OUTPUT};
     use opencv::imgproc;
 
-    /// [`wiener_spectrum`] as sessions 1–37 made it: `W` on the full complex
-    /// spectrum of the same PSF grid, packed by a round trip through the
-    /// image domain (two more DFTs); the reference the packed construction
-    /// must equal.
-    fn wiener_spectrum_by_round_trip(
-        rows: i32,
-        cols: i32,
-        psf: &GgPsf,
-        k: f64,
-    ) -> Result<Mat, RestoreError> {
+    /// `W = H*/(|H|² + K(ρ))` on the full complex spectrum (OpenCV's DFT of
+    /// the same PSF grid), as sessions 1–37 made it before packing it: the
+    /// reference [`apply_wiener`]'s filter must equal.
+    fn wiener_on_full_spectrum(rows: i32, cols: i32, psf: &GgPsf, k: f64) -> Mat {
+        let grid = wrapped_psf(rows as usize, cols as usize, psf);
+        let grid = Mat::new_rows_cols_with_data(rows, cols, &grid)
+            .unwrap()
+            .try_clone()
+            .unwrap();
         let mut hc = Mat::default();
-        core::dft(
-            &wrapped_psf(rows, cols, psf)?,
-            &mut hc,
-            DFT_COMPLEX_OUTPUT,
-            0,
-        )?;
+        core::dft(&grid, &mut hc, DFT_COMPLEX_OUTPUT, 0).unwrap();
         // Signal spectrum shape g(ρ) = 1/(1 + (ρ/ρ0)²), scaled so its mean is
         // the measured signal variance: K(ρ) = K·mean(g)/g(ρ).
         let shape = |u: i32, v: i32| {
@@ -494,7 +487,7 @@ mod tests {
         }
         mean_g /= (rows * cols) as f64;
         for u in 0..rows {
-            let row = hc.at_row_mut::<Vec2f>(u)?;
+            let row = hc.at_row_mut::<Vec2f>(u).unwrap();
             for v in 0..cols {
                 let e = &mut row[v as usize];
                 let (re, im) = (e[0] as f64, e[1] as f64);
@@ -503,23 +496,14 @@ mod tests {
                 e[1] = (-im / d) as f32;
             }
         }
-        let mut w = Mat::default();
-        core::dft(
-            &hc,
-            &mut w,
-            core::DFT_INVERSE | DFT_REAL_OUTPUT | DFT_SCALE,
-            0,
-        )?;
-        let mut packed = Mat::default();
-        core::dft(&w, &mut packed, 0, 0)?;
-        Ok(packed)
+        hc
     }
 
     #[test]
-    fn the_packed_filter_is_the_one_made_on_the_full_spectrum() {
-        // Even sizes (every size `round_dft` gives) and odd ones (the packed
-        // layout without the Nyquist row or column); a Gaussian halo and a
-        // heavy-tailed one with unscattered light; a low and a high K.
+    fn the_filter_is_the_one_made_on_the_full_spectrum() {
+        // Even sizes (every size `round_dft` gives) and odd ones (no
+        // Nyquist row or column); a Gaussian halo and a heavy-tailed one
+        // with unscattered light; a low and a high K.
         let psfs = [
             GgPsf {
                 p: 2.0,
@@ -532,28 +516,26 @@ mod tests {
                 direct: 0.35,
             },
         ];
+        let (mut planner, mut work) = (Dft2Planner::default(), Dft2Work::default());
         for (rows, cols) in [(96, 96), (160, 192), (64, 90), (45, 63), (33, 40), (40, 33)] {
+            let dft = planner.plan(rows, cols);
             for psf in &psfs {
+                let t = Transfer::new(&dft, psf, &mut work).unwrap();
                 for k in [2e-3, 0.1] {
-                    let packed =
-                        wiener_spectrum(&Transfer::new(rows, cols, psf).unwrap(), k).unwrap();
-                    let reference = wiener_spectrum_by_round_trip(rows, cols, psf, k).unwrap();
-                    let mut diff = Mat::default();
-                    core::absdiff(&packed, &reference, &mut diff).unwrap();
-                    let (mut worst, mut largest) = (0.0, 0.0);
-                    core::min_max_loc(&diff, None, Some(&mut worst), None, None, &core::no_array())
-                        .unwrap();
-                    let mut abs = Mat::default();
-                    core::absdiff(&reference, &Scalar::all(0.0), &mut abs).unwrap();
-                    core::min_max_loc(
-                        &abs,
-                        None,
-                        Some(&mut largest),
-                        None,
-                        None,
-                        &core::no_array(),
-                    )
-                    .unwrap();
+                    // The filter itself: applied to a spectrum of ones.
+                    let mut w = vec![Complex32::new(1.0, 0.0); dft.spectrum_len()];
+                    apply_wiener(&t, k, &mut w);
+                    let reference = wiener_on_full_spectrum(rows as i32, cols as i32, psf, k);
+                    let (mut worst, mut largest) = (0f32, 0f32);
+                    for u in 0..rows {
+                        let row = reference.at_row::<Vec2f>(u as i32).unwrap();
+                        for v in 0..dft.half() {
+                            let (want, got) = (row[v], w[v * rows + u]);
+                            worst =
+                                worst.max((want[0] - got.re).abs().max((want[1] - got.im).abs()));
+                            largest = largest.max(want[0].abs().max(want[1].abs()));
+                        }
+                    }
                     assert!(
                         largest > 0.5,
                         "{rows}x{cols}: the filter is not empty ({largest})"
@@ -563,6 +545,94 @@ mod tests {
                         "{rows}x{cols}, {psf:?}, K {k}: differs by {worst} (largest {largest})"
                     );
                 }
+            }
+        }
+    }
+
+    /// [`Wiener::deconvolve`] as sessions 1–43 ran it, in OpenCV: the same
+    /// padding, `dft` with the full complex spectrum, the filter of
+    /// [`wiener_on_full_spectrum`], the inverse, `convertTo`.
+    fn deconvolve_in_opencv(src: &Mat, psf: &GgPsf, nsr: f64) -> Mat {
+        let r = (psf.radius_px() / 2).max(4);
+        let (h, w) = (src.rows(), src.cols());
+        let rows = round_dft(h + 2 * r).unwrap();
+        let cols = round_dft(w + 2 * r).unwrap();
+        let border = if h > rows - h - r && w > cols - w - r && h > r && w > r {
+            BORDER_REFLECT_101
+        } else {
+            core::BORDER_REPLICATE
+        };
+        let mut padded = Mat::default();
+        core::copy_make_border(
+            src,
+            &mut padded,
+            r,
+            rows - h - r,
+            r,
+            cols - w - r,
+            border,
+            Scalar::all(0.0),
+        )
+        .unwrap();
+        let mean = core::mean(&padded, &core::no_array()).unwrap()[0];
+        let mut f = Mat::default();
+        padded.convert_to(&mut f, CV_32F, 1.0, -mean).unwrap();
+        let mut spec = Mat::default();
+        core::dft(&f, &mut spec, DFT_COMPLEX_OUTPUT, 0).unwrap();
+        let filter = wiener_on_full_spectrum(rows, cols, psf, quantize_nsr(nsr));
+        let mut prod = Mat::default();
+        core::mul_spectrums(&spec, &filter, &mut prod, 0, false).unwrap();
+        let mut g = Mat::default();
+        let inverse = core::DFT_INVERSE | core::DFT_REAL_OUTPUT | core::DFT_SCALE;
+        core::dft(&prod, &mut g, inverse, 0).unwrap();
+        let mut out = Mat::default();
+        Mat::roi(&g, Rect::new(r, r, w, h))
+            .unwrap()
+            .convert_to(&mut out, CV_8U, 1.0, mean)
+            .unwrap();
+        out
+    }
+
+    #[test]
+    fn the_deconvolution_is_opencvs_to_a_grey_level() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let psf = GgPsf {
+            p: 1.1,
+            sigma_px: 3.3,
+            direct: 0.2,
+        };
+        let mut wiener = Wiener::new();
+        // Even and odd sides, one smaller than the padding (replicated).
+        for (h, w) in [(70, 90), (33, 41), (5, 120), (128, 128)] {
+            // Bars of random levels under noise: edges to ring, flats to keep.
+            let mut src = Mat::new_rows_cols_with_default(h, w, CV_8UC1, Scalar::all(0.0)).unwrap();
+            let levels: Vec<f64> = (0..16).map(|_| rng.gen_range(20.0..230.0)).collect();
+            for y in 0..h {
+                let row = src.at_row_mut::<u8>(y).unwrap();
+                for (x, v) in row.iter_mut().enumerate() {
+                    let level = levels[(x / 7 + y as usize / 11) % levels.len()];
+                    *v = (level + rng.gen_range(-6.0..6.0)).round() as u8;
+                }
+            }
+            for nsr in [1e-3, 0.05] {
+                let ours = wiener.deconvolve(&src, &psf, nsr).unwrap();
+                let theirs = deconvolve_in_opencv(&src, &psf, nsr);
+                let mut diff = Mat::default();
+                core::absdiff(&ours, &theirs, &mut diff).unwrap();
+                let mut worst = 0.0;
+                core::min_max_loc(&diff, None, Some(&mut worst), None, None, &core::no_array())
+                    .unwrap();
+                let differing = core::count_non_zero(&diff).unwrap();
+                assert!(
+                    worst <= 1.0 && f64::from(differing) <= 0.01 * f64::from(h * w),
+                    "{h}x{w}, NSR {nsr}: {differing} pixels differ, by up to {worst}"
+                );
+                // Not trivially equal: the deconvolution changed the image.
+                assert!(
+                    mean_abs_diff(&ours, &src) > 1.0,
+                    "{h}x{w}: nothing deconvolved"
+                );
             }
         }
     }
