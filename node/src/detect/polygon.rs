@@ -10,8 +10,60 @@
 //! from its chord while that is more than `eps` off, then one pass that
 //! drops a vertex lying within `eps / √2` of the line through its
 //! neighbours, between them, on a side neither horizontal nor vertical.
+//!
+//! Also `cv::isContourConvex` ([`is_convex`]) and `cv::boundingRect`
+//! ([`bounding_box`]) of integer points, which the quad search asks of
+//! every such contour (~1 900 a frame through the realistic camera's
+//! noise), each an allocation and a call into OpenCV before.
 
-use opencv::core::Point;
+use opencv::core::{Point, Rect};
+
+/// Whether the closed polygon `pts` is convex as `cv::isContourConvex`
+/// decides it: every turn between consecutive sides the same way, none
+/// straight (a repeated point or three in a line is not convex); no point
+/// is (nor are one or two points: their turns are straight).
+pub fn is_convex(pts: &[Point]) -> bool {
+    let n = pts.len();
+    if n == 0 {
+        return false;
+    }
+    let (mut prev, mut cur) = (pts[(2 * n - 2) % n], pts[n - 1]);
+    let (mut dx0, mut dy0) = (cur.x - prev.x, cur.y - prev.y);
+    let mut orientation = 0u8;
+    for &p in pts {
+        (prev, cur) = (cur, p);
+        let (dx, dy) = (cur.x - prev.x, cur.y - prev.y);
+        let (dxdy0, dydx0) = (
+            i64::from(dx) * i64::from(dy0),
+            i64::from(dy) * i64::from(dx0),
+        );
+        orientation |= match dydx0.cmp(&dxdy0) {
+            std::cmp::Ordering::Greater => 1,
+            std::cmp::Ordering::Less => 2,
+            std::cmp::Ordering::Equal => 3,
+        };
+        if orientation == 3 {
+            return false;
+        }
+        (dx0, dy0) = (dx, dy);
+    }
+    true
+}
+
+/// The smallest upright rectangle holding every point of `pts`, as
+/// `cv::boundingRect` gives it (width and height count pixels: one point
+/// is 1x1; none is empty).
+pub fn bounding_box(pts: &[Point]) -> Rect {
+    let Some(first) = pts.first() else {
+        return Rect::new(0, 0, 0, 0);
+    };
+    let (mut x0, mut y0, mut x1, mut y1) = (first.x, first.y, first.x, first.y);
+    for p in &pts[1..] {
+        (x0, x1) = (x0.min(p.x), x1.max(p.x));
+        (y0, y1) = (y0.min(p.y), y1.max(p.y));
+    }
+    Rect::new(x0, y0, x1 - x0 + 1, y1 - y0 + 1)
+}
 
 /// The polygon of the closed contour `pts` at tolerance `eps` (pixels),
 /// written to `out` (cleared first).
@@ -216,5 +268,63 @@ mod tests {
             compared > 3_000 && quads > 50,
             "{compared} compared, {quads} quads"
         );
+    }
+
+    #[test]
+    fn convexity_and_bounding_box_are_opencvs() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(12);
+        let (mut convex, mut not) = (0usize, 0usize);
+        // Random quads in a small grid (so straight turns and repeated
+        // points come up), random polygons of 3–8 points, and the empty,
+        // one- and two-point cases.
+        for case in 0..20_000 {
+            let n = match case % 10 {
+                0 => rng.gen_range(0..3),
+                1..=6 => 4,
+                _ => rng.gen_range(3..9),
+            };
+            let side = [3, 6, 40][case % 3];
+            let pts: Vec<Point> = (0..n)
+                .map(|_| Point::new(rng.gen_range(-side..side), rng.gen_range(-side..side)))
+                .collect();
+            if n == 0 {
+                // OpenCV 4.6 asserts on an empty contour (its 4.x source
+                // returns false for none).
+                assert!(!is_convex(&pts));
+                continue;
+            }
+            let v = Vector::<Point>::from_slice(&pts);
+            let want = imgproc::is_contour_convex(&v).unwrap();
+            assert_eq!(is_convex(&pts), want, "{pts:?}");
+            if n >= 3 {
+                if want {
+                    convex += 1;
+                } else {
+                    not += 1;
+                }
+            }
+            assert_eq!(
+                bounding_box(&pts),
+                imgproc::bounding_rect(&v).unwrap(),
+                "{pts:?}"
+            );
+        }
+        // Convex quads in both orientations, straight turns, repeats.
+        let p = |v: &[(i32, i32)]| v.iter().map(|&(x, y)| Point::new(x, y)).collect::<Vec<_>>();
+        for pts in [
+            p(&[(0, 0), (4, 0), (4, 4), (0, 4)]),
+            p(&[(0, 0), (0, 4), (4, 4), (4, 0)]),
+            p(&[(0, 0), (2, 0), (4, 0), (0, 4)]),
+            p(&[(0, 0), (0, 0), (4, 4), (0, 4)]),
+            p(&[(0, 0), (4, 4), (4, 0), (0, 4)]),
+        ] {
+            let v = Vector::<Point>::from_slice(&pts);
+            assert_eq!(
+                is_convex(&pts),
+                imgproc::is_contour_convex(&v).unwrap(),
+                "{pts:?}"
+            );
+        }
+        assert!(convex > 2_000 && not > 2_000, "{convex} convex, {not} not");
     }
 }

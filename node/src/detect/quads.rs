@@ -20,7 +20,7 @@
 
 use super::contours::Contours;
 use super::geom::{mean_side, min_side, signed_area2, Px};
-use super::polygon::approx_closed;
+use super::polygon::{approx_closed, bounding_box, is_convex};
 use super::{DetectError, DetectParams};
 use crate::mat::GrayView;
 use opencv::core::{Mat, Point, Rect, Size, ToInputArray, Vector};
@@ -747,8 +747,11 @@ const BLOB_CONTRAST: f64 = 0.5;
 struct SumTable<'a> {
     view: GrayView<'a>,
     /// `(width + 1) x (height + 1)`, row-major; entry (x, y) sums the pixels
-    /// above and left of it.
-    sums: Vec<u64>,
+    /// above and left of it, modulo 2³²: a rectangle's sum, the wrapping
+    /// difference of four entries, is exact for any rectangle of fewer than
+    /// 2³²/255 (16.8 million) pixels; the blob test asks for a blob's
+    /// neighbourhood, a few hundred.
+    sums: Vec<u32>,
 }
 
 impl<'a> SumTable<'a> {
@@ -763,13 +766,20 @@ impl<'a> SumTable<'a> {
     fn sum(&mut self, x0: i32, y0: i32, x1: i32, y1: i32) -> (f64, f64) {
         let (w, h) = (self.view.width, self.view.height);
         if self.sums.is_empty() {
-            self.sums = vec![0u64; (w + 1) * (h + 1)];
+            // Each line: the row's running sums, then the line above added.
+            let stride = w + 1;
+            self.sums.reserve_exact(stride * (h + 1));
+            self.sums.resize(stride, 0);
             for y in 0..h {
-                let mut run = 0u64;
-                let row = self.view.row(y);
-                for x in 0..w {
-                    run += u64::from(row[x]);
-                    self.sums[(y + 1) * (w + 1) + x + 1] = self.sums[y * (w + 1) + x + 1] + run;
+                let mut run = 0u32;
+                self.sums.push(0);
+                self.sums.extend(self.view.row(y)[..w].iter().map(|&v| {
+                    run = run.wrapping_add(u32::from(v));
+                    run
+                }));
+                let (above, line) = self.sums[y * stride..].split_at_mut(stride);
+                for (s, &a) in line.iter_mut().zip(above.iter()) {
+                    *s = s.wrapping_add(a);
                 }
             }
         }
@@ -779,8 +789,11 @@ impl<'a> SumTable<'a> {
             return (0.0, 0.0);
         }
         let at = |x: usize, y: usize| self.sums[y * (w + 1) + x];
-        let s = at(x1, y1) + at(x0, y0) - at(x0, y1) - at(x1, y0);
-        (s as f64, ((x1 - x0) * (y1 - y0)) as f64)
+        let s = at(x1, y1)
+            .wrapping_add(at(x0, y0))
+            .wrapping_sub(at(x0, y1))
+            .wrapping_sub(at(x1, y0));
+        (f64::from(s), ((x1 - x0) * (y1 - y0)) as f64)
     }
 
     /// How much darker the pixels inside `rect` (x, y, width, height) are
@@ -869,8 +882,7 @@ fn contour_quad(
         return Ok(joined());
     }
     approx_closed(c, params.approx_epsilon * perim, approx);
-    let blob =
-        approx.len() != 4 || !imgproc::is_contour_convex(&Vector::<Point>::from_slice(approx))?;
+    let blob = approx.len() != 4 || !is_convex(approx);
     if blob && (scale <= 1.0 || perim > 4.0 * params.full_res_region_max_side_px / scale) {
         return Ok(joined());
     }
@@ -882,12 +894,12 @@ fn contour_quad(
         }
         // Darker than what surrounds it, as a marker with its quiet zone
         // is and sensor noise's speckle is not.
-        // OpenCV's own copy of the outline, for its hull.
-        let c = Vector::<Point>::from_slice(c);
-        let r = imgproc::bounding_rect(&c)?;
+        let r = bounding_box(c);
         if table.contrast([r.x, r.y, r.width, r.height]) < BLOB_CONTRAST * params.min_contrast {
             return Ok(Shape::Neither);
         }
+        // OpenCV's own copy of the outline, for its hull.
+        let c = Vector::<Point>::from_slice(c);
         let mut hull: Vector<Point> = Vector::new();
         imgproc::convex_hull(&c, &mut hull, true, true)?;
         let hull_perim = closed_length(hull.as_slice());

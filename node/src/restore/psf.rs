@@ -114,7 +114,12 @@ impl GgPsf {
 
     /// Unnormalized profile `exp(−(r/A)^p)`.
     pub fn profile(&self, r: f64) -> f64 {
-        (-(r / self.scale_px()).powf(self.p)).exp()
+        self.profile_with_scale(r, self.scale_px())
+    }
+
+    /// [`Self::profile`] with `A` ([`Self::scale_px`]) given, for many radii.
+    fn profile_with_scale(&self, r: f64, scale_px: f64) -> f64 {
+        (-(r / scale_px).powf(self.p)).exp()
     }
 
     /// `direct` as used (clamped to 0..1; NaN as 0).
@@ -285,6 +290,14 @@ fn round_dft(n: i32) -> Result<i32, RestoreError> {
 /// row-major f32.
 fn wrapped_psf(rows: usize, cols: usize, psf: &GgPsf) -> Vec<f32> {
     let r = psf.radius_px().max(0) as usize;
+    // The profile at each offset (dx, dy) within the radius, made once: the
+    // grid's four quadrants repeat it.
+    let scale = psf.scale_px();
+    let profile: Vec<f64> = (0..=r)
+        .flat_map(|dy| {
+            (0..=r).map(move |dx| psf.profile_with_scale((dx as f64).hypot(dy as f64), scale))
+        })
+        .collect();
     let mut grid = vec![0f32; rows * cols];
     let mut sum = 0.0;
     for (y, row) in grid.chunks_exact_mut(cols).enumerate() {
@@ -297,7 +310,7 @@ fn wrapped_psf(rows: usize, cols: usize, psf: &GgPsf) -> Vec<f32> {
             if dx > r {
                 continue;
             }
-            let v = psf.profile((dx as f64).hypot(dy as f64));
+            let v = profile[dy * (r + 1) + dx];
             *cell = v as f32;
             sum += v;
         }
