@@ -889,6 +889,12 @@ fn feather_into(dst: &mut Mat, region: &Mat, r: Rect, frame: Rect) -> Result<(),
     let top = r.y > frame.y;
     let right = r.x + r.width < frame.x + frame.width;
     let bottom = r.y + r.height < frame.y + frame.height;
+    let width = r.width.max(0) as usize;
+    // Columns this far from both sides are the region's own in every row
+    // the vertical ramp leaves alone: (x + 0.5) and (width − x − 0.5) ≥
+    // FEATHER_PX + 0.5 > FEATHER_PX.
+    let band = (FEATHER_PX as usize + 1).min(width);
+    let middle = band..width.saturating_sub(band).max(band);
     for y in 0..r.height {
         let dy_top = if top { y as f32 + 0.5 } else { f32::INFINITY };
         let dy_bot = if bottom {
@@ -899,19 +905,29 @@ fn feather_into(dst: &mut Mat, region: &Mat, r: Rect, frame: Rect) -> Result<(),
         let wy = (dy_top.min(dy_bot) / f).min(1.0);
         let src = region.at_row::<u8>(y)?;
         let out = &mut dst.at_row_mut::<u8>(r.y + y)?[r.x as usize..(r.x + r.width) as usize];
-        for x in 0..r.width as usize {
+        let blend = |x: usize, o: &mut u8| {
             let dx_l = if left { x as f32 + 0.5 } else { f32::INFINITY };
             let dx_r = if right {
-                (r.width as usize - x) as f32 - 0.5
+                (width - x) as f32 - 0.5
             } else {
                 f32::INFINITY
             };
             let w = wy.min((dx_l.min(dx_r) / f).min(1.0));
-            out[x] = if w >= 1.0 {
+            *o = if w >= 1.0 {
                 src[x]
             } else {
-                (w * src[x] as f32 + (1.0 - w) * out[x] as f32).round() as u8
+                (w * src[x] as f32 + (1.0 - w) * *o as f32).round() as u8
             };
+        };
+        if wy >= 1.0 {
+            out[middle.clone()].copy_from_slice(&src[middle.clone()]);
+            for x in (0..middle.start).chain(middle.end..width) {
+                blend(x, &mut out[x]);
+            }
+        } else {
+            for (x, o) in out.iter_mut().enumerate() {
+                blend(x, o);
+            }
         }
     }
     Ok(())
@@ -1065,5 +1081,87 @@ mod tests {
         }
         // Top side lies on the frame border: not blended.
         assert_eq!(at(90, 0), 200);
+    }
+
+    /// [`feather_into`] as sessions 1–43 ran it, pixel by pixel: the
+    /// reference the copied middle must equal.
+    #[allow(clippy::needless_range_loop)]
+    fn feather_into_per_pixel(
+        dst: &mut Mat,
+        region: &Mat,
+        r: Rect,
+        frame: Rect,
+    ) -> Result<(), RestoreError> {
+        let f = FEATHER_PX as f32;
+        let left = r.x > frame.x;
+        let top = r.y > frame.y;
+        let right = r.x + r.width < frame.x + frame.width;
+        let bottom = r.y + r.height < frame.y + frame.height;
+        for y in 0..r.height {
+            let dy_top = if top { y as f32 + 0.5 } else { f32::INFINITY };
+            let dy_bot = if bottom {
+                (r.height - y) as f32 - 0.5
+            } else {
+                f32::INFINITY
+            };
+            let wy = (dy_top.min(dy_bot) / f).min(1.0);
+            let src = region.at_row::<u8>(y)?;
+            let out = &mut dst.at_row_mut::<u8>(r.y + y)?[r.x as usize..(r.x + r.width) as usize];
+            for x in 0..r.width as usize {
+                let dx_l = if left { x as f32 + 0.5 } else { f32::INFINITY };
+                let dx_r = if right {
+                    (r.width as usize - x) as f32 - 0.5
+                } else {
+                    f32::INFINITY
+                };
+                let w = wy.min((dx_l.min(dx_r) / f).min(1.0));
+                out[x] = if w >= 1.0 {
+                    src[x]
+                } else {
+                    (w * src[x] as f32 + (1.0 - w) * out[x] as f32).round() as u8
+                };
+            }
+        }
+        Ok(())
+    }
+
+    #[test]
+    fn feathering_is_the_pixel_by_pixel_blend() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let frame = Rect::new(0, 0, 120, 90);
+        let mut base = Mat::new_rows_cols_with_default(90, 120, CV_8UC1, Scalar::all(0.0)).unwrap();
+        for y in 0..90 {
+            for v in base.at_row_mut::<u8>(y).unwrap() {
+                *v = rng.gen();
+            }
+        }
+        let mut blended = 0usize;
+        for case in 0..300 {
+            // Regions narrower and wider than two ramps, on and off each side.
+            let (w, h) = (rng.gen_range(1..=120), rng.gen_range(1..=90));
+            let r = Rect::new(rng.gen_range(0..=120 - w), rng.gen_range(0..=90 - h), w, h);
+            let mut region =
+                Mat::new_rows_cols_with_default(h, w, CV_8UC1, Scalar::all(0.0)).unwrap();
+            for y in 0..h {
+                for v in region.at_row_mut::<u8>(y).unwrap() {
+                    *v = rng.gen();
+                }
+            }
+            let (mut ours, mut theirs) = (base.try_clone().unwrap(), base.try_clone().unwrap());
+            feather_into(&mut ours, &region, r, frame).unwrap();
+            feather_into_per_pixel(&mut theirs, &region, r, frame).unwrap();
+            let mut diff = Mat::default();
+            core::absdiff(&ours, &theirs, &mut diff).unwrap();
+            assert_eq!(
+                core::count_non_zero(&diff).unwrap(),
+                0,
+                "case {case}, {r:?}"
+            );
+            let mut changed = Mat::default();
+            core::absdiff(&ours, &base, &mut changed).unwrap();
+            blended += core::count_non_zero(&changed).unwrap() as usize;
+        }
+        assert!(blended > 100_000, "{blended} pixels changed");
     }
 }
