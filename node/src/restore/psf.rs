@@ -218,29 +218,8 @@ impl Wiener {
         psf: &GgPsf,
         nsr: f64,
     ) -> Result<Mat, RestoreError> {
-        // Reflect by half the kernel radius: the kernel's mass beyond it is
-        // small, and what wraps around lands in the region's outer margin.
-        let r = (psf.radius_px() / 2).max(4);
-        let (h, w) = (src.rows(), src.cols());
-        let rows = round_dft(h + 2 * r)?;
-        let cols = round_dft(w + 2 * r)?;
-        let mut padded = Mat::default();
-        // Reflection needs the source to be larger than the pad; replicate beyond.
-        let border = if h > rows - h - r && w > cols - w - r && h > r && w > r {
-            BORDER_REFLECT_101
-        } else {
-            core::BORDER_REPLICATE
-        };
-        core::copy_make_border(
-            src,
-            &mut padded,
-            r,
-            rows - h - r,
-            r,
-            cols - w - r,
-            border,
-            Scalar::all(0.0),
-        )?;
+        let (padded, r) = padded_for_dft(src, psf)?;
+        let (h, w, rows, cols) = (src.rows(), src.cols(), padded.rows(), padded.cols());
         let mean = core::mean(&padded, &core::no_array())?[0];
         let dft = self.planner.plan(rows as usize, cols as usize);
         let mut image = std::mem::take(&mut self.image);
@@ -276,6 +255,38 @@ impl Wiener {
         (self.image, self.spectrum) = (image, spectrum);
         done
     }
+}
+
+/// `src` padded for its DFT, and the pad `r` on its top and left: by half
+/// the kernel radius (at least 4) on each side, the kernel's mass beyond it
+/// being small and what wraps around landing in the region's outer margin,
+/// then out to the DFT size ([`round_dft`]); reflected, or replicated where
+/// the source is no larger than the pad.
+fn padded_for_dft(
+    src: &(impl MatTraitConst + core::ToInputArray),
+    psf: &GgPsf,
+) -> Result<(Mat, i32), RestoreError> {
+    let r = (psf.radius_px() / 2).max(4);
+    let (h, w) = (src.rows(), src.cols());
+    let rows = round_dft(h + 2 * r)?;
+    let cols = round_dft(w + 2 * r)?;
+    let border = if h > rows - h - r && w > cols - w - r && h > r && w > r {
+        BORDER_REFLECT_101
+    } else {
+        core::BORDER_REPLICATE
+    };
+    let mut padded = Mat::default();
+    core::copy_make_border(
+        src,
+        &mut padded,
+        r,
+        rows - h - r,
+        r,
+        cols - w - r,
+        border,
+        Scalar::all(0.0),
+    )?;
+    Ok((padded, r))
 }
 
 /// The DFT size used for `n` samples: a multiple of 32 (for cache reuse)
@@ -566,27 +577,8 @@ mod tests {
     /// padding, `dft` with the full complex spectrum, the filter of
     /// [`wiener_on_full_spectrum`], the inverse, `convertTo`.
     fn deconvolve_in_opencv(src: &Mat, psf: &GgPsf, nsr: f64) -> Mat {
-        let r = (psf.radius_px() / 2).max(4);
-        let (h, w) = (src.rows(), src.cols());
-        let rows = round_dft(h + 2 * r).unwrap();
-        let cols = round_dft(w + 2 * r).unwrap();
-        let border = if h > rows - h - r && w > cols - w - r && h > r && w > r {
-            BORDER_REFLECT_101
-        } else {
-            core::BORDER_REPLICATE
-        };
-        let mut padded = Mat::default();
-        core::copy_make_border(
-            src,
-            &mut padded,
-            r,
-            rows - h - r,
-            r,
-            cols - w - r,
-            border,
-            Scalar::all(0.0),
-        )
-        .unwrap();
+        let (padded, r) = padded_for_dft(src, psf).unwrap();
+        let (h, w, rows, cols) = (src.rows(), src.cols(), padded.rows(), padded.cols());
         let mean = core::mean(&padded, &core::no_array()).unwrap()[0];
         let mut f = Mat::default();
         padded.convert_to(&mut f, CV_32F, 1.0, -mean).unwrap();
